@@ -1,0 +1,40 @@
+"""The packings command line, run as a user runs it."""
+
+import json
+import subprocess
+import sys
+
+
+def run(*args):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=600)
+
+
+def test_enumerate_prints_the_table():
+    r = run("enumerate", "7", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "n = 7: 5 rigid clusters" in r.stdout
+    assert "diagnostics:" in r.stdout
+
+
+def test_enumerate_json(paper_counts):
+    r = run("enumerate", "8", "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["n"] == 8 and out["total"] == paper_counts["totals"]["8"]
+    assert out["by_contacts"] == paper_counts["clusters_by_contacts"]["8"]
+    assert out["diagnostics"]["expansions"] == 13
+
+
+def test_bad_n_is_one_line_and_nonzero():
+    for n in ("3", "500"):
+        r = run("enumerate", n)
+        assert r.returncode != 0
+        assert r.stdout == ""
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("packings: error:"), r.stderr
+        assert "Traceback" not in r.stderr
+
+
+def test_help():
+    r = run("enumerate", "--help")
+    assert r.returncode == 0 and "--max-break" in r.stdout

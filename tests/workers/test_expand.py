@@ -1,0 +1,78 @@
+"""expand(): one cluster's paths; invariance under rotation, reflection and relabelling."""
+
+from collections import Counter
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from workers.cluster import Cluster
+from workers.expand import CIRCULAR, NOT_1D, break_sizes, expand
+from workers.identity import certificate_hex
+from workers.params import Params
+from workers.paths import RIGID
+from workers.seeds import seed_cluster
+
+P = Params()
+
+
+def _endpoint_keys(ex):
+    return Counter((e.outcome, certificate_hex(e.cluster) if e.cluster is not None else None) for e in ex.endpoints)
+
+
+def test_break_sizes():
+    assert list(break_sizes(10, 24, P)) == [1]
+    assert list(break_sizes(10, 25, P)) == [1, 2]
+    assert list(break_sizes(10, 23, P)) == [1]  # hypostatic clusters still get single breaks
+    assert list(break_sizes(14, 40, P)) == [1, 2, 3]  # capped by max_break
+    assert list(break_sizes(14, 40, P.with_(max_break=5))) == [1, 2, 3, 4, 5]
+
+
+def test_expand_octahedron_reaches_only_itself_and_the_polytetrahedron():
+    seed = seed_cluster(6)
+    ex = expand(seed, P)
+    assert ex.subsets_tried == 12
+    ends = {certificate_hex(e.cluster) for e in ex.endpoints if e.outcome in (RIGID, CIRCULAR)}
+    assert len(ends) == 2  # n = 6 has two rigid clusters
+    for e in ex.endpoints:
+        if e.cluster is not None:
+            assert e.cluster.m == 12
+            assert e.cluster.min_distance() > 1 - 1e-5
+            assert len(e.broken) == 1 and e.direction in (1, -1)
+
+
+def test_expand_is_pure():
+    c = seed_cluster(7)
+    a, b = expand(c, P), expand(c, P)
+    assert _endpoint_keys(a) == _endpoint_keys(b)
+    for x, y in zip(a.endpoints, b.endpoints):
+        if x.cluster is not None:
+            assert np.array_equal(x.cluster.coords, y.cluster.coords)
+
+
+@settings(max_examples=6, deadline=None, derandomize=True)
+@given(st.integers(0, 2**31 - 1), st.booleans())
+def test_expand_invariant_under_rotation_reflection_relabelling(seed, reflect):
+    rng = np.random.default_rng(seed)
+    c = seed_cluster(7)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    if reflect:
+        q = q @ np.diag([1.0, 1.0, -1.0])
+    perm = rng.permutation(c.n)
+    inv = np.argsort(perm)
+    moved = Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts])
+    a, b = expand(c, P), expand(moved, P)
+    assert _endpoint_keys(a) == _endpoint_keys(b)
+
+
+def test_hyperstatic_cluster_breaks_pairs():
+    import json
+    from pathlib import Path
+
+    d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    c = Cluster.from_dict(d["n10_m25_first-order"])
+    ex = expand(c, P)
+    sizes = Counter(len(e.broken) for e in ex.endpoints if e.outcome in (RIGID, CIRCULAR))
+    assert sizes[2] > 0
+    singles = [e for e in ex.endpoints if len(e.broken) == 1]
+    assert any(e.outcome == NOT_1D and e.dim == 0 for e in singles)

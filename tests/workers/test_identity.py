@@ -1,0 +1,371 @@
+"""Tests of workers.identity: certificates, canonical labelling, automorphisms, geometry."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pynauty
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from workers.cluster import Cluster
+from workers.identity import (
+    ClusterIndex,
+    automorphisms,
+    canonical_labelling,
+    certificate,
+    certificate_hex,
+    find_match,
+    same_geometry,
+)
+from workers.params import DEFAULT
+
+TOL_D = DEFAULT.tol_d
+H_TET = np.sqrt(2.0 / 3.0)  # height of a unit tetrahedron above a face
+
+SETTINGS = settings(derandomize=True, max_examples=25, deadline=None, database=None)
+
+
+# --------------------------------------------------------------------------- builders
+
+
+def glue(x: np.ndarray, face: tuple[int, int, int], side: float) -> np.ndarray:
+    """Centre of a sphere touching the three spheres of ``face`` (side = +-1)."""
+    a, b, c = x[list(face)]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal)
+    return (a + b + c) / 3.0 + side * H_TET * normal
+
+
+def glue_away(x: np.ndarray, face: tuple[int, int, int], away: int) -> np.ndarray:
+    """The gluing position on the side of ``face`` away from sphere ``away``."""
+    p, q = glue(x, face, 1.0), glue(x, face, -1.0)
+    return p if np.linalg.norm(p - x[away]) > np.linalg.norm(q - x[away]) else q
+
+
+def tetrahedron_coords() -> np.ndarray:
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, np.sqrt(3.0) / 2.0, 0.0]])
+    return np.vstack([x, glue(x, (0, 1, 2), 1.0)])
+
+
+def tetrahedron() -> Cluster:
+    return Cluster.from_coords(tetrahedron_coords())
+
+
+def octahedron() -> Cluster:
+    e = np.eye(3) / np.sqrt(2.0)
+    return Cluster.from_coords(np.vstack([e, -e]))
+
+
+def bipyramid() -> Cluster:
+    x = tetrahedron_coords()
+    return Cluster.from_coords(np.vstack([x, glue_away(x, (0, 1, 2), 3)]))
+
+
+def polytetrahedron() -> Cluster:
+    """Three tetrahedra sharing the edge 0-1 (n = 6, 12 contacts)."""
+    x = tetrahedron_coords()
+    x = np.vstack([x, glue_away(x, (0, 1, 2), 3)])  # sphere 4
+    x = np.vstack([x, glue_away(x, (0, 1, 4), 2)])  # sphere 5
+    return Cluster.from_coords(x)
+
+
+def random_glued(n: int, seed: int) -> Cluster:
+    """Glue spheres onto random faces (triangles of touching spheres) of a
+    tetrahedron until there are n, rejecting overlaps and near-contacts."""
+    rng = np.random.default_rng(seed)
+    x = tetrahedron_coords()
+    while len(x) < n:
+        c = Cluster.from_coords(x)
+        adj = c.adjacency()
+        faces = [
+            (i, j, k)
+            for i in range(len(x))
+            for j in range(i + 1, len(x))
+            for k in range(j + 1, len(x))
+            if adj[i, j] and adj[i, k] and adj[j, k]
+        ]
+        face = faces[rng.integers(len(faces))]
+        p = glue(x, face, rng.choice([-1.0, 1.0]))
+        d = np.linalg.norm(x - p, axis=1)
+        if np.any(d < 1.0 - 1e-9) or np.any((d > 1.0 + 1e-9) & (d < 1.0 + 1e-3)):
+            continue
+        x = np.vstack([x, p])
+    return Cluster.from_coords(x)
+
+
+def chain(dihedral_deg: float, angle_deg: float = 120.0) -> Cluster:
+    """4-sphere chain 0-1-2-3 with unit bonds, bond angles ``angle_deg`` and
+    dihedral angle ``dihedral_deg``; contacts given explicitly."""
+    th, ph = np.radians(angle_deg), np.radians(dihedral_deg)
+    p0 = np.array([0.0, 0.0, 0.0])
+    p1 = np.array([1.0, 0.0, 0.0])
+    p2 = p1 + np.array([-np.cos(th), np.sin(th), 0.0])
+    bc = (p2 - p1) / np.linalg.norm(p2 - p1)
+    nrm = np.cross(p1 - p0, bc)
+    nrm /= np.linalg.norm(nrm)
+    m = np.cross(nrm, bc)
+    p3 = p2 + (-np.cos(th)) * bc + np.sin(th) * np.cos(ph) * m + np.sin(th) * np.sin(ph) * nrm
+    return Cluster(np.array([p0, p1, p2, p3]), ((0, 1), (1, 2), (2, 3)))
+
+
+CLUSTERS = {
+    "tetrahedron": tetrahedron(),
+    "bipyramid": bipyramid(),
+    "octahedron": octahedron(),
+    "polytetrahedron": polytetrahedron(),
+    "glued8": random_glued(8, 3),
+    "glued9": random_glued(9, 5),
+    "glued10": random_glued(10, 11),
+    "chain60": chain(60.0),
+}
+
+
+# --------------------------------------------------------------------------- transforms
+
+
+def random_orthogonal(rng: np.random.Generator, reflect: bool) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q = q * np.sign(np.diag(r))
+    if (np.linalg.det(q) < 0) != reflect:
+        q[:, 0] = -q[:, 0]
+    return q
+
+
+def relabel(cluster: Cluster, perm: np.ndarray, coords: np.ndarray | None = None) -> Cluster:
+    """New sphere k is old sphere perm[k]; contacts mapped explicitly."""
+    inv = np.argsort(perm)
+    x = cluster.coords if coords is None else coords
+    return Cluster(x[perm], tuple((int(inv[i]), int(inv[j])) for i, j in cluster.contacts))
+
+
+def transformed(cluster: Cluster, seed: int, reflect: bool, noise: float = 0.0) -> Cluster:
+    """Rotated (improperly if ``reflect``), translated, relabelled, optionally noisy copy."""
+    rng = np.random.default_rng(seed)
+    q = random_orthogonal(rng, reflect)
+    t = rng.uniform(-5.0, 5.0, size=3)
+    x = cluster.coords @ q.T + t + rng.uniform(-noise, noise, size=cluster.coords.shape)
+    return relabel(cluster, rng.permutation(cluster.n), x)
+
+
+names = st.sampled_from(sorted(CLUSTERS))
+seeds = st.integers(0, 2**32 - 1)
+
+
+# --------------------------------------------------------------------------- builders sanity
+
+
+def test_test_clusters_are_what_they_claim() -> None:
+    for name, c in CLUSTERS.items():
+        assert c.min_distance() >= 1.0 - 1e-9, name
+    assert (CLUSTERS["tetrahedron"].n, CLUSTERS["tetrahedron"].m) == (4, 6)
+    assert (CLUSTERS["bipyramid"].n, CLUSTERS["bipyramid"].m) == (5, 9)
+    assert (CLUSTERS["octahedron"].n, CLUSTERS["octahedron"].m) == (6, 12)
+    assert (CLUSTERS["polytetrahedron"].n, CLUSTERS["polytetrahedron"].m) == (6, 12)
+    for n in (8, 9, 10):
+        c = CLUSTERS[f"glued{n}"]
+        assert c.n == n and c.m >= 3 * n - 6
+
+
+# --------------------------------------------------------------------------- certificates
+
+
+@SETTINGS
+@given(names, seeds, st.booleans())
+def test_certificate_invariant_under_rigid_motion_and_relabelling(name, seed, reflect) -> None:
+    c = CLUSTERS[name]
+    t = transformed(c, seed, reflect)
+    assert certificate(t) == certificate(c)
+    assert certificate_hex(t) == certificate(c).hex()
+
+
+def test_certificate_hex_is_plain_hex() -> None:
+    h = certificate_hex(CLUSTERS["octahedron"])
+    assert isinstance(h, str) and h == h.lower()
+    assert bytes.fromhex(h) == certificate(CLUSTERS["octahedron"])
+
+
+def test_octahedron_and_polytetrahedron_differ() -> None:
+    assert certificate(CLUSTERS["octahedron"]) != certificate(CLUSTERS["polytetrahedron"])
+    assert not same_geometry(CLUSTERS["octahedron"], CLUSTERS["polytetrahedron"], TOL_D)
+
+
+def test_certificate_is_native_packed_canonical_adjacency() -> None:
+    """Documents the certificate layout: n rows of native-endian setwords,
+    bit j of row k (most significant first) = canonical adjacency [k, j]."""
+    for c in CLUSTERS.values():
+        cert = certificate(c)
+        p = canonical_labelling(c)
+        a = c.adjacency()[np.ix_(p, p)]
+        row_bytes = len(cert) // c.n
+        decoded = np.zeros_like(a)
+        for k in range(c.n):
+            bits = int.from_bytes(cert[k * row_bytes : (k + 1) * row_bytes], sys.byteorder)
+            for j in range(c.n):
+                decoded[k, j] = (bits >> (8 * row_bytes - 1 - j)) & 1
+        assert np.array_equal(decoded, a)
+
+
+# --------------------------------------------------------------------------- canonical labelling
+
+
+@st.composite
+def random_graphs(draw) -> Cluster:
+    n = draw(st.integers(1, 12))
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    keep = draw(st.lists(st.booleans(), min_size=len(pairs), max_size=len(pairs)))
+    return Cluster(np.zeros((n, 3)), tuple(p for p, k in zip(pairs, keep) if k))
+
+
+@SETTINGS
+@given(random_graphs(), seeds)
+def test_canonical_labelling_gives_identical_adjacency(g, seed) -> None:
+    h = relabel(g, np.random.default_rng(seed).permutation(g.n))
+    pg, ph = canonical_labelling(g), canonical_labelling(h)
+    assert sorted(pg.tolist()) == list(range(g.n))
+    assert np.array_equal(g.adjacency()[np.ix_(pg, pg)], h.adjacency()[np.ix_(ph, ph)])
+    assert certificate(g) == certificate(h)
+
+
+@SETTINGS
+@given(names, seeds, st.booleans())
+def test_canonical_labelling_of_clusters(name, seed, reflect) -> None:
+    c = CLUSTERS[name]
+    t = transformed(c, seed, reflect)
+    pc, pt = canonical_labelling(c), canonical_labelling(t)
+    assert np.array_equal(c.adjacency()[np.ix_(pc, pc)], t.adjacency()[np.ix_(pt, pt)])
+
+
+def test_canon_label_is_not_the_inverse_convention() -> None:
+    """canon_label c means 'canonical k is original c[k]', not 'original i goes to c[i]'."""
+    rng = np.random.default_rng(0)
+    g = random_glued(10, 11)
+    failures = 0
+    for _ in range(20):
+        h = relabel(g, rng.permutation(g.n))
+        ig = np.argsort(np.asarray(pynauty.canon_label(_graph(g))))
+        ih = np.argsort(np.asarray(pynauty.canon_label(_graph(h))))
+        failures += not np.array_equal(g.adjacency()[np.ix_(ig, ig)], h.adjacency()[np.ix_(ih, ih)])
+    assert failures > 0
+
+
+def _graph(c: Cluster) -> pynauty.Graph:
+    d = {i: [] for i in range(c.n)}
+    for i, j in c.contacts:
+        d[i].append(j)
+    return pynauty.Graph(c.n, adjacency_dict=d)
+
+
+# --------------------------------------------------------------------------- automorphisms
+
+
+@pytest.mark.parametrize(
+    "name,order",
+    [("tetrahedron", 24), ("bipyramid", 12), ("octahedron", 48), ("chain60", 2), ("polytetrahedron", 4)],
+)
+def test_automorphism_group_orders(name, order) -> None:
+    assert len(automorphisms(CLUSTERS[name])) == order
+
+
+@pytest.mark.parametrize("name", sorted(CLUSTERS))
+def test_automorphisms_form_the_group_of_the_canonical_graph(name) -> None:
+    c = CLUSTERS[name]
+    p = canonical_labelling(c)
+    a = c.adjacency()[np.ix_(p, p)]
+    group = automorphisms(c)
+    assert np.array_equal(group[0], np.arange(c.n))
+    keys = {s.tobytes() for s in group}
+    assert len(keys) == len(group)
+    for s in group:
+        assert sorted(s.tolist()) == list(range(c.n))
+        assert np.array_equal(a[np.ix_(s, s)], a)
+    for s in group:
+        for t in group:
+            assert s[t].tobytes() in keys
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+@SETTINGS
+@given(names, seeds, st.booleans())
+def test_same_geometry_under_rigid_motion_and_relabelling(name, seed, reflect) -> None:
+    c = CLUSTERS[name]
+    t = transformed(c, seed, reflect)
+    assert same_geometry(c, t, TOL_D)
+    assert same_geometry(t, c, TOL_D)
+
+
+@SETTINGS
+@given(names, seeds, st.booleans())
+def test_small_noise_keeps_same_geometry(name, seed, reflect) -> None:
+    c = CLUSTERS[name]
+    assert same_geometry(c, transformed(c, seed, reflect, noise=1e-7), TOL_D)
+
+
+@SETTINGS
+@given(names, seeds, st.booleans(), st.data())
+def test_perturbing_one_sphere_breaks_same_geometry(name, seed, reflect, data) -> None:
+    c = CLUSTERS[name]
+    k = data.draw(st.integers(0, c.n - 1))
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=3)
+    x = c.coords.copy()
+    x[k] += 1e-3 * u / np.linalg.norm(u)
+    moved = Cluster(x, c.contacts)  # same graph by construction
+    assert certificate(moved) == certificate(c)
+    assert not same_geometry(c, transformed(moved, seed, reflect), TOL_D)
+
+
+def test_same_graph_different_geometry() -> None:
+    a, b = chain(60.0), chain(120.0)
+    assert a.min_distance() >= 1.0 - 1e-9 and b.min_distance() >= 1.0 - 1e-9
+    assert certificate(a) == certificate(b)
+    assert not same_geometry(a, b, TOL_D)
+
+
+def test_mirror_image_is_the_same_cluster() -> None:
+    plus, minus = chain(60.0), chain(-60.0)
+    assert same_geometry(plus, minus, TOL_D)
+    # ... and only because reflections are allowed: no proper rotation matches.
+    x = plus.coords - plus.coords.mean(axis=0)
+    for perm in ([0, 1, 2, 3], [3, 2, 1, 0]):
+        y = minus.coords[perm] - minus.coords.mean(axis=0)
+        u, _, vt = np.linalg.svd(x.T @ y)
+        d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+        assert np.max(np.abs(x @ (u @ d @ vt) - y)) > 1e-3
+
+
+def test_different_sizes_are_different() -> None:
+    assert not same_geometry(CLUSTERS["tetrahedron"], CLUSTERS["bipyramid"], TOL_D)
+
+
+# --------------------------------------------------------------------------- find_match / index
+
+
+def test_find_match() -> None:
+    c = CLUSTERS["chain60"]
+    candidates = [chain(120.0), chain(90.0), transformed(c, 7, True), c]
+    assert find_match(c, candidates, TOL_D) == 2
+    assert find_match(c, candidates[:2], TOL_D) is None
+    assert find_match(c, [], TOL_D) is None
+    assert find_match(c, iter(candidates), TOL_D) == 2
+
+
+def test_cluster_index() -> None:
+    idx = ClusterIndex()
+    assert len(idx) == 0
+    assert idx.add(chain(60.0), TOL_D) == (0, True)
+    assert idx.add(chain(120.0), TOL_D) == (1, True)
+    assert idx.add(chain(-60.0), TOL_D) == (0, False)  # mirror image
+    assert idx.add(transformed(chain(120.0), 3, False, noise=1e-7), TOL_D) == (1, False)
+    assert idx.embedding_number(0) == 0 and idx.embedding_number(1) == 1
+    assert idx.add(CLUSTERS["octahedron"], TOL_D) == (2, True)
+    assert idx.add(CLUSTERS["polytetrahedron"], TOL_D) == (3, True)
+    assert idx.add(transformed(CLUSTERS["octahedron"], 9, True), TOL_D) == (2, False)
+    assert idx.embedding_number(2) == 0 and idx.embedding_number(3) == 0
+    assert len(idx) == 4
+    assert idx[2] is CLUSTERS["octahedron"]
+    assert [c.n for c in idx] == [4, 4, 6, 6]

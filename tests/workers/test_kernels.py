@@ -1,0 +1,100 @@
+"""Kernels: residuals, the rigidity matrix, Newton projection, null spaces."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from workers import kernels
+from workers.params import Params
+from workers.seeds import seed_cluster
+
+P = Params()
+
+
+def _flat(c):
+    return np.ascontiguousarray(c.coords).ravel().copy()
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(st.integers(5, 10), st.integers(0, 2**31 - 1))
+def test_rigidity_matrix_is_half_the_jacobian(n, seed):
+    rng = np.random.default_rng(seed)
+    c = seed_cluster(n)
+    e = c.edges()
+    x = _flat(c) + 0.1 * rng.standard_normal(3 * n)
+    y = rng.standard_normal(3 * n)
+    h = 1e-6
+    numeric = (kernels.residual(x + h * y, e) - kernels.residual(x - h * y, e)) / (2 * h)
+    R = kernels.rigidity_matrix(x, e)
+    assert np.allclose(2 * R @ y, numeric, atol=1e-6)
+    # (R(p) y)_k = (p_i - p_j).(y_i - y_j)
+    p, q = x.reshape(-1, 3), y.reshape(-1, 3)
+    direct = np.einsum("kx,kx->k", p[e[:, 0]] - p[e[:, 1]], q[e[:, 0]] - q[e[:, 1]])
+    assert np.allclose(R @ y, direct)
+
+
+def test_to_frame_pins_the_triangle_and_keeps_distances():
+    c = seed_cluster(8)
+    rng = np.random.default_rng(3)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    moved = c.coords @ q.T + rng.standard_normal(3)
+    f = kernels.to_frame(moved, (0, 1, 2))
+    assert np.allclose(f[0], 0) and np.allclose(f[1, 1:], 0) and abs(f[2, 2]) < 1e-15 and f[2, 1] > 0
+    d0 = np.linalg.norm(moved[:, None] - moved[None], axis=-1)
+    d1 = np.linalg.norm(f[:, None] - f[None], axis=-1)
+    assert np.allclose(d0, d1, atol=1e-12)
+    assert np.linalg.det(np.linalg.lstsq(moved - moved.mean(0), f - f.mean(0), rcond=None)[0]) > 0
+
+
+def test_projection_returns_to_the_constraint_set():
+    c = seed_cluster(9)
+    tri = (0, 1, 2)
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(9, tri)
+    rng = np.random.default_rng(0)
+    x0 = x.copy()
+    x0[free] += 0.01 * rng.standard_normal(free.size)
+    pr = kernels.project(x0, c.edges(), free, tol=P.tol, dx_max=P.dx_max, max_iter=P.newton_max_iter)
+    assert pr.ok
+    assert np.sum(kernels.residual(pr.x, c.edges()) ** 2) < P.tol
+    pinned = kernels.pinned_coordinates(tri)
+    assert np.array_equal(pr.x[pinned], x0[pinned])
+
+
+def test_projection_reports_failure_for_impossible_contacts():
+    # five spheres all touching each other cannot exist in 3D
+    c = seed_cluster(5)
+    edges = np.array([(i, j) for i in range(5) for j in range(i + 1, 5)])
+    x = kernels.to_frame(c.coords, (0, 1, 2)).ravel()
+    pr = kernels.project(x, edges, kernels.free_coordinates(5, (0, 1, 2)), tol=P.tol, dx_max=P.dx_max, max_iter=50)
+    assert not pr.ok
+    assert pr.residual > P.tol
+
+
+def test_polish_reaches_round_off():
+    c = seed_cluster(10)
+    tri = (0, 1, 2)
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(10, tri)
+    x0 = x + 1e-3 * np.random.default_rng(1).standard_normal(x.size) * np.isin(np.arange(x.size), free)
+    kw = dict(tol=P.tol, dx_max=P.dx_max, max_iter=P.newton_max_iter)
+    rough = kernels.project(x0, c.edges(), free, **kw)
+    fine = kernels.project(x0, c.edges(), free, polish=True, **kw)
+    assert rough.ok and fine.ok
+    assert fine.residual <= rough.residual
+    assert fine.residual < 1e-28
+
+
+def test_null_spaces_of_isostatic_cluster_minus_one_contact():
+    c = seed_cluster(8)
+    e = c.edges()
+    tri = (0, 1, 2)  # the seed's first tetrahedron
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(8, tri)
+    ns = kernels.null_spaces(x, e, free, P.tol_n)
+    assert ns.V.shape[1] == 0 and ns.W.shape[1] == 0
+    ns1 = kernels.null_spaces(x, np.delete(e, 5, 0), free, P.tol_n)
+    assert ns1.V.shape[1] == 1 and ns1.W.shape[1] == 0
+    R = kernels.rigidity_matrix(x, np.delete(e, 5, 0))
+    assert np.allclose(R @ ns1.V[:, 0], 0, atol=1e-12)
+    assert np.allclose(ns1.V[kernels.pinned_coordinates(tri), 0], 0)

@@ -1,0 +1,8 @@
+"""Pure numerics of the enumeration: no database, no Dask.
+
+Every function here is a pure function of numpy arrays and a :class:`Params`.
+"""
+
+from workers.params import DEFAULT, Params
+
+__all__ = ["Params", "DEFAULT"]

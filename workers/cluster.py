@@ -1,0 +1,88 @@
+"""Cluster representation: centres of n unit-diameter spheres and their contacts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from workers.params import DEFAULT, Params
+
+Contact = tuple[int, int]
+
+
+def pair_distances(x: np.ndarray) -> np.ndarray:
+    """Matrix of |x_i - x_j| for all pairs (n x n, zero diagonal)."""
+    d = x[:, None, :] - x[None, :, :]
+    return np.sqrt(np.einsum("ijk,ijk->ij", d, d))
+
+
+def contacts_from_coords(x: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
+    """Pairs (i, j), i < j, with |x_i - x_j| < 1 + tol_a, sorted."""
+    dist = pair_distances(x)
+    i, j = np.nonzero(np.triu(dist < 1.0 + tol_a, k=1))
+    return tuple((int(a), int(b)) for a, b in zip(i, j))
+
+
+def normalise_contacts(contacts) -> tuple[Contact, ...]:
+    """Contacts as a sorted tuple of (i, j) with i < j and no repeats."""
+    return tuple(sorted({(min(int(a), int(b)), max(int(a), int(b))) for a, b in contacts}))
+
+
+@dataclass(frozen=True, eq=False)
+class Cluster:
+    """n sphere centres (n x 3, float64) and their contact pairs (sorted, i < j)."""
+
+    coords: np.ndarray
+    contacts: tuple[Contact, ...]
+
+    def __post_init__(self) -> None:
+        x = np.ascontiguousarray(self.coords, dtype=np.float64)
+        if x.ndim != 2 or x.shape[1] != 3:
+            raise ValueError(f"coordinates must be n x 3, got shape {x.shape}")
+        x.setflags(write=False)
+        object.__setattr__(self, "coords", x)
+        object.__setattr__(self, "contacts", normalise_contacts(self.contacts))
+
+    @classmethod
+    def from_coords(cls, coords, params: Params = DEFAULT) -> "Cluster":
+        """The cluster whose contacts are the pairs closer than 1 + tol_a."""
+        x = np.asarray(coords, dtype=np.float64)
+        return cls(x, contacts_from_coords(x, params.tol_a))
+
+    @property
+    def n(self) -> int:
+        return self.coords.shape[0]
+
+    @property
+    def m(self) -> int:
+        return len(self.contacts)
+
+    def edges(self) -> np.ndarray:
+        """Contacts as an (m x 2) integer array."""
+        return np.array(self.contacts, dtype=np.int64).reshape(-1, 2)
+
+    def adjacency(self) -> np.ndarray:
+        a = np.zeros((self.n, self.n), dtype=bool)
+        e = self.edges()
+        a[e[:, 0], e[:, 1]] = True
+        a[e[:, 1], e[:, 0]] = True
+        return a
+
+    def min_distance(self) -> float:
+        """Smallest distance between two sphere centres (>= 1 - tol when valid)."""
+        d = pair_distances(self.coords)
+        return float(d[np.triu_indices(self.n, 1)].min())
+
+    def min_gap(self) -> float:
+        """Smallest distance between two non-touching spheres, minus 1 (inf if none)."""
+        d = pair_distances(self.coords)
+        mask = np.triu(~self.adjacency(), k=1)
+        return float(d[mask].min() - 1.0) if mask.any() else float("inf")
+
+    def to_dict(self) -> dict:
+        return {"coords": self.coords.tolist(), "contacts": [list(c) for c in self.contacts]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Cluster":
+        return cls(np.array(d["coords"], dtype=np.float64), tuple(tuple(c) for c in d["contacts"]))

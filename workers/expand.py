@@ -1,0 +1,127 @@
+"""Everything that happens to one cluster: the unit of work a Dask task runs."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+
+from workers import kernels
+from workers.cluster import Cluster
+from workers.dimension import solution_dimension
+from workers.identity import certificate, same_geometry
+from workers.params import Params
+from workers.paths import RIGID, PathEnd, follow_path
+from workers.rigidity import Rigidity, contact_triangle
+
+# Outcomes of one (broken subset, direction) beyond those of a path (workers.paths).
+CIRCULAR = "circular"  #: the path came back to the cluster it left
+NOT_1D = "not-1d"  #: removing the subset leaves a solution set of dimension != 1 (no path)
+NO_DIRECTION = "no-direction"  #: no tangent direction lengthens every broken contact
+NO_TRIANGLE = "no-triangle"  #: the remaining contacts hold no triangle to pin
+BELOW_MIN_CONTACTS = "below-min-contacts"  #: rigid endpoint with fewer contacts than min_contacts
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    """One attempt: the broken contacts, the direction taken, and what came of it.
+
+    ``cluster`` is set for rigid endpoints (outcome ``rigid`` or ``circular``)
+    and for other endpoints that were projected.  ``dim`` is the dimension of
+    the solution set after breaking; ``direction`` is +1 or -1 relative to the
+    tangent basis vector (0 when no path was followed).
+    """
+
+    broken: tuple[tuple[int, int], ...]
+    direction: int
+    outcome: str
+    dim: int | None = None
+    steps: int = 0
+    cluster: Cluster | None = None
+    rigidity: Rigidity | None = None
+    new_contacts: tuple[tuple[int, int], ...] = ()
+
+
+@dataclass(frozen=True)
+class Expansion:
+    """The result of :func:`expand`: every subset tried and every endpoint reached."""
+
+    source: Cluster
+    endpoints: tuple[Endpoint, ...] = field(default_factory=tuple)
+
+    @property
+    def subsets_tried(self) -> int:
+        return len({e.broken for e in self.endpoints})
+
+    @property
+    def paths_followed(self) -> int:
+        return sum(1 for e in self.endpoints if e.direction != 0)
+
+    def outcomes(self) -> Counter:
+        return Counter(e.outcome for e in self.endpoints)
+
+    def rigid_endpoints(self) -> list[Endpoint]:
+        """Endpoints that are candidate clusters (rigid and not the source)."""
+        return [e for e in self.endpoints if e.outcome == RIGID]
+
+
+def break_sizes(n: int, m: int, params: Params) -> range:
+    """Sizes of the subsets to break: 1 .. max(1, m - (3n - 6) + 1), at most max_break."""
+    return range(1, min(max(1, m - (3 * n - 6) + 1), params.max_break) + 1)
+
+
+def expand(cluster: Cluster, params: Params) -> Expansion:
+    """Break every admissible subset of contacts of ``cluster`` and follow every path.
+
+    A pure function of its inputs.  For every subset B whose removal leaves a
+    solution set of dimension exactly 1, each direction of the tangent that
+    lengthens all broken contacts (to first order; both if some are unchanged to
+    first order) is followed to its endpoint.
+    """
+    n, m = cluster.n, cluster.m
+    all_edges = cluster.edges()
+    cert = certificate(cluster)
+    out: list[Endpoint] = []
+    for k in break_sizes(n, m, params):
+        for idx in combinations(range(m), k):
+            broken = all_edges[list(idx)]
+            keep = np.delete(all_edges, list(idx), axis=0)
+            bt = tuple((int(i), int(j)) for i, j in broken)
+            tri = contact_triangle(keep)
+            if tri is None:
+                out.append(Endpoint(bt, 0, NO_TRIANGLE))
+                continue
+            x = kernels.to_frame(cluster.coords, tri).ravel()
+            free = kernels.free_coordinates(n, tri)
+            dim = solution_dimension(x, keep, free, params)
+            if dim.dim != 1:
+                out.append(Endpoint(bt, 0, NOT_1D, dim.dim))
+                continue
+            v = dim.tangents[:, 0]
+            g = np.array([_lengthening(x, v, i, j) for i, j in broken])
+            signs = [s for s in (1, -1) if np.all(s * g > -params.tol_n)]
+            if not signs:
+                out.append(Endpoint(bt, 0, NO_DIRECTION, 1))
+                continue
+            for s in signs:
+                end = follow_path(x, keep, broken, s * v, free, params)
+                out.append(_classify(cluster, cert, bt, s, end, params))
+    return Expansion(cluster, tuple(out))
+
+
+def _lengthening(x: np.ndarray, v: np.ndarray, i: int, j: int) -> float:
+    """d/ds |x_i - x_j|^2 / 2 along v: (x_i - x_j).(v_i - v_j)."""
+    return float((x[3 * i : 3 * i + 3] - x[3 * j : 3 * j + 3]) @ (v[3 * i : 3 * i + 3] - v[3 * j : 3 * j + 3]))
+
+
+def _classify(source: Cluster, cert: bytes, broken, sign: int, end: PathEnd, params: Params) -> Endpoint:
+    c = Cluster(end.coords, end.contacts) if end.coords is not None else None
+    outcome = end.outcome
+    if outcome == RIGID:
+        if certificate(c) == cert and same_geometry(source, c, params.tol_d):
+            outcome = CIRCULAR
+        elif params.min_contacts is not None and c.m < params.min_contacts:
+            outcome = BELOW_MIN_CONTACTS
+    return Endpoint(broken, sign, outcome, 1, end.steps, c, end.rigidity, end.new_contacts)

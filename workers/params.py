@@ -1,0 +1,55 @@
+"""Numerical parameters of the method (METHOD.md), with the paper's values as defaults."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+
+
+@dataclass(frozen=True)
+class Params:
+    """Every tolerance and step of the enumeration in one place.
+
+    Defaults are the values used by Holmes-Cerfon (SIAM Review 2016).  The three
+    dimension-test tolerances default to multiples of ``ds`` as in the paper;
+    they are stored explicitly so that a run records what it used.
+    """
+
+    ds: float = 5e-3  #: step along a path in the endgame, and the probe step of the dimension test
+    ds0: float = 5e-2  #: step along a path away from contacts
+    tol: float = 9e-16  #: Newton converged when sum_k f_k^2 < tol
+    tol_n: float = 1e-6  #: singular values below this count as zero
+    dx_max: float = 0.02  #: largest Newton step (2-norm)
+    tol_a: float = 1e-5  #: two spheres touch if their distance is below 1 + tol_a
+    tol_a0: float = 1e-3  #: a path stops when a pair comes within 1 + tol_a0
+    tol_d: float = 1e-5  #: two clusters are identical if their geometry agrees within tol_d
+    x_tol_max: float = field(default=None)  # type: ignore[assignment]
+    x_tol_min: float = field(default=None)  # type: ignore[assignment]
+    v_tol: float = field(default=None)  # type: ignore[assignment]
+    tol_psd: float = 1e-5  #: smallest eigenvalue that counts as positive in the pre-stress test
+    newton_max_iter: int = 200  #: Newton iterations before a projection is reported as failed
+    max_path_steps: int = 3000  #: steps along one path before it is abandoned
+    max_break: int = 3  #: largest number of contacts broken at once
+    min_contacts: int | None = None  #: keep only rigid clusters with at least this many contacts
+
+    def __post_init__(self) -> None:
+        if self.x_tol_max is None:
+            object.__setattr__(self, "x_tol_max", 10 * self.ds)
+        if self.x_tol_min is None:
+            object.__setattr__(self, "x_tol_min", self.ds / 8)
+        if self.v_tol is None:
+            object.__setattr__(self, "v_tol", 2 * self.ds)
+        if self.max_break < 1:
+            raise ValueError("max_break must be at least 1")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Params":
+        return cls(**d)
+
+    def with_(self, **changes) -> "Params":
+        return replace(self, **changes)
+
+
+DEFAULT = Params()

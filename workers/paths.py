@@ -1,0 +1,146 @@
+"""Following a one-dimensional path from a rigid cluster to its next rigid cluster (METHOD.md)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+
+from workers import kernels
+from workers.cluster import contacts_from_coords, pair_distances
+from workers.dimension import solution_dimension
+from workers.params import Params
+from workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces
+
+# Outcomes of one path.
+RIGID = "rigid"  #: ended at a rigid cluster
+FLOPPY = "floppy"  #: ended where new contacts form but the cluster is not rigid
+UNDECIDED_END = "undecided"  #: ended at a cluster the pre-stress test could not decide
+PROJECTION_FAILED = "projection-failed"  #: no projection with any subset of the new contacts, or a step could not be projected
+DIMENSION_CHANGED = "dimension-changed"  #: after the first step the solution set was not one-dimensional
+SHORTENS = "shortens"  #: the direction shortens a broken contact (the spheres would overlap)
+OVERLAP = "overlap"  #: the projected endpoint has overlapping spheres
+TOO_LONG = "too-long"  #: max_path_steps reached without a new contact
+
+
+@dataclass(frozen=True)
+class PathEnd:
+    """Where a path ended.  ``coords`` and ``contacts`` are set when an endpoint was projected."""
+
+    outcome: str
+    steps: int
+    coords: np.ndarray | None = None
+    contacts: tuple[tuple[int, int], ...] | None = None
+    rigidity: Rigidity | None = None
+    new_contacts: tuple[tuple[int, int], ...] = ()
+
+
+def non_contact_pairs(n: int, edges: np.ndarray) -> np.ndarray:
+    """All pairs (i < j) that are not in ``edges``, as a (k x 2) array."""
+    mask = np.triu(np.ones((n, n), dtype=bool), k=1)
+    mask[edges[:, 0], edges[:, 1]] = False
+    mask[edges[:, 1], edges[:, 0]] = False
+    i, j = np.nonzero(mask)
+    return np.stack([i, j], axis=1).astype(np.int64)
+
+
+def follow_path(
+    x: np.ndarray,
+    keep: np.ndarray,
+    broken: np.ndarray,
+    tangent: np.ndarray,
+    free: np.ndarray,
+    params: Params,
+) -> PathEnd:
+    """Follow the path of {f_keep = 0} from x along ``tangent`` until a new contact forms.
+
+    Predictor step of length h along the tangent, Newton projection, new tangent
+    = the previous one projected (least squares) onto the null space of R at the
+    new point.  Steps are ds0 until a non-contact pair that is approaching comes
+    within 1 + tol_a0; then the step is redone with ds (endgame), halving it
+    whenever a pair would overlap by more than tol_a0, until an approaching pair
+    is within 1 + tol_a0 of contact.  The dimension is re-checked after the first
+    step.  The new contacts are then added and the point projected; if that
+    fails, subsets of the new contacts are deleted until it succeeds.
+    """
+    n = x.size // 3
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
+    pairs = non_contact_pairs(n, keep)
+    broken_set = {tuple(b) for b in broken.tolist()}
+    broken_idx = np.array([k for k, p in enumerate(pairs.tolist()) if tuple(p) in broken_set], dtype=np.int64)
+    d_prev = kernels.pair_distances_flat(x, pairs)
+    t = tangent / np.linalg.norm(tangent)
+    h_max = params.ds0
+    h = h_max
+    h_min = params.ds / 1024
+    first = True
+    steps = 0
+    while steps < params.max_path_steps:
+        pr = kernels.project(x + h * t, keep, free, **kw)
+        if not pr.ok or (pr.x - x) @ t <= 0.0:
+            h /= 2
+            if h < h_min:
+                return PathEnd(PROJECTION_FAILED, steps)
+            continue
+        xn = pr.x
+        d = kernels.pair_distances_flat(xn, pairs)
+        if first and broken_idx.size and (d[broken_idx] <= d_prev[broken_idx]).any():
+            return PathEnd(SHORTENS, steps)
+        hit = (d < d_prev) & (d < 1.0 + params.tol_a0)
+        if hit.any():
+            if h_max > params.ds:  # back up and approach with the small step
+                h_max = params.ds
+                h = min(h, h_max)
+                continue
+            if (d[hit] < 1.0 - params.tol_a0).any():
+                h /= 2
+                if h < h_min:
+                    return PathEnd(PROJECTION_FAILED, steps)
+                continue
+            return _endpoint(xn, keep, pairs[hit], free, params, steps + 1)
+        ns = kernels.null_spaces(xn, keep, free, params.tol_n)
+        V = ns.V
+        if first:
+            dim = solution_dimension(xn, keep, free, params, ns)
+            if dim.dim != 1:
+                return PathEnd(DIMENSION_CHANGED, steps + 1)
+            V = dim.tangents
+        if V.shape[1] == 0:
+            return PathEnd(DIMENSION_CHANGED, steps + 1)
+        tn = V @ (V.T @ t)
+        norm = np.linalg.norm(tn)
+        if norm < 1e-8:
+            return PathEnd(DIMENSION_CHANGED, steps + 1)
+        t = tn / norm
+        x, d_prev = xn, d
+        steps += 1
+        first = False
+        h = min(2 * h, h_max)
+    return PathEnd(TOO_LONG, steps)
+
+
+def _endpoint(x, keep, new, free, params: Params, steps: int) -> PathEnd:
+    """Add the new contacts, project, and classify the endpoint."""
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
+    new_t = tuple((int(i), int(j)) for i, j in new)
+    pr = None
+    for r in range(0, len(new)):
+        for drop in combinations(range(len(new)), r):
+            sel = np.array([k for k in range(len(new)) if k not in drop], dtype=np.int64)
+            edges = np.vstack([keep, new[sel]])
+            pr = kernels.project(x, edges, free, polish=True, **kw)
+            if pr.ok:
+                break
+        if pr is not None and pr.ok:
+            break
+    if pr is None or not pr.ok:
+        return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+    coords = pr.x.reshape(-1, 3)
+    contacts = contacts_from_coords(coords, params.tol_a)
+    if pair_distances(coords)[np.triu_indices(coords.shape[0], 1)].min() < 1.0 - params.tol_a:
+        return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=new_t)
+    edges = np.array(contacts, dtype=np.int64)
+    rig = rigidity_from_null_spaces(kernels.null_spaces(pr.x, edges, free, params.tol_n), edges, params)
+    outcome = RIGID if rig.rigid else (UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
+    return PathEnd(outcome, steps, coords, contacts, rig, new_t)

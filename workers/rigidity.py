@@ -1,0 +1,150 @@
+"""Rigidity of a cluster: first order, then pre-stress stability (METHOD.md, "Rigidity")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from workers import kernels
+from workers.params import Params
+
+FIRST_ORDER = "first-order"  #: V empty
+PRESTRESS = "prestress"  #: V non-empty, some stress combination makes Q definite
+FLOPPY = "floppy"  #: V non-empty and W empty: dimension |V| > 0
+UNDECIDED = "undecided"  #: V and W non-empty, no definite combination found
+
+
+@dataclass(frozen=True)
+class Rigidity:
+    """What the rigidity test found.
+
+    ``rigid`` is True for first-order rigid and pre-stress stable clusters.
+    ``flexes`` = dim V, ``stresses`` = dim W.  ``method`` says which test
+    decided (``first-order``, ``single-flex``, ``single-stress``, ``e_k``,
+    ``sdp``, ``no-stress``); ``margin`` is the smallest eigenvalue of the best
+    stress combination found (or the SDP's t).
+    """
+
+    rigid: bool
+    kind: str
+    flexes: int
+    stresses: int
+    method: str
+    margin: float | None = None
+
+    @property
+    def singular(self) -> bool:
+        return self.rigid and self.flexes > 0
+
+
+def stress_forms(V: np.ndarray, W: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Q^(k)_ij = w_k^T R(v_i) v_j = sum_e w_k[e] (v_i[a_e]-v_i[b_e]).(v_j[a_e]-v_j[b_e]).
+
+    Returns an array of shape (b, a, a), symmetric in its last two axes.
+    """
+    n3, a = V.shape
+    vs = V.T.reshape(a, n3 // 3, 3)
+    dv = vs[:, edges[:, 0], :] - vs[:, edges[:, 1], :]  # (a, m, 3)
+    return np.einsum("ek,iex,jex->kij", W, dv, dv)
+
+
+def _svec(m: np.ndarray) -> np.ndarray:
+    """Clarabel's scaled vectorisation: upper triangle by columns, off-diagonals times sqrt 2."""
+    a = m.shape[0]
+    out = []
+    for j in range(a):
+        for i in range(j + 1):
+            out.append(m[i, j] if i == j else np.sqrt(2.0) * m[i, j])
+    return np.array(out)
+
+
+def sdp_margin(Q: np.ndarray) -> float | None:
+    """max t subject to sum_k c_k Q^(k) - t I >= 0 (PSD), |c_k| <= 1, solved with Clarabel.
+
+    Returns t, or None if the solver did not reach a solution.
+    """
+    import clarabel
+
+    b, a, _ = Q.shape
+    nz = b + 1  # variables c_1..c_b, t
+    svec_len = a * (a + 1) // 2
+    a_box = np.hstack([np.vstack([np.eye(b), -np.eye(b)]), np.zeros((2 * b, 1))])
+    a_psd = np.zeros((svec_len, nz))
+    for k in range(b):
+        a_psd[:, k] = -_svec(Q[k])
+    a_psd[:, b] = _svec(np.eye(a))
+    A = sp.csc_matrix(np.vstack([a_box, a_psd]))
+    rhs = np.concatenate([np.ones(2 * b), np.zeros(svec_len)])
+    q = np.zeros(nz)
+    q[b] = -1.0
+    P = sp.csc_matrix((nz, nz))
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    solver = clarabel.DefaultSolver(P, q, A, rhs, [clarabel.NonnegativeConeT(2 * b), clarabel.PSDTriangleConeT(a)], settings)
+    sol = solver.solve()
+    if str(sol.status) not in ("Solved", "AlmostSolved"):
+        return None
+    return float(sol.x[b])
+
+
+def prestress_test(Q: np.ndarray, tol_psd: float) -> tuple[bool, str, float | None]:
+    """Is some combination sum_k c_k Q^(k) definite?  Cheap cases first, the SDP last.
+
+    Returns (rigid, method, margin).
+    """
+    b, a, _ = Q.shape
+    if a == 1:
+        q = np.abs(Q[:, 0, 0])
+        return bool(q.max() > tol_psd), "single-flex", float(q.max())
+    best = -np.inf
+    for k in range(b):
+        ev = np.linalg.eigvalsh(Q[k])
+        best = max(best, ev[0], -ev[-1])
+        if best > tol_psd:
+            return True, "single-stress" if b == 1 else "e_k", float(best)
+    if b == 1:
+        return False, "single-stress", float(best)
+    t = sdp_margin(Q)
+    if t is None:
+        return False, "sdp-failed", float(best)
+    return bool(t > tol_psd), "sdp", t
+
+
+def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params: Params) -> Rigidity:
+    """The rigidity test of METHOD.md given V and W."""
+    a, b = ns.V.shape[1], ns.W.shape[1]
+    if a == 0:
+        return Rigidity(True, FIRST_ORDER, 0, b, "first-order")
+    if b == 0:
+        return Rigidity(False, FLOPPY, a, 0, "no-stress")
+    Q = stress_forms(ns.V, ns.W, edges)
+    rigid, method, margin = prestress_test(Q, params.tol_psd)
+    return Rigidity(rigid, PRESTRESS if rigid else UNDECIDED, a, b, method, margin)
+
+
+def contact_triangle(edges, forbidden=()) -> tuple[int, int, int] | None:
+    """The lexicographically first triangle (a, b, c) of contacts, avoiding ``forbidden`` contacts."""
+    es = {(int(i), int(j)) for i, j in edges} - {tuple(e) for e in forbidden}
+    nbr: dict[int, set[int]] = {}
+    for i, j in es:
+        nbr.setdefault(i, set()).add(j)
+        nbr.setdefault(j, set()).add(i)
+    for i, j in sorted(es):
+        common = nbr[i] & nbr[j]
+        if common:
+            return (i, j, min(common))
+    return None
+
+
+def rigidity(coords: np.ndarray, contacts, params: Params) -> Rigidity:
+    """Rigidity test of a cluster given its coordinates (n x 3) and contacts."""
+    edges = np.array(contacts, dtype=np.int64).reshape(-1, 2)
+    tri = contact_triangle(edges)
+    if tri is None:
+        raise ValueError("cluster has no triangle of contacts to pin")
+    n = coords.shape[0]
+    x = kernels.to_frame(np.asarray(coords, dtype=np.float64), tri).ravel()
+    ns = kernels.null_spaces(x, edges, kernels.free_coordinates(n, tri), params.tol_n)
+    return rigidity_from_null_spaces(ns, edges, params)
