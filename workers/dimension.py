@@ -36,13 +36,17 @@ def solution_dimension(
     """Dimension of {f = 0} near x, with the pinned coordinates fixed.
 
     If R has full row rank and no more rows than columns, D = |V|.  Otherwise the
-    rigidity test decides D = 0, and failing that the numerical estimate:
-    for each v_j in V and each sign, step x + s ds v_j, project back (first with
-    the correction orthogonal to v_j, then without), accept the displacement
-    v_t = x' - x if x_tol_min <= |v_t| <= x_tol_max, and keep its unit direction
-    if its part orthogonal to the directions already found exceeds v_tol.  A
-    pair of opposite probes along one v_j is combined into their difference,
-    which cancels the curvature of the path to second order.
+    rigidity test decides D = 0, and failing that the numerical estimate of
+    METHOD.md: for each v_j in V and each sign, step to x + s ds0 v_j and project
+    back (first with the correction orthogonal to v_j, then, if that fails or is
+    rejected, without).  The displacement v_t = x' - x is rejected if
+    |v_t| > x_tol_max or |v_t| < x_tol_min; otherwise its part orthogonal to the
+    directions already found is kept as a new direction if it is longer than
+    v_tol.  With the paper's values (ds0 = 10 ds, x_tol_max = 10 ds,
+    x_tol_min = ds / 8, v_tol = 2 ds) a displacement is accepted when it is no
+    longer than the probe step, and a new direction needs an orthogonal part of
+    a fifth of it: the curvature of a path (about ds0^2 kappa / 2) stays well
+    below that, a second genuine direction well above it.
     """
     if ns is None:
         ns = kernels.null_spaces(x, edges, free, params.tol_n)
@@ -52,39 +56,28 @@ def solution_dimension(
     rig = rigidity_from_null_spaces(ns, edges, params)
     if rig.rigid:
         return Dimension(0, V[:, :0], "rigid", rig)
-    h = params.ds
     basis: list[np.ndarray] = []
     for j in range(V.shape[1]):
-        v = V[:, j]
-        probes = []
         for s in (1.0, -1.0):
-            vt = _probe(x, v, s * h, edges, free, params)
-            if vt is not None:
-                probes.append(vt)
-        if len(probes) == 2 and probes[0] @ probes[1] < -0.9 * np.linalg.norm(probes[0]) * np.linalg.norm(probes[1]):
-            probes = [probes[0] - probes[1]]
-        for vt in probes:
-            u = vt / np.linalg.norm(vt)
+            vt = _probe(x, V[:, j], s * params.ds0, edges, free, params)
+            if vt is None:
+                continue
             for b in basis:
-                u = u - (b @ u) * b
-            r = np.linalg.norm(u)
+                vt = vt - (b @ vt) * b
+            r = np.linalg.norm(vt)
             if r > params.v_tol:
-                basis.append(u / r)
+                basis.append(vt / r)
     t = np.stack(basis, axis=1) if basis else V[:, :0]
     return Dimension(len(basis), t, "numerical", rig)
 
 
 def _probe(x, v, step, edges, free, params: Params) -> np.ndarray | None:
-    """Displacement to the solution set from x + step v, or None if it is rejected."""
+    """Displacement x' - x to the solution set from x + step v, or None if it is rejected."""
     x0 = x + step * v
     kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
-    pr = kernels.project(x0, edges, free, extra=(v[free][None, :], np.array([v[free] @ x0[free]])), **kw)
-    if not pr.ok or np.linalg.norm(pr.x - x) > params.x_tol_max:
-        pr = kernels.project(x0, edges, free, **kw)
-    if not pr.ok:
-        return None
-    vt = pr.x - x
-    size = np.linalg.norm(vt)
-    if size > params.x_tol_max or size < params.x_tol_min:
-        return None
-    return vt
+    orthogonal = (v[free][None, :], np.array([v[free] @ x0[free]]))
+    for extra in (orthogonal, None):
+        pr = kernels.project(x0, edges, free, extra=extra, **kw)
+        if pr.ok and params.x_tol_min <= np.linalg.norm(pr.x - x) <= params.x_tol_max:
+            return pr.x - x
+    return None

@@ -67,9 +67,24 @@ class Expansion:
         return [e for e in self.endpoints if e.outcome == RIGID]
 
 
-def break_sizes(n: int, m: int, params: Params) -> range:
-    """Sizes of the subsets to break: 1 .. max(1, m - (3n - 6) + 1), at most max_break."""
-    return range(1, min(max(1, m - (3 * n - 6) + 1), params.max_break) + 1)
+def break_sizes(m: int, rank: int, params: Params) -> range:
+    """Sizes of the subsets to break: 1 .. max(1, m - rank + 1), at most max_break.
+
+    ``rank`` is the rank of the pinned rigidity matrix.  For a regular cluster it
+    is 3n - 6 and this is METHOD.md's m - (3n - 6) + 1 (with single breaks for
+    hypostatic clusters).  A singular cluster has rank < 3n - 6: each missing
+    rank is a linear flex held by a stress, and breaking one more contact can
+    still leave a one-dimensional set, so it gets one more size per flex.
+    """
+    return range(1, min(max(1, m - rank + 1), params.max_break) + 1)
+
+
+def cluster_rank(cluster: Cluster, params: Params) -> int:
+    """Rank of the rigidity matrix of ``cluster`` with a contact triangle pinned."""
+    tri = contact_triangle(cluster.edges())
+    x = kernels.to_frame(cluster.coords, tri).ravel()
+    ns = kernels.null_spaces(x, cluster.edges(), kernels.free_coordinates(cluster.n, tri), params.tol_n)
+    return 3 * cluster.n - 6 - ns.V.shape[1]
 
 
 def expand(cluster: Cluster, params: Params) -> Expansion:
@@ -84,7 +99,7 @@ def expand(cluster: Cluster, params: Params) -> Expansion:
     all_edges = cluster.edges()
     cert = certificate(cluster)
     out: list[Endpoint] = []
-    for k in break_sizes(n, m, params):
+    for k in break_sizes(m, cluster_rank(cluster, params), params):
         for idx in combinations(range(m), k):
             broken = all_edges[list(idx)]
             keep = np.delete(all_edges, list(idx), axis=0)

@@ -14,8 +14,8 @@ class Params:
     they are stored explicitly so that a run records what it used.
     """
 
-    ds: float = 5e-3  #: step along a path in the endgame, and the probe step of the dimension test
-    ds0: float = 5e-2  #: step along a path away from contacts
+    ds: float = 5e-3  #: step along a path in the endgame
+    ds0: float = 5e-2  #: step along a path away from contacts, and the probe step of the dimension test
     tol: float = 9e-16  #: Newton converged when sum_k f_k^2 < tol
     tol_n: float = 1e-6  #: singular values below this count as zero
     dx_max: float = 0.02  #: largest Newton step (2-norm)

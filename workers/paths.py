@@ -57,7 +57,10 @@ def follow_path(
 
     Predictor step of length h along the tangent, Newton projection, new tangent
     = the previous one projected (least squares) onto the null space of R at the
-    new point.  Steps are ds0 until a non-contact pair that is approaching comes
+    new point.  The first step is ds, so that the dimension re-check after it
+    looks at the solution set near the start (from a singular cluster a large
+    first step lands on whatever surrounds a singular path); the step then
+    doubles up to ds0, until a non-contact pair that is approaching comes
     within 1 + tol_a0; then the step is redone with ds (endgame), halving it
     whenever a pair would overlap by more than tol_a0, until an approaching pair
     is within 1 + tol_a0 of contact.  The dimension is re-checked after the first
@@ -72,7 +75,7 @@ def follow_path(
     d_prev = kernels.pair_distances_flat(x, pairs)
     t = tangent / np.linalg.norm(tangent)
     h_max = params.ds0
-    h = h_max
+    h = min(params.ds, h_max)
     h_min = params.ds / 1024
     first = True
     steps = 0

@@ -21,11 +21,13 @@ def _endpoint_keys(ex):
 
 
 def test_break_sizes():
-    assert list(break_sizes(10, 24, P)) == [1]
-    assert list(break_sizes(10, 25, P)) == [1, 2]
-    assert list(break_sizes(10, 23, P)) == [1]  # hypostatic clusters still get single breaks
-    assert list(break_sizes(14, 40, P)) == [1, 2, 3]  # capped by max_break
-    assert list(break_sizes(14, 40, P.with_(max_break=5))) == [1, 2, 3, 4, 5]
+    assert list(break_sizes(24, 24, P)) == [1]  # n = 10, regular isostatic
+    assert list(break_sizes(25, 24, P)) == [1, 2]  # regular, one stress
+    assert list(break_sizes(24, 23, P)) == [1, 2]  # singular: one flex held by one stress
+    assert list(break_sizes(23, 22, P)) == [1, 2]  # hypostatic singular
+    assert list(break_sizes(20, 24, P)) == [1]  # never fewer than single breaks
+    assert list(break_sizes(40, 36, P)) == [1, 2, 3]  # capped by max_break
+    assert list(break_sizes(40, 36, P.with_(max_break=5))) == [1, 2, 3, 4, 5]
 
 
 def test_expand_octahedron_reaches_only_itself_and_the_polytetrahedron():
