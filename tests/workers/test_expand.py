@@ -78,3 +78,25 @@ def test_hyperstatic_cluster_breaks_pairs():
     assert sizes[2] > 0
     singles = [e for e in ex.endpoints if len(e.broken) == 1]
     assert any(e.outcome == NOT_1D and e.dim == 0 for e in singles)
+
+
+def test_every_path_of_the_bipyramid_is_circular():
+    """n = 5 has one rigid cluster: each of its 9 contacts opens a path back to itself."""
+    ex = expand(seed_cluster(5), P)
+    assert ex.subsets_tried == 9
+    assert set(ex.outcomes()) == {CIRCULAR}
+    assert ex.rigid_endpoints() == []
+
+
+def test_rigid_endpoints_are_exact_and_record_how_they_were_reached():
+    c = seed_cluster(8)
+    ex = expand(c, P)
+    ends = ex.rigid_endpoints()
+    assert ends
+    for e in ends:
+        x = e.cluster.coords
+        for i, j in e.cluster.contacts:
+            assert abs(np.linalg.norm(x[i] - x[j]) - 1) < 1e-12
+        assert e.cluster.min_distance() > 1 - 1e-12
+        assert e.new_contacts and set(e.new_contacts) <= set(e.cluster.contacts)
+        assert e.rigidity.rigid and e.steps > 0

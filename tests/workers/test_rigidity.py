@@ -137,3 +137,45 @@ def test_undecided_kind_when_stresses_do_not_help():
     rigid, method, _ = prestress_test(Q, P.tol_psd)
     assert not rigid and method == "single-flex"
     assert UNDECIDED == "undecided"
+
+
+def test_hypostatic_cluster_is_prestress_stable():
+    """The n = 10 cluster with 23 contacts (from our own enumeration): two flexes, one stress.
+
+    No single stress combination is needed beyond +-Q: the 2 x 2 form is definite.
+    """
+    c = fixture("n10_m23_prestress")
+    assert c.m == 23 == 3 * c.n - 7
+    r = rigidity(c.coords, c.contacts, P)
+    assert r.rigid and r.singular and r.kind == PRESTRESS
+    assert (r.flexes, r.stresses) == (2, 1)
+    assert r.margin > 1e-2
+
+
+def test_hypostatic_cluster_minus_a_contact_is_not_rigid():
+    c = fixture("n10_m23_prestress")
+    for k in range(0, c.m, 5):
+        r = rigidity(c.coords, c.contacts[:k] + c.contacts[k + 1 :], P)
+        assert not (r.rigid and r.kind == FIRST_ORDER)
+        assert r.flexes >= 2
+
+
+def _random_motion(rng, c, reflect):
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    if reflect:
+        q = q @ np.diag([1.0, 1.0, -1.0])
+    perm = rng.permutation(c.n)
+    inv = np.argsort(perm)
+    return Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts])
+
+
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(st.sampled_from(sorted(FIXTURES)), st.integers(0, 2**31 - 1), st.booleans())
+def test_rigidity_invariant_under_rotation_reflection_relabelling(name, seed, reflect):
+    c = fixture(name)
+    moved = _random_motion(np.random.default_rng(seed), c, reflect)
+    a, b = rigidity(c.coords, c.contacts, P), rigidity(moved.coords, moved.contacts, P)
+    assert (a.rigid, a.kind, a.flexes, a.stresses) == (b.rigid, b.kind, b.flexes, b.stresses)
+    # the margin's size depends on which triangle is pinned (it scales the flexes); its sign does not
+    if a.margin is not None:
+        assert (a.margin > P.tol_psd) == (b.margin > P.tol_psd)
