@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from workers import kernels
-from workers.cluster import Cluster, pair_distances
+from workers.cluster import Cluster
 from workers.params import DEFAULT, Params
 from workers.rigidity import rigidity
 
@@ -81,7 +81,3 @@ def seed_cluster(n: int, params: Params = DEFAULT) -> Cluster:
         raise RuntimeError("seed cluster is not rigid")
     return c
 
-
-def min_pair_distance(cluster: Cluster) -> float:
-    d = pair_distances(cluster.coords)
-    return float(d[np.triu_indices(cluster.n, 1)].min())
