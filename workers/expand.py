@@ -13,7 +13,7 @@ from workers.cluster import Cluster
 from workers.dimension import solution_dimension
 from workers.identity import certificate, same_geometry
 from workers.params import Params
-from workers.paths import RIGID, PathEnd, follow_path
+from workers.paths import DIMENSION_CHANGED, RIGID, PathEnd, follow_path
 from workers.rigidity import Rigidity, contact_triangle
 
 # Outcomes of one (broken subset, direction) beyond those of a path (workers.paths).
@@ -42,6 +42,7 @@ class Endpoint:
     cluster: Cluster | None = None
     rigidity: Rigidity | None = None
     new_contacts: tuple[tuple[int, int], ...] = ()
+    first_step_dim: int | None = None  #: dimension of the path's set after its first step
 
 
 @dataclass(frozen=True)
@@ -58,6 +59,11 @@ class Expansion:
     @property
     def paths_followed(self) -> int:
         return sum(1 for e in self.endpoints if e.direction != 0)
+
+    @property
+    def widened_paths(self) -> int:
+        """Paths whose set was more than one-dimensional after the first step (and went on)."""
+        return sum(1 for e in self.endpoints if e.first_step_dim is not None and e.first_step_dim > 1 and e.outcome != DIMENSION_CHANGED)
 
     def outcomes(self) -> Counter:
         return Counter(e.outcome for e in self.endpoints)
@@ -139,4 +145,4 @@ def _classify(source: Cluster, cert: bytes, broken, sign: int, end: PathEnd, par
             outcome = CIRCULAR
         elif params.min_contacts is not None and c.m < params.min_contacts:
             outcome = BELOW_MIN_CONTACTS
-    return Endpoint(broken, sign, outcome, 1, end.steps, c, end.rigidity, end.new_contacts)
+    return Endpoint(broken, sign, outcome, 1, end.steps, c, end.rigidity, end.new_contacts, end.first_step_dim)

@@ -29,6 +29,7 @@ class Catalogue:
     outcomes: Counter = field(default_factory=Counter)
     expansions: int = 0
     paths_followed: int = 0
+    widened_paths: int = 0
     seconds: float = 0.0
 
     def by_contacts(self) -> dict[int, int]:
@@ -44,6 +45,7 @@ class Catalogue:
         return {
             "expansions": self.expansions,
             "paths_followed": self.paths_followed,
+            "widened_paths": self.widened_paths,
             **{k: v for k, v in sorted(self.outcomes.items())},
             "seconds": round(self.seconds, 2),
         }
@@ -67,6 +69,7 @@ def explore(
         ex = expand(index[done], params)
         cat.outcomes.update(ex.outcomes())
         cat.paths_followed += ex.paths_followed
+        cat.widened_paths += ex.widened_paths
         for e in ex.endpoints:
             if e.outcome == RIGID:
                 index.add(e.cluster, params.tol_d)

@@ -29,6 +29,9 @@ class Params:
     newton_max_iter: int = 200  #: Newton iterations before a projection is reported as failed
     max_path_steps: int = 3000  #: steps along one path before it is abandoned
     max_break: int = 3  #: largest number of contacts broken at once
+    #: stop a path whose set is more than one-dimensional after its first step (METHOD.md's rule);
+    #: by default such a path goes on and is counted (see workers.paths.follow_path)
+    stop_on_dimension_change: bool = False
     min_contacts: int | None = None  #: keep only rigid clusters with at least this many contacts
 
     def __post_init__(self) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import combinations
 
 import numpy as np
@@ -18,7 +18,7 @@ RIGID = "rigid"  #: ended at a rigid cluster
 FLOPPY = "floppy"  #: ended where new contacts form but the cluster is not rigid
 UNDECIDED_END = "undecided"  #: ended at a cluster the pre-stress test could not decide
 PROJECTION_FAILED = "projection-failed"  #: no projection with any subset of the new contacts, or a step could not be projected
-DIMENSION_CHANGED = "dimension-changed"  #: after the first step the solution set was not one-dimensional
+DIMENSION_CHANGED = "dimension-changed"  #: the path could not go on: its set was no longer one-dimensional
 SHORTENS = "shortens"  #: the direction shortens a broken contact (the spheres would overlap)
 OVERLAP = "overlap"  #: the projected endpoint has overlapping spheres
 TOO_LONG = "too-long"  #: max_path_steps reached without a new contact
@@ -34,6 +34,7 @@ class PathEnd:
     contacts: tuple[tuple[int, int], ...] | None = None
     rigidity: Rigidity | None = None
     new_contacts: tuple[tuple[int, int], ...] = ()
+    first_step_dim: int | None = None  #: dimension of the set after the first step (None: no step taken)
 
 
 def non_contact_pairs(n: int, edges: np.ndarray) -> np.ndarray:
@@ -63,9 +64,18 @@ def follow_path(
     doubles up to ds0, until a non-contact pair that is approaching comes
     within 1 + tol_a0; then the step is redone with ds (endgame), halving it
     whenever a pair would overlap by more than tol_a0, until an approaching pair
-    is within 1 + tol_a0 of contact.  The dimension is re-checked after the first
-    step.  The new contacts are then added and the point projected; if that
-    fails, subsets of the new contacts are deleted until it succeeds.
+    is within 1 + tol_a0 of contact.  The new contacts are then added and the
+    point projected; if that fails, subsets of the new contacts are deleted
+    until it succeeds.
+
+    The dimension is re-checked after the first step and recorded in the result.
+    If it is 0 the path stops.  If it is more than 1 the path stops when
+    ``params.stop_on_dimension_change`` is set (METHOD.md's rule); otherwise it
+    goes on, carrying the tangent by least squares as at any singular point.
+    Going on cannot produce a false cluster, since every endpoint is kept only
+    if it passes the rigidity test; it reaches the rigid clusters that lie at the
+    end of a singular path which a finite first step leaves (a thin set of
+    dimension 2 surrounds such a path).
     """
     n = x.size // 3
     kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
@@ -78,18 +88,23 @@ def follow_path(
     h = min(params.ds, h_max)
     h_min = params.ds / 1024
     first = True
+    first_dim: int | None = None
     steps = 0
+
+    def end(outcome: str, n_steps: int) -> PathEnd:
+        return PathEnd(outcome, n_steps, first_step_dim=first_dim)
+
     while steps < params.max_path_steps:
         pr = kernels.project(x + h * t, keep, free, **kw)
         if not pr.ok or (pr.x - x) @ t <= 0.0:
             h /= 2
             if h < h_min:
-                return PathEnd(PROJECTION_FAILED, steps)
+                return end(PROJECTION_FAILED, steps)
             continue
         xn = pr.x
         d = kernels.pair_distances_flat(xn, pairs)
         if first and broken_idx.size and (d[broken_idx] <= d_prev[broken_idx]).any():
-            return PathEnd(SHORTENS, steps)
+            return end(SHORTENS, steps)
         hit = (d < d_prev) & (d < 1.0 + params.tol_a0)
         if hit.any():
             if h_max > params.ds:  # back up and approach with the small step
@@ -99,28 +114,30 @@ def follow_path(
             if (d[hit] < 1.0 - params.tol_a0).any():
                 h /= 2
                 if h < h_min:
-                    return PathEnd(PROJECTION_FAILED, steps)
+                    return end(PROJECTION_FAILED, steps)
                 continue
-            return _endpoint(xn, keep, pairs[hit], free, params, steps + 1)
+            return replace(_endpoint(xn, keep, pairs[hit], free, params, steps + 1), first_step_dim=first_dim)
         ns = kernels.null_spaces(xn, keep, free, params.tol_n)
         V = ns.V
         if first:
             dim = solution_dimension(xn, keep, free, params, ns)
-            if dim.dim != 1:
-                return PathEnd(DIMENSION_CHANGED, steps + 1)
-            V = dim.tangents
+            first_dim = dim.dim
+            if dim.dim == 0 or (dim.dim > 1 and params.stop_on_dimension_change):
+                return end(DIMENSION_CHANGED, steps + 1)
+            if dim.dim == 1:
+                V = dim.tangents
         if V.shape[1] == 0:
-            return PathEnd(DIMENSION_CHANGED, steps + 1)
+            return end(DIMENSION_CHANGED, steps + 1)
         tn = V @ (V.T @ t)
         norm = np.linalg.norm(tn)
         if norm < 1e-8:
-            return PathEnd(DIMENSION_CHANGED, steps + 1)
+            return end(DIMENSION_CHANGED, steps + 1)
         t = tn / norm
         x, d_prev = xn, d
         steps += 1
         first = False
         h = min(2 * h, h_max)
-    return PathEnd(TOO_LONG, steps)
+    return end(TOO_LONG, steps)
 
 
 def _endpoint(x, keep, new, free, params: Params, steps: int) -> PathEnd:

@@ -100,3 +100,27 @@ def test_rigid_endpoints_are_exact_and_record_how_they_were_reached():
         assert e.cluster.min_distance() > 1 - 1e-12
         assert e.new_contacts and set(e.new_contacts) <= set(e.cluster.contacts)
         assert e.rigidity.rigid and e.steps > 0
+
+
+def test_paths_that_widen_after_the_first_step_stop_only_when_asked():
+    """Pair breaks of a singular cluster: some paths are one-dimensional at the start and two-dimensional
+    after the first step (a thin set around a singular path).  METHOD.md's rule stops them; otherwise they
+    go on, and the widening is recorded."""
+    import json
+    from pathlib import Path
+
+    from workers.paths import DIMENSION_CHANGED
+
+    d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    c = Cluster.from_dict(d["n10_m24_prestress"])
+    strict = expand(c, P.with_(stop_on_dimension_change=True))
+    lenient = expand(c, P.with_(stop_on_dimension_change=False))
+    stopped = {(e.broken, e.direction) for e in strict.endpoints if e.outcome == DIMENSION_CHANGED and e.first_step_dim == 2}
+    assert stopped
+    went_on = {(e.broken, e.direction): e for e in lenient.endpoints if (e.broken, e.direction) in stopped}
+    assert all(e.first_step_dim == 2 and e.outcome != DIMENSION_CHANGED for e in went_on.values())
+    assert lenient.widened_paths == len(went_on) > 0
+    assert strict.widened_paths == 0
+    # every cluster kept either way is rigid: going on cannot add a false cluster
+    for e in lenient.rigid_endpoints():
+        assert e.rigidity.rigid
