@@ -14,7 +14,7 @@ from workers.dimension import solution_dimension
 from workers.identity import certificate, same_geometry
 from workers.params import Params
 from workers.paths import DIMENSION_CHANGED, RIGID, PathEnd, follow_path
-from workers.rigidity import Rigidity, contact_triangle
+from workers.rigidity import Rigidity, contact_triangle, rigidity
 
 # Outcomes of one (broken subset, direction) beyond those of a path (workers.paths).
 CIRCULAR = "circular"  #: the path came back to the cluster it left
@@ -86,11 +86,8 @@ def break_sizes(m: int, rank: int, params: Params) -> range:
 
 
 def cluster_rank(cluster: Cluster, params: Params) -> int:
-    """Rank of the rigidity matrix of ``cluster`` with a contact triangle pinned."""
-    tri = contact_triangle(cluster.edges())
-    x = kernels.to_frame(cluster.coords, tri).ravel()
-    ns = kernels.null_spaces(x, cluster.edges(), kernels.free_coordinates(cluster.n, tri), params.tol_n)
-    return 3 * cluster.n - 6 - ns.V.shape[1]
+    """Rank of the rigidity matrix of ``cluster`` with a contact triangle pinned: 3n - 6 - #flexes."""
+    return 3 * cluster.n - 6 - rigidity(cluster.coords, cluster.contacts, params).flexes
 
 
 def expand(cluster: Cluster, params: Params) -> Expansion:
