@@ -87,8 +87,7 @@ def follow_path(
     h_max = params.ds0
     h = min(params.ds, h_max)
     h_min = params.ds / 1024
-    first = True
-    first_dim: int | None = None
+    first_dim: int | None = None  # set after the first step is taken
     steps = 0
 
     def end(outcome: str, n_steps: int) -> PathEnd:
@@ -103,7 +102,7 @@ def follow_path(
             continue
         xn = pr.x
         d = kernels.pair_distances_flat(xn, pairs)
-        if first and broken_idx.size and (d[broken_idx] <= d_prev[broken_idx]).any():
+        if first_dim is None and broken_idx.size and (d[broken_idx] <= d_prev[broken_idx]).any():
             return end(SHORTENS, steps)
         hit = (d < d_prev) & (d < 1.0 + params.tol_a0)
         if hit.any():
@@ -119,7 +118,7 @@ def follow_path(
             return replace(_endpoint(xn, keep, pairs[hit], free, params, steps + 1), first_step_dim=first_dim)
         ns = kernels.null_spaces(xn, keep, free, params.tol_n)
         V = ns.V
-        if first:
+        if first_dim is None:
             dim = solution_dimension(xn, keep, free, params, ns)
             first_dim = dim.dim
             if dim.dim == 0 or (dim.dim > 1 and params.stop_on_dimension_change):
@@ -135,7 +134,6 @@ def follow_path(
         t = tn / norm
         x, d_prev = xn, d
         steps += 1
-        first = False
         h = min(2 * h, h_max)
     return end(TOO_LONG, steps)
 
