@@ -1,20 +1,44 @@
 """The ``packings`` command line.
 
-For now ``packings enumerate N`` runs the in-process enumeration of
-``workers.explore``; the distributed service (SQL frontier, Dask workers)
-replaces its engine without changing what it prints.
+Every command takes ``--db URL`` (default: the ``PACKINGS_DB`` environment
+variable, else ``sqlite:///packings.db``).  Errors a user can cause end in one
+line on standard error (``packings: error: ...``) and a non-zero exit status.
 """
 
 from __future__ import annotations
 
 import json
+import logging
+import os
 import sys
+from pathlib import Path
 
 import click
 
+from service.db import DatabaseError, default_url, display_url, parse_url
 from workers.params import Params
 
 MAX_N = 24  #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
+
+db_option = click.option(
+    "--db", "db_url", default=None, metavar="URL",
+    help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
+)
+
+
+def resolve_url(db_url: str | None) -> str:
+    """The database URL to use, with a relative SQLite path made absolute (workers may run elsewhere)."""
+    url = parse_url(db_url or default_url())
+    if url.get_backend_name() == "sqlite" and url.database and url.database != ":memory:" \
+            and not url.database.startswith("file:"):
+        url = url.set(database=str(Path(url.database).expanduser().resolve()))
+    return url.render_as_string(hide_password=False)
+
+
+def open_db(db_url: str | None, create: bool = False):
+    from service.db import open_database
+
+    return open_database(resolve_url(db_url), create=create)
 
 
 def format_counts(n: int, by_contacts: dict[int, int]) -> str:
@@ -39,32 +63,228 @@ def cli() -> None:
 
 @cli.command("enumerate")
 @click.argument("n", type=int)
+@db_option
+@click.option("--workers", "n_workers", type=click.IntRange(1, 512), default=None,
+              help="Worker processes of the local Dask cluster (default: one per core).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.")
 @click.option("--max-break", type=click.IntRange(1, 10), default=Params.max_break, show_default=True,
               help="Largest number of contacts broken at once.")
 @click.option("--min-contacts", type=int, default=None, help="Keep only clusters with at least this many contacts.")
+@click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
+              help="Tries per expansion before it is marked failed.")
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
-@click.option("--quiet", is_flag=True, help="No progress lines.")
-def enumerate_cmd(n: int, max_break: int, min_contacts: int | None, as_json: bool, quiet: bool) -> None:
-    """Enumerate the rigid clusters of N spheres and print them by number of contacts."""
-    from workers.explore import explore
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: str | None, max_break: int,
+                  min_contacts: int | None, max_attempts: int, as_json: bool, quiet: bool) -> None:
+    """Enumerate the rigid clusters of N spheres into the database and print them by number of contacts.
 
+    Resumes the run with the same N and parameters if the database has one
+    (an interrupted run goes on where it stopped; a complete one just prints).
+    """
     check_n(n)
+    if n_workers is not None and scheduler is not None:
+        raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
     params = Params(max_break=max_break, min_contacts=min_contacts)
+    url = resolve_url(db_url)
+    engine = open_db(url, create=True)
+    if scheduler and engine.dialect.name == "sqlite":
+        click.echo("packings: warning: SQLite with --scheduler works only if every worker sees this file "
+                   f"({engine.url.database}); use PostgreSQL for many machines", err=True)
+    from service.coordinator import run_enumeration
 
-    def progress(done, _ex, cat):
-        if not quiet and (done % 25 == 0 or done == len(cat.clusters)):
-            click.echo(f"\rexpanded {done} / {len(cat.clusters)} clusters found", nl=False, err=True)
-
-    cat = explore(n, params, on_expansion=progress)
-    if not quiet:
-        click.echo("", err=True)
+    with _dask_client(scheduler, n_workers, quiet) as client:
+        bar = _progress_bar(quiet)
+        try:
+            result = run_enumeration(engine, url, n, params, client, on_progress=bar)
+        finally:
+            bar.close()
+    engine.dispose()
     if as_json:
-        click.echo(json.dumps({"n": n, "total": cat.total,
-                               "by_contacts": {str(k): v for k, v in cat.by_contacts().items()},
-                               "diagnostics": cat.diagnostics()}))
+        click.echo(json.dumps({"n": n, "run": result.run_id, "status": result.status, "total": result.total,
+                               "by_contacts": {str(k): v for k, v in result.by_contacts.items()},
+                               "diagnostics": result.diagnostics, "seconds": round(result.seconds, 2)}))
+    else:
+        click.echo(format_counts(n, result.by_contacts))
+        click.echo("diagnostics: " + ", ".join(f"{k} {v}" for k, v in result.diagnostics.items()))
+        click.echo(f"run {result.run_id}: {result.status} in {result.seconds:.1f} s"
+                   + (" (resumed)" if result.resumed else "") + f"; database {display_url(parse_url(url))}")
+    for err in result.errors[:10]:
+        click.echo(f"packings: failed task: {err}", err=True)
+    if result.status != "complete":
+        raise click.ClickException(f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
+                                   "failed (see `packings status`); rerun the same command to retry them")
+
+
+class _dask_client:
+    """A Client on a new LocalCluster, or on an existing scheduler; errors become one line."""
+
+    def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool):
+        self.scheduler, self.n_workers, self.quiet = scheduler, n_workers, quiet
+        self.cluster = self.client = None
+
+    def __enter__(self):
+        from distributed import Client, LocalCluster
+
+        for name in ("distributed", "bokeh", "tornado"):
+            logging.getLogger(name).setLevel(logging.ERROR)
+        if self.scheduler:
+            try:
+                self.client = Client(self.scheduler, timeout="10s")
+            except (OSError, TimeoutError, ValueError) as e:
+                raise click.ClickException(f"cannot reach the Dask scheduler at {self.scheduler}: "
+                                           f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+        else:
+            k = self.n_workers or os.cpu_count() or 1
+            self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                        dashboard_address="127.0.0.1:8787", silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+        if not self.quiet:
+            where = self.scheduler or f"local cluster, {len(self.client.nthreads())} worker processes"
+            click.echo(f"dask: {where}; dashboard {self.client.dashboard_link}", err=True)
+        return self.client
+
+    def __exit__(self, *exc):
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+        return False
+
+
+def _progress_bar(quiet: bool):
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit="exp", desc="expansions", file=sys.stderr, disable=quiet, dynamic_ncols=True)
+
+    def update(p):
+        bar.total = p.total
+        bar.n = p.done
+        bar.set_postfix_str(f"pending {p.pending + p.leased}, clusters {p.clusters}"
+                            + (f", failed {p.failed}" if p.failed else ""), refresh=False)
+        bar.refresh()
+
+    update.close = bar.close  # type: ignore[attr-defined]
+    return update
+
+
+@cli.group("db")
+def db_group() -> None:
+    """The database schema (Alembic migrations)."""
+
+
+@db_group.command("upgrade")
+@db_option
+def db_upgrade(db_url: str | None) -> None:
+    """Create the schema, or migrate it to this code's version."""
+    from service.db import current_revision, head_revision, known_revisions, make_engine, upgrade
+
+    engine = make_engine(resolve_url(db_url))
+    try:
+        rev = current_revision(engine)
+        if rev is not None and rev not in known_revisions():
+            raise DatabaseError(f"schema {rev} is newer than this code ({head_revision()}): upgrade packings")
+        if rev is None:
+            from sqlalchemy import inspect
+
+            with engine.connect() as conn:
+                tables = inspect(conn).get_table_names()
+            if tables:
+                raise DatabaseError(f"{display_url(engine.url)} holds tables that are not a packings database "
+                                    f"({', '.join(sorted(tables)[:5])}); use another database")
+        upgrade(engine)
+        click.echo(f"{display_url(engine.url)}: schema {rev or 'none'} -> {head_revision()}")
+    except DatabaseError:
+        raise
+    except Exception as e:  # connection problems
+        from service.db import _connect_error
+
+        raise _connect_error(engine, e) from None
+    finally:
+        engine.dispose()
+
+
+@db_group.command("version")
+@db_option
+def db_version(db_url: str | None) -> None:
+    """Print the database's schema version and this code's."""
+    from service.db import _connect_error, current_revision, head_revision, make_engine
+
+    engine = make_engine(resolve_url(db_url))
+    try:
+        rev = current_revision(engine)
+    except Exception as e:
+        raise _connect_error(engine, e) from None
+    finally:
+        engine.dispose()
+    head = head_revision()
+    state = "up to date" if rev == head else ("empty" if rev is None else "needs `packings db upgrade`")
+    click.echo(f"database: {rev or 'none'}\ncode:     {head}\n{state}")
+
+
+@cli.command("status")
+@db_option
+@click.option("--json", "as_json", is_flag=True, help="As JSON.")
+def status_cmd(db_url: str | None, as_json: bool) -> None:
+    """Runs and their frontier (expansions pending, leased, done, failed)."""
+    from sqlalchemy import select
+
+    from service import store
+    from service.db import sessions
+    from service.models import Run
+
+    engine = open_db(db_url)
+    rows = []
+    with sessions(engine)() as s:
+        for run in s.execute(select(Run).order_by(Run.id)).scalars():
+            f = store.frontier(s, run.id)
+            params = json.loads(run.params)
+            rows.append({"run": run.id, "n": run.n, "status": run.status, "clusters": sum(f.values()),
+                         "pending": f.get("pending", 0), "leased": f.get("leased", 0), "done": f.get("done", 0),
+                         "failed": f.get("failed", 0), "max_break": params.get("max_break"),
+                         "min_contacts": params.get("min_contacts"), "seconds": round(run.seconds or 0.0, 1),
+                         "started": run.started_at.isoformat(timespec="seconds"),
+                         "coordinator": run.coordinator})
+    engine.dispose()
+    if as_json:
+        click.echo(json.dumps(rows))
         return
-    click.echo(format_counts(n, cat.by_contacts()))
-    click.echo("diagnostics: " + ", ".join(f"{k} {v}" for k, v in cat.diagnostics().items()))
+    if not rows:
+        click.echo("no runs yet: `packings enumerate N` starts one")
+        return
+    cols = ["run", "n", "status", "clusters", "pending", "leased", "done", "failed", "max_break", "seconds", "started"]
+    click.echo(_table(cols, [[r[c] for c in cols] for r in rows]))
+
+
+@cli.command("stats")
+@db_option
+@click.option("--n", "n", type=int, default=None, help="Only this n.")
+@click.option("--json", "as_json", is_flag=True, help="A JSON list with one object per n.")
+def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
+    """Counts of stored clusters per n, by number of contacts."""
+    from service import store
+    from service.db import sessions
+
+    engine = open_db(db_url)
+    with sessions(engine)() as s:
+        counts = store.counts_by_n(s, n)
+    engine.dispose()
+    if as_json:
+        click.echo(json.dumps([{"n": k, "total": sum(v.values()), "by_contacts": {str(m): c for m, c in v.items()}}
+                               for k, v in counts.items()]))
+        return
+    if not counts:
+        click.echo("no clusters" + (f" with n = {n}" if n is not None else ""))
+        return
+    click.echo("\n\n".join(format_counts(k, v) for k, v in counts.items()))
+
+
+def _table(cols: list[str], rows: list[list]) -> str:
+    cells = [[("" if v is None else str(v)) for v in r] for r in rows]
+    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(cols)]
+    out = ["  ".join(c.rjust(w) for c, w in zip(cols, widths))]
+    out += ["  ".join(v.rjust(w) for v, w in zip(r, widths)) for r in cells]
+    return "\n".join(out)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -77,6 +297,12 @@ def main(argv: list[str] | None = None) -> None:
     except click.ClickException as e:
         click.echo(f"packings: error: {e.format_message()}", err=True)
         sys.exit(e.exit_code)
+    except DatabaseError as e:
+        click.echo(f"packings: error: {e}", err=True)
+        sys.exit(1)
+    except KeyboardInterrupt:
+        click.echo("packings: interrupted; rerun the same command to resume", err=True)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -35,6 +35,7 @@ from workers.cluster import Cluster, pair_distances
 __all__ = [
     "certificate",
     "certificate_hex",
+    "certificate_key",
     "canonical_labelling",
     "automorphisms",
     "same_geometry",
@@ -68,6 +69,20 @@ def certificate(cluster: Cluster) -> bytes:
 def certificate_hex(cluster: Cluster) -> str:
     """``certificate(cluster)`` as a lowercase hex string (no prefix)."""
     return certificate(cluster).hex()
+
+
+def certificate_key(cluster: Cluster) -> str:
+    """A portable form of the certificate: the same on every machine.
+
+    The upper triangle of the canonical adjacency matrix, read row by row
+    (pairs (0,1), (0,2), ..., (1,2), ...), as bits packed most significant
+    first and written in lowercase hex.  Equal keys for clusters with the same
+    number of spheres iff their certificates are equal; unlike the raw nauty
+    certificate it does not depend on the machine's word size or byte order,
+    so it is what the database stores.
+    """
+    a = _canonical_adjacency(cluster, canonical_labelling(cluster))
+    return np.packbits(a[np.triu_indices(cluster.n, 1)]).tobytes().hex()
 
 
 def canonical_labelling(cluster: Cluster) -> np.ndarray:

@@ -21,6 +21,7 @@ from workers.identity import (
     same_geometry,
 )
 from workers.params import DEFAULT
+from workers.seeds import seed_cluster
 
 TOL_D = DEFAULT.tol_d
 H_TET = np.sqrt(2.0 / 3.0)  # height of a unit tetrahedron above a face
@@ -369,3 +370,20 @@ def test_cluster_index() -> None:
     assert len(idx) == 4
     assert idx[2] is CLUSTERS["octahedron"]
     assert [c.n for c in idx] == [4, 4, 6, 6]
+
+
+def test_certificate_key_is_portable_and_equivalent_to_the_certificate():
+    """The key is built from the canonical adjacency, so it agrees with certificate equality."""
+    from workers.identity import certificate_key
+
+    rng = np.random.default_rng(7)
+    base = seed_cluster(8)
+    other = seed_cluster(9)
+    p = rng.permutation(8)
+    relabelled = Cluster(base.coords[p], tuple((int(np.argsort(p)[i]), int(np.argsort(p)[j])) for i, j in base.contacts))
+    assert certificate_key(relabelled) == certificate_key(base)
+    assert certificate(relabelled) == certificate(base)
+    assert certificate_key(base) != certificate_key(other)
+    # 28 pairs for n = 8 -> 4 bytes; the bits are the contacts' count
+    key = bytes.fromhex(certificate_key(base))
+    assert len(key) == 4 and sum(bin(b).count("1") for b in key) == base.m

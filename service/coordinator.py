@@ -1,0 +1,140 @@
+"""The coordinator: drives one run from the frontier in the database.
+
+It claims pending expansions in batches sized to the workers, submits one Dask
+task per expansion, consumes results as they complete and claims more, until
+nothing is pending or leased.  A task that fails is put back to pending and
+retried, at most ``max_attempts`` times in all, then marked failed with its
+error text.  Everything needed to resume is in the database: a coordinator
+that is killed leaves leases behind, and the next one (the same command) puts
+them back to pending when it starts.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from dataclasses import dataclass, field
+from typing import Callable
+
+from distributed import Client, as_completed
+from sqlalchemy import Engine, select
+
+from service import store
+from service.db import sessions
+from service.models import DONE, FAILED, LEASED, PENDING, Expansion
+from service.tasks import DatabasePlugin, expand_task
+from workers.params import Params
+
+HEARTBEAT_SECONDS = 10.0
+
+
+@dataclass
+class Progress:
+    done: int = 0
+    pending: int = 0
+    leased: int = 0
+    failed: int = 0
+    clusters: int = 0
+
+    @property
+    def total(self) -> int:
+        return self.done + self.pending + self.leased + self.failed
+
+
+@dataclass
+class RunResult:
+    run_id: int
+    n: int
+    status: str
+    by_contacts: dict[int, int]
+    diagnostics: dict
+    seconds: float
+    resumed: bool
+    errors: list[str] = field(default_factory=list)
+
+    @property
+    def total(self) -> int:
+        return sum(self.by_contacts.values())
+
+
+def _progress(Session_, run_id: int) -> Progress:
+    with Session_() as s:
+        f = store.frontier(s, run_id)
+    p = Progress(f.get(DONE, 0), f.get(PENDING, 0), f.get(LEASED, 0), f.get(FAILED, 0))
+    p.clusters = p.total
+    return p
+
+
+def run_enumeration(
+    engine: Engine,
+    url: str,
+    n: int,
+    params: Params,
+    client: Client,
+    on_progress: Callable[[Progress], None] | None = None,
+    max_attempts: int = 3,
+    per_worker: int = 2,
+) -> RunResult:
+    """Create or resume the run for (n, params) and drive it to the end.
+
+    ``url`` is the database URL the workers use (they open their own engine
+    through :class:`service.tasks.DatabasePlugin`).
+    """
+    Session_ = sessions(engine)
+    owner = f"{store.process_name()}:{uuid.uuid4().hex[:8]}"
+    info = store.start_run(Session_, n, params, owner)
+    plugin = DatabasePlugin(url)
+    client.register_plugin(plugin)
+    start = time.perf_counter()
+    last_beat = time.monotonic()
+    errors: list[str] = []
+    ac = as_completed()
+    in_flight = 0
+
+    def capacity() -> int:
+        threads = sum(client.nthreads().values()) or 1
+        return per_worker * threads
+
+    def fill() -> None:
+        nonlocal in_flight
+        for eid, token in store.claim(Session_, info.id, owner, capacity() - in_flight):
+            fut = client.submit(expand_task, eid, token, plugin.name, key=f"expand-{eid}-{token}", pure=False)
+            fut.expansion = (eid, token)  # type: ignore[attr-defined]
+            ac.add(fut)
+            in_flight += 1
+
+    try:
+        fill()
+        if on_progress:
+            on_progress(_progress(Session_, info.id))
+        while in_flight:
+            for fut in ac:
+                in_flight -= 1
+                eid, token = fut.expansion
+                if fut.status == "error":
+                    exc = fut.exception()
+                    msg = f"{type(exc).__name__}: {exc}".splitlines()[0]
+                    if store.release(Session_, eid, token, msg, max_attempts) == FAILED:
+                        errors.append(f"expansion {eid}: {msg}")
+                elif fut.status == "cancelled":
+                    store.release(Session_, eid, token, "task cancelled", max_attempts)
+                fut.release()
+                if time.monotonic() - last_beat > HEARTBEAT_SECONDS:
+                    store.heartbeat(Session_, info.id, owner)
+                    last_beat = time.monotonic()
+                fill()
+                if on_progress:
+                    on_progress(_progress(Session_, info.id))
+            fill()
+    except BaseException:
+        store.abandon(Session_, info.id, owner, time.perf_counter() - start)
+        raise
+    seconds = time.perf_counter() - start
+    status = store.finish_run(Session_, info.id, owner, seconds)
+    with Session_() as s:
+        by_contacts = store.run_counts(s, info.id)
+        diagnostics = store.run_diagnostics(s, info.id)
+        if not errors:
+            errors = [f"expansion {i}: {e}" for i, e in s.execute(
+                select(Expansion.id, Expansion.error).where(Expansion.run_id == info.id, Expansion.status == FAILED))]
+    return RunResult(info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors)

@@ -1,0 +1,215 @@
+"""Opening a database: URLs, engines, and the schema check.
+
+* ``--db URL`` defaults to the ``PACKINGS_DB`` environment variable, else
+  ``sqlite:///packings.db`` (a file in the working directory).  A bare file
+  name (``packings.db``) is taken as SQLite; ``postgresql://`` URLs use the
+  psycopg (3) driver.
+* SQLite: WAL journal, a busy timeout, foreign keys on, and every
+  transaction begins ``IMMEDIATE`` (it takes the write lock at once, so two
+  writers never deadlock on a lock upgrade; they queue on the busy timeout).
+* The schema is Alembic's: a database with no tables is created at head when
+  the caller may create (``packings enumerate``, ``packings db upgrade``); a
+  database at another revision, or with tables that are not ours, is refused
+  with one line naming the fix.  Nothing is written before that check passes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+from sqlalchemy import Engine, create_engine, event, inspect, text
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import ArgumentError, NoSuchModuleError, OperationalError, SQLAlchemyError
+from sqlalchemy.orm import Session, sessionmaker
+
+DEFAULT_URL = "sqlite:///packings.db"
+SQLITE_BUSY_TIMEOUT_MS = 120_000
+ALEMBIC_DIR = Path(__file__).resolve().parent.parent / "alembic"
+
+
+class DatabaseError(Exception):
+    """A problem with the database a user can fix; the message is one line."""
+
+
+def default_url() -> str:
+    return os.environ.get("PACKINGS_DB") or DEFAULT_URL
+
+
+def parse_url(url: str) -> URL:
+    """The SQLAlchemy URL for ``url`` (a URL, or a bare SQLite file name)."""
+    url = url.strip()
+    if not url:
+        raise DatabaseError("empty database URL; give e.g. sqlite:///packings.db or postgresql://user@host/db")
+    if "://" not in url:
+        if url.endswith((".db", ".sqlite", ".sqlite3")):
+            url = f"sqlite:///{url}"
+        else:
+            raise DatabaseError(
+                f"malformed database URL {url!r}: expected e.g. sqlite:///packings.db or postgresql://user@host/db"
+            )
+    try:
+        u = make_url(url)
+    except (ArgumentError, ValueError) as e:
+        raise DatabaseError(f"malformed database URL {url!r}: {e}") from None
+    if u.drivername in ("postgresql", "postgres"):
+        u = u.set(drivername="postgresql+psycopg")
+    if u.get_backend_name() not in ("sqlite", "postgresql"):
+        raise DatabaseError(f"unsupported database {u.get_backend_name()!r} in {url!r}: use sqlite:/// or postgresql://")
+    return u
+
+
+def display_url(url: URL) -> str:
+    return url.render_as_string(hide_password=True)
+
+
+def _sqlite_path(url: URL) -> Path | None:
+    db = url.database
+    if not db or db == ":memory:" or db.startswith("file:"):
+        return None
+    return Path(db)
+
+
+def make_engine(url: str | URL) -> Engine:
+    """An engine for ``url`` with this project's connection settings (no I/O yet)."""
+    u = parse_url(url) if isinstance(url, str) else url
+    try:
+        if u.get_backend_name() == "sqlite":
+            engine = create_engine(u, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_MS / 1000})
+            _configure_sqlite(engine)
+        else:
+            engine = create_engine(u, pool_pre_ping=True, pool_size=2, max_overflow=4)
+    except (ArgumentError, NoSuchModuleError, ValueError) as e:
+        raise DatabaseError(f"cannot use database URL {display_url(u)!r}: {e}") from None
+    return engine
+
+
+def _configure_sqlite(engine: Engine) -> None:
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection, _record):
+        # Let SQLAlchemy, not pysqlite, emit BEGIN (see the "begin" hook below).
+        dbapi_connection.isolation_level = None
+        cur = dbapi_connection.cursor()
+        cur.execute("PRAGMA journal_mode=WAL")
+        cur.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
+        cur.execute("PRAGMA foreign_keys=ON")
+        cur.execute("PRAGMA synchronous=NORMAL")
+        cur.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn):
+        conn.exec_driver_sql("BEGIN IMMEDIATE")
+
+
+def is_postgresql(engine_or_session) -> bool:
+    bind = engine_or_session.get_bind() if isinstance(engine_or_session, Session) else engine_or_session
+    return bind.dialect.name == "postgresql"
+
+
+def advisory_key(*parts) -> int:
+    """A signed 64-bit key for ``pg_advisory_xact_lock`` from any parts."""
+    h = hashlib.blake2b(":".join(map(str, parts)).encode(), digest_size=8).digest()
+    return int.from_bytes(h, "big", signed=True)
+
+
+# --------------------------------------------------------------------------- schema
+
+
+def alembic_config(engine: Engine | None = None):
+    from alembic.config import Config
+
+    cfg = Config()
+    cfg.set_main_option("script_location", str(ALEMBIC_DIR))
+    if engine is not None:
+        cfg.set_main_option("sqlalchemy.url", engine.url.render_as_string(hide_password=False).replace("%", "%%"))
+    return cfg
+
+
+def head_revision() -> str:
+    from alembic.script import ScriptDirectory
+
+    return ScriptDirectory.from_config(alembic_config()).get_current_head()
+
+
+def known_revisions() -> set[str]:
+    from alembic.script import ScriptDirectory
+
+    return {s.revision for s in ScriptDirectory.from_config(alembic_config()).walk_revisions()}
+
+
+def current_revision(engine: Engine) -> str | None:
+    """The database's Alembic revision (None if it has no alembic_version table)."""
+    with engine.connect() as conn:
+        if not inspect(conn).has_table("alembic_version"):
+            return None
+        return conn.execute(text("SELECT version_num FROM alembic_version")).scalar()
+
+
+def upgrade(engine: Engine) -> None:
+    """Bring the schema to head (Alembic's upgrade)."""
+    from alembic import command
+
+    cfg = alembic_config(engine)
+    with engine.begin() as conn:
+        cfg.attributes["connection"] = conn
+        command.upgrade(cfg, "head")
+
+
+def _connect_error(engine: Engine, e: Exception) -> DatabaseError:
+    msg = str(getattr(e, "orig", e)).strip().splitlines()
+    first = msg[0] if msg else type(e).__name__
+    return DatabaseError(f"cannot connect to {display_url(engine.url)}: {first}")
+
+
+def check_schema(engine: Engine, create: bool) -> None:
+    """Refuse a database whose schema is not this code's head (see module doc)."""
+    where = display_url(engine.url)
+    head = head_revision()
+    try:
+        with engine.connect() as conn:
+            tables = set(inspect(conn).get_table_names())
+        rev = current_revision(engine) if "alembic_version" in tables else None
+    except OperationalError as e:
+        raise _connect_error(engine, e) from None
+    if not tables:
+        if not create:
+            raise DatabaseError(f"{where} is empty: run `packings db upgrade` or `packings enumerate N` first")
+        upgrade(engine)
+        return
+    if rev is None:
+        shown = ", ".join(sorted(tables)[:5])
+        raise DatabaseError(f"{where} holds tables that are not a packings database ({shown}); use another database")
+    if rev == head:
+        return
+    if rev in known_revisions():
+        raise DatabaseError(f"{where} has schema {rev}, older than this code's {head}: run `packings db upgrade`")
+    raise DatabaseError(f"{where} has schema {rev}, which this code does not know (newer?): upgrade packings")
+
+
+def open_database(url: str, create: bool = False) -> Engine:
+    """Connect and check the schema; create an empty database at head if ``create``.
+
+    A SQLite file that does not exist is created only if ``create``; otherwise
+    the error says so and nothing is written.
+    """
+    engine = make_engine(url)
+    path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
+    if path is not None and not path.exists():
+        if not create:
+            raise DatabaseError(f"no database at {path}: run `packings enumerate N` first, or pass --db")
+        if not path.parent.exists():
+            raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
+    try:
+        check_schema(engine, create)
+    except DatabaseError:
+        engine.dispose()
+        raise
+    except SQLAlchemyError as e:
+        engine.dispose()
+        raise _connect_error(engine, e) from None
+    return engine
+
+
+def sessions(engine: Engine) -> sessionmaker[Session]:
+    return sessionmaker(engine, expire_on_commit=False)

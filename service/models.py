@@ -1,0 +1,160 @@
+"""The database schema (SQLAlchemy 2 declarative models).
+
+The schema changes only through Alembic migrations (``alembic/versions``); a
+test checks that the migrations' head matches these models.  The README
+documents the tables for users who query them with plain SQL or pandas.
+
+Conventions:
+
+* Coordinates are stored as the raw little-endian float64 bytes of the n x 3
+  array (``coords``), so they read back bit-exactly; ``coords_json`` holds the
+  same numbers as JSON text for plain-SQL users (round-trip exact as well:
+  Python writes floats with the shortest repr that reads back identically).
+* Contact lists and broken-contact lists are JSON text: ``[[i, j], ...]`` with
+  ``i < j``, sorted.
+* Clusters are keyed by ``(n, certificate, embedding)``; ``certificate`` is the
+  portable hex key of :func:`workers.identity.certificate_key`, and
+  ``embedding`` numbers the distinct geometries sharing one contact graph.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+
+import numpy as np
+from sqlalchemy import (
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    LargeBinary,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+
+from workers.cluster import Cluster as CoreCluster
+
+# Expansion statuses.
+PENDING = "pending"
+LEASED = "leased"
+DONE = "done"
+FAILED = "failed"
+
+# Run statuses.
+RUNNING = "running"
+COMPLETE = "complete"
+INCOMPLETE = "incomplete"  #: finished with failed expansions
+
+
+def utcnow() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc).replace(tzinfo=None)
+
+
+class Base(DeclarativeBase):
+    pass
+
+
+class Run(Base):
+    """One enumeration: n and the parameters it used.  ``packings enumerate``
+    resumes the run with the same n and parameters if there is one."""
+
+    __tablename__ = "runs"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    n: Mapped[int] = mapped_column(Integer, index=True)
+    params: Mapped[str] = mapped_column(Text)  #: JSON of workers.params.Params
+    status: Mapped[str] = mapped_column(String(16), default=RUNNING)
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    code_version: Mapped[str] = mapped_column(String(64))
+    coordinator: Mapped[str | None] = mapped_column(String(200), nullable=True)  #: host:pid:token of the live coordinator
+    heartbeat_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    seconds: Mapped[float] = mapped_column(Float, default=0.0)  #: wall time spent by coordinators on this run
+
+    __table_args__ = (UniqueConstraint("n", "params", name="uq_runs_n_params"),)
+
+
+class Cluster(Base):
+    """A distinct rigid cluster, shared by every run with the same n."""
+
+    __tablename__ = "clusters"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    n: Mapped[int] = mapped_column(Integer)
+    contacts: Mapped[int] = mapped_column(Integer)  #: number of contacts m
+    certificate: Mapped[str] = mapped_column(String(200))  #: workers.identity.certificate_key
+    embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate
+    coords: Mapped[bytes] = mapped_column(LargeBinary)  #: n x 3 float64, little-endian
+    coords_json: Mapped[str] = mapped_column(Text)
+    contact_list: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
+    rigid_kind: Mapped[str] = mapped_column(String(32))  #: workers.rigidity kind (first-order / prestress)
+    rigid_method: Mapped[str] = mapped_column(String(32))  #: which test decided
+    margin: Mapped[float | None] = mapped_column(Float, nullable=True)
+    flexes: Mapped[int] = mapped_column(Integer)
+    stresses: Mapped[int] = mapped_column(Integer)
+    singular: Mapped[bool] = mapped_column(Boolean)
+    min_gap: Mapped[float | None] = mapped_column(Float, nullable=True)  #: None if every pair touches
+    found_in_run: Mapped[int | None] = mapped_column(ForeignKey("runs.id"), nullable=True)
+    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+
+    __table_args__ = (
+        UniqueConstraint("n", "certificate", "embedding", name="uq_clusters_key"),
+        Index("ix_clusters_n_contacts", "n", "contacts"),
+    )
+
+    def to_core(self) -> CoreCluster:
+        x = np.frombuffer(self.coords, dtype="<f8").reshape(self.n, 3).astype(np.float64)
+        return CoreCluster(x, tuple(tuple(c) for c in json.loads(self.contact_list)))
+
+
+class Expansion(Base):
+    """The frontier: one row per (run, cluster) to expand."""
+
+    __tablename__ = "expansions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    cluster_id: Mapped[int] = mapped_column(ForeignKey("clusters.id"))
+    status: Mapped[str] = mapped_column(String(16), default=PENDING)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    lease_owner: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    lease_token: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    leased_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    outcomes: Mapped[str | None] = mapped_column(Text, nullable=True)  #: JSON {outcome: count} of its attempts
+    paths: Mapped[int | None] = mapped_column(Integer, nullable=True)  #: paths followed
+    seconds: Mapped[float | None] = mapped_column(Float, nullable=True)  #: time spent in workers.expand
+    worker: Mapped[str | None] = mapped_column(String(200), nullable=True)
+
+    __table_args__ = (
+        UniqueConstraint("run_id", "cluster_id", name="uq_expansions_run_cluster"),
+        Index("ix_expansions_run_status", "run_id", "status"),
+    )
+
+
+class Transition(Base):
+    """One attempt from a cluster: the contacts broken, the direction followed,
+    what came of it, and the cluster reached (if it is stored)."""
+
+    __tablename__ = "transitions"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
+    source_id: Mapped[int] = mapped_column(ForeignKey("clusters.id"))
+    broken: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
+    direction: Mapped[int] = mapped_column(Integer)  #: +1 / -1 along the tangent, 0 if no path was followed
+    outcome: Mapped[str] = mapped_column(String(32))
+    target_id: Mapped[int | None] = mapped_column(ForeignKey("clusters.id"), nullable=True)
+    steps: Mapped[int] = mapped_column(Integer, default=0)
+    new_contacts: Mapped[str] = mapped_column(Text, default="[]")  #: JSON [[i, j], ...] formed at the endpoint
+
+    __table_args__ = (
+        UniqueConstraint("run_id", "source_id", "broken", "direction", name="uq_transitions_attempt"),
+        Index("ix_transitions_target", "target_id"),
+    )

@@ -1,0 +1,428 @@
+"""Transactions on the database: runs, the frontier, and write-back of results.
+
+Every function here is one transaction (or a read).  The rules that make the
+service safe under concurrency and failure:
+
+* Claims: a batch of pending expansions becomes ``leased`` with a fresh token
+  (PostgreSQL: ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite: the transaction
+  begins IMMEDIATE, so claims are serial).
+* Write-back (:func:`record_expansion`): one transaction inserts the new
+  clusters, their pending expansions and the transitions, and marks the
+  expansion done, and only if the expansion is still leased with the token the
+  task was given; otherwise nothing is written.  A task run twice therefore
+  changes nothing the second time, and a task that dies writes nothing.
+* Deduplication: before comparing an endpoint with the stored clusters of its
+  certificate, the transaction takes ``pg_advisory_xact_lock`` on (n,
+  certificate) (PostgreSQL; locks taken in sorted order, so two tasks cannot
+  deadlock) or already holds SQLite's write lock.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import uuid
+from collections import Counter
+from dataclasses import dataclass
+from importlib import metadata
+
+import numpy as np
+from sqlalchemy import func, select, text, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.db import advisory_key, is_postgresql
+from service.models import (
+    COMPLETE,
+    DONE,
+    FAILED,
+    INCOMPLETE,
+    LEASED,
+    PENDING,
+    RUNNING,
+    Cluster,
+    Expansion,
+    Run,
+    Transition,
+    utcnow,
+)
+from workers.cluster import Cluster as CoreCluster
+from workers.expand import CIRCULAR, Expansion as CoreExpansion
+from workers.identity import certificate_key, find_match
+from workers.params import Params
+from workers.paths import RIGID
+from workers.rigidity import Rigidity, rigidity
+from workers.seeds import seed_cluster
+
+#: a coordinator on another host whose heartbeat is older than this is taken to be gone
+HEARTBEAT_STALE_SECONDS = 120
+
+
+class RunBusy(Exception):
+    """Another live coordinator is driving this run."""
+
+
+def code_version() -> str:
+    try:
+        return metadata.version("packings")
+    except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        return "unknown"
+
+
+def params_json(params: Params) -> str:
+    return json.dumps(params.to_dict(), sort_keys=True)
+
+
+def contacts_json(pairs) -> str:
+    return json.dumps([[int(i), int(j)] for i, j in pairs])
+
+
+def process_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+# --------------------------------------------------------------------------- clusters
+
+
+def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
+    """Column values of a cluster row (all but id, embedding and the run)."""
+    gap = c.min_gap()
+    return {
+        "n": c.n,
+        "contacts": c.m,
+        "certificate": certificate_key(c),
+        "coords": np.ascontiguousarray(c.coords, dtype="<f8").tobytes(),
+        "coords_json": json.dumps(c.coords.tolist()),
+        "contact_list": contacts_json(c.contacts),
+        "rigid_kind": rig.kind,
+        "rigid_method": rig.method,
+        "margin": rig.margin,
+        "flexes": rig.flexes,
+        "stresses": rig.stresses,
+        "singular": rig.singular,
+        "min_gap": gap if np.isfinite(gap) else None,
+    }
+
+
+def lock_certificates(session: Session, keys) -> None:
+    """Take the certificate-level advisory locks (PostgreSQL), in sorted order."""
+    if not is_postgresql(session):
+        return
+    for n, cert in sorted(set(keys)):
+        session.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key("cluster", n, cert)})
+
+
+def insert_or_match(session: Session, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float) -> tuple[int, bool]:
+    """The id of the stored cluster equal to ``c`` (same certificate, same
+    geometry within ``tol_d``), inserting it if there is none.  The caller
+    holds the certificate's lock (:func:`lock_certificates`)."""
+    values = cluster_values(c, rig)
+    rows = session.execute(
+        select(Cluster).where(Cluster.n == c.n, Cluster.certificate == values["certificate"]).order_by(Cluster.embedding)
+    ).scalars().all()
+    if rows:
+        k = find_match(c, [r.to_core() for r in rows], tol_d)
+        if k is not None:
+            return rows[k].id, False
+    row = Cluster(**values, embedding=(rows[-1].embedding + 1) if rows else 0, found_in_run=run_id)
+    session.add(row)
+    session.flush()
+    return row.id, True
+
+
+def ensure_expansion(session: Session, run_id: int, cluster_id: int) -> bool:
+    """Add a pending expansion of ``cluster_id`` to the run unless it has one."""
+    exists = session.execute(
+        select(Expansion.id).where(Expansion.run_id == run_id, Expansion.cluster_id == cluster_id)
+    ).first()
+    if exists:
+        return False
+    session.add(Expansion(run_id=run_id, cluster_id=cluster_id, status=PENDING))
+    return True
+
+
+# --------------------------------------------------------------------------- runs
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    id: int
+    n: int
+    params: Params
+    created: bool
+
+
+def _coordinator_alive(owner: str | None, heartbeat) -> bool:
+    if not owner:
+        return False
+    host, pid, *_ = owner.split(":") + ["", ""]
+    if host == socket.gethostname():
+        try:
+            os.kill(int(pid), 0)
+        except (ValueError, ProcessLookupError):
+            return False
+        except PermissionError:
+            return True
+        return True
+    if heartbeat is None:
+        return False
+    return (utcnow() - heartbeat).total_seconds() < HEARTBEAT_STALE_SECONDS
+
+
+def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> RunInfo:
+    """Create the run for (n, params), or resume it; then take it over.
+
+    A new run is seeded with one rigid cluster (workers.seeds).  Resuming puts
+    back to pending every expansion leased by a coordinator that is gone.
+    Raises :class:`RunBusy` if a live coordinator holds the run.
+    """
+    pj = params_json(params)
+    with Session_.begin() as s:
+        q = select(Run).where(Run.n == n, Run.params == pj)
+        if is_postgresql(s):
+            q = q.with_for_update()
+        run = s.execute(q).scalar_one_or_none()
+        created = run is None
+        if created:
+            run = Run(n=n, params=pj, status=RUNNING, code_version=code_version())
+            s.add(run)
+            s.flush()
+            seed = seed_cluster(n, params)
+            rig = rigidity(seed.coords, seed.contacts, params)
+            lock_certificates(s, [(n, certificate_key(seed))])
+            cid, _ = insert_or_match(s, seed, rig, run.id, params.tol_d)
+            ensure_expansion(s, run.id, cid)
+        elif run.coordinator and run.coordinator != owner and _coordinator_alive(run.coordinator, run.heartbeat_at):
+            raise RunBusy(f"run {run.id} (n = {n}) is being driven by coordinator {run.coordinator}; "
+                          "wait for it to finish or stop it first")
+        s.execute(
+            update(Expansion)
+            .where(Expansion.run_id == run.id, Expansion.status == LEASED)
+            .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
+        )
+        run.coordinator = owner
+        run.heartbeat_at = utcnow()
+        if run.status != COMPLETE:
+            run.status = RUNNING
+        run_id = run.id
+    return RunInfo(run_id, n, params, created)
+
+
+def heartbeat(Session_: sessionmaker, run_id: int, owner: str) -> None:
+    with Session_.begin() as s:
+        s.execute(update(Run).where(Run.id == run_id, Run.coordinator == owner).values(heartbeat_at=utcnow()))
+
+
+def finish_run(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> str:
+    """Mark the run complete (or incomplete, if some expansions failed) and let it go."""
+    with Session_.begin() as s:
+        run = s.get(Run, run_id)
+        counts = frontier(s, run_id)
+        if counts.get(PENDING, 0) == 0 and counts.get(LEASED, 0) == 0:
+            run.status = INCOMPLETE if counts.get(FAILED, 0) else COMPLETE
+            run.finished_at = run.finished_at if run.finished_at and run.status == COMPLETE else utcnow()
+        run.seconds = (run.seconds or 0.0) + seconds
+        if run.coordinator == owner:
+            run.coordinator = None
+        return run.status
+
+
+def abandon(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> None:
+    """An interrupted coordinator puts its leases back and lets the run go."""
+    with Session_.begin() as s:
+        s.execute(
+            update(Expansion)
+            .where(Expansion.run_id == run_id, Expansion.status == LEASED, Expansion.lease_owner == owner)
+            .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
+        )
+        run = s.get(Run, run_id)
+        run.seconds = (run.seconds or 0.0) + seconds
+        if run.coordinator == owner:
+            run.coordinator = None
+
+
+# --------------------------------------------------------------------------- frontier
+
+
+def claim(Session_: sessionmaker, run_id: int, owner: str, k: int) -> list[tuple[int, str]]:
+    """Lease up to ``k`` pending expansions of the run; returns (id, token) pairs."""
+    if k <= 0:
+        return []
+    with Session_.begin() as s:
+        q = (
+            select(Expansion)
+            .where(Expansion.run_id == run_id, Expansion.status == PENDING)
+            .order_by(Expansion.id)
+            .limit(k)
+            .with_for_update(skip_locked=True)
+        )
+        rows = s.execute(q).scalars().all()
+        out = []
+        now = utcnow()
+        for e in rows:
+            e.status = LEASED
+            e.lease_owner = owner
+            e.lease_token = uuid.uuid4().hex
+            e.leased_at = now
+            e.attempts += 1
+            out.append((e.id, e.lease_token))
+        return out
+
+
+def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, max_attempts: int) -> str | None:
+    """A task failed: back to pending, or ``failed`` after ``max_attempts``.
+
+    Returns the new status, or None if the lease was no longer this token's.
+    """
+    with Session_.begin() as s:
+        q = select(Expansion).where(Expansion.id == expansion_id)
+        if is_postgresql(s):
+            q = q.with_for_update()
+        e = s.execute(q).scalar_one()
+        if e.status != LEASED or e.lease_token != token:
+            return None
+        e.error = error[:4000]
+        e.lease_owner = e.lease_token = e.leased_at = None
+        e.status = FAILED if e.attempts >= max_attempts else PENDING
+        if e.status == FAILED:
+            e.finished_at = utcnow()
+        return e.status
+
+
+def frontier(s: Session, run_id: int) -> dict[str, int]:
+    rows = s.execute(
+        select(Expansion.status, func.count()).where(Expansion.run_id == run_id).group_by(Expansion.status)
+    ).all()
+    return {status: count for status, count in rows}
+
+
+# --------------------------------------------------------------------------- tasks
+
+
+@dataclass(frozen=True)
+class Task:
+    """What a worker needs to expand one cluster."""
+
+    expansion_id: int
+    run_id: int
+    cluster_id: int
+    cluster: CoreCluster
+    params: Params
+
+
+def load_task(Session_: sessionmaker, expansion_id: int, token: str) -> Task | None:
+    """The task's inputs, or None if the expansion is no longer leased with ``token``."""
+    with Session_() as s:
+        row = s.execute(
+            select(Expansion, Cluster, Run)
+            .join(Cluster, Cluster.id == Expansion.cluster_id)
+            .join(Run, Run.id == Expansion.run_id)
+            .where(Expansion.id == expansion_id)
+        ).first()
+        if row is None:
+            return None
+        e, c, r = row
+        if e.status != LEASED or e.lease_token != token:
+            return None
+        return Task(e.id, r.id, c.id, c.to_core(), Params.from_dict(json.loads(r.params)))
+
+
+def record_expansion(
+    Session_: sessionmaker, task: Task, token: str, ex: CoreExpansion, seconds: float, worker: str
+) -> dict | None:
+    """Write a finished expansion back in ONE transaction (see the module doc).
+
+    Returns a summary, or None (and writes nothing) if the lease is no longer
+    ``token``'s: the task ran twice, or its lease was given to another.
+    """
+    params = task.params
+    rigid = [e for e in ex.endpoints if e.outcome == RIGID]
+    with Session_.begin() as s:
+        q = select(Expansion).where(Expansion.id == task.expansion_id)
+        if is_postgresql(s):
+            q = q.with_for_update()
+        row = s.execute(q).scalar_one_or_none()
+        if row is None or row.status != LEASED or row.lease_token != token:
+            return None
+        lock_certificates(s, [(task.cluster.n, certificate_key(e.cluster)) for e in rigid])
+        new_clusters = 0
+        targets: dict[int, int] = {}
+        for i, e in enumerate(ex.endpoints):
+            if e.outcome == RIGID:
+                cid, is_new = insert_or_match(s, e.cluster, e.rigidity, task.run_id, params.tol_d)
+                new_clusters += is_new
+                ensure_expansion(s, task.run_id, cid)
+                targets[i] = cid
+            elif e.outcome == CIRCULAR:
+                targets[i] = task.cluster_id
+        s.add_all(
+            Transition(
+                run_id=task.run_id,
+                source_id=task.cluster_id,
+                broken=contacts_json(e.broken),
+                direction=e.direction,
+                outcome=e.outcome,
+                target_id=targets.get(i),
+                steps=e.steps,
+                new_contacts=contacts_json(e.new_contacts),
+            )
+            for i, e in enumerate(ex.endpoints)
+        )
+        outcomes = dict(sorted(ex.outcomes().items()))
+        outcomes["widened_paths"] = ex.widened_paths
+        row.status = DONE
+        row.finished_at = utcnow()
+        row.lease_owner = row.lease_token = None
+        row.outcomes = json.dumps(outcomes)
+        row.paths = ex.paths_followed
+        row.seconds = seconds
+        row.worker = worker
+        row.error = None
+        return {"expansion": task.expansion_id, "new_clusters": new_clusters, "paths": ex.paths_followed,
+                "seconds": seconds}
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def run_counts(s: Session, run_id: int) -> dict[int, int]:
+    """Clusters reached by the run, by number of contacts."""
+    rows = s.execute(
+        select(Cluster.contacts, func.count())
+        .join(Expansion, Expansion.cluster_id == Cluster.id)
+        .where(Expansion.run_id == run_id)
+        .group_by(Cluster.contacts)
+        .order_by(Cluster.contacts)
+    ).all()
+    return {int(m): int(c) for m, c in rows}
+
+
+def run_diagnostics(s: Session, run_id: int) -> dict:
+    """Sums over the run's expansions of what happened to every subset tried."""
+    total: Counter = Counter()
+    paths = 0
+    for outcomes, p in s.execute(
+        select(Expansion.outcomes, Expansion.paths).where(Expansion.run_id == run_id, Expansion.status == DONE)
+    ):
+        total.update(json.loads(outcomes))
+        paths += p or 0
+    f = frontier(s, run_id)
+    widened = total.pop("widened_paths", 0)
+    return {
+        "expansions": f.get(DONE, 0),
+        "paths_followed": paths,
+        "widened_paths": widened,
+        **dict(sorted(total.items())),
+        "failed_tasks": f.get(FAILED, 0),
+    }
+
+
+def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:
+    """All stored clusters: {n: {contacts: count}}."""
+    q = select(Cluster.n, Cluster.contacts, func.count()).group_by(Cluster.n, Cluster.contacts)
+    if n is not None:
+        q = q.where(Cluster.n == n)
+    out: dict[int, dict[int, int]] = {}
+    for nn, m, c in s.execute(q.order_by(Cluster.n, Cluster.contacts)):
+        out.setdefault(int(nn), {})[int(m)] = int(c)
+    return out

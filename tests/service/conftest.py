@@ -1,0 +1,90 @@
+"""Database fixtures: every database test runs on SQLite and on a real PostgreSQL.
+
+PostgreSQL is reached through ``PACKINGS_TEST_PG`` (an admin URL, default
+``postgresql://postgres@127.0.0.1:5432/postgres``); each test gets a fresh
+database, dropped afterwards.  Without a server the PostgreSQL variants skip
+with the reason, unless ``PACKINGS_REQUIRE_PG=1`` (set by ``.ci/run``), in
+which case they fail.
+"""
+
+from __future__ import annotations
+
+import os
+import uuid
+
+import pytest
+
+PG_ADMIN = os.environ.get("PACKINGS_TEST_PG", "postgresql://postgres@127.0.0.1:5432/postgres")
+_pg_problem: list[str] = []
+
+
+def _pg_admin_engine():
+    from sqlalchemy import create_engine
+
+    from service.db import parse_url
+
+    return create_engine(parse_url(PG_ADMIN), isolation_level="AUTOCOMMIT")
+
+
+def _pg_available() -> str | None:
+    """None if PostgreSQL answers, else why not."""
+    if not _pg_problem:
+        try:
+            from sqlalchemy import text
+
+            eng = _pg_admin_engine()
+            with eng.connect() as c:
+                c.execute(text("SELECT 1"))
+            eng.dispose()
+            _pg_problem.append("")
+        except Exception as e:  # noqa: BLE001 - any failure means "no server here"
+            _pg_problem.append(f"no PostgreSQL at {PG_ADMIN} ({str(e).splitlines()[0][:120]}); "
+                               "set PACKINGS_TEST_PG to an admin URL to run these tests")
+    return _pg_problem[0] or None
+
+
+@pytest.fixture
+def pg_url():
+    """A fresh, empty PostgreSQL database (URL), dropped after the test."""
+    from sqlalchemy import text
+
+    from service.db import parse_url
+
+    problem = _pg_available()
+    if problem:
+        if os.environ.get("PACKINGS_REQUIRE_PG") == "1":
+            pytest.fail(problem)
+        pytest.skip(problem)
+    name = f"packings_test_{uuid.uuid4().hex[:12]}"
+    admin = _pg_admin_engine()
+    with admin.connect() as c:
+        c.execute(text(f'CREATE DATABASE "{name}"'))
+    url = parse_url(PG_ADMIN).set(database=name).render_as_string(hide_password=False)
+    yield url
+    with admin.connect() as c:
+        c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    admin.dispose()
+
+
+@pytest.fixture
+def sqlite_url(tmp_path):
+    """A SQLite file that does not exist yet (URL)."""
+    return f"sqlite:///{tmp_path / 'packings.db'}"
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def db_url(request):
+    """An empty database on each backend (URL)."""
+    if request.param == "sqlite":
+        return request.getfixturevalue("sqlite_url")
+    return request.getfixturevalue("pg_url")
+
+
+@pytest.fixture
+def engine(db_url):
+    """An open engine on a fresh database at the schema's head."""
+    from service.db import open_database
+
+    eng = open_database(db_url, create=True)
+    yield eng
+    eng.dispose()
