@@ -88,3 +88,31 @@ def engine(db_url):
     eng = open_database(db_url, create=True)
     yield eng
     eng.dispose()
+
+
+def fill_database(engine, n: int, params=None, owner: str = "test:0:inline") -> int:
+    """Run the whole enumeration of n in this process (no Dask), through the
+    same store functions the service uses; returns the run id."""
+    from service import store
+    from service.db import sessions
+    from service.tasks import run_expansion
+    from workers.params import Params
+
+    Session_ = sessions(engine)
+    info = store.start_run(Session_, n, params or Params(), owner)
+    while True:
+        batch = store.claim(Session_, info.id, owner, 8)
+        if not batch:
+            break
+        for eid, token in batch:
+            run_expansion(Session_, eid, token)
+    store.finish_run(Session_, info.id, owner, 0.0)
+    return info.id
+
+
+@pytest.fixture
+def filled(engine):
+    """A database holding the complete enumeration of n = 7 (5 clusters) and n = 8 (13 clusters)."""
+    fill_database(engine, 7)
+    fill_database(engine, 8)
+    return engine
