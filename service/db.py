@@ -43,7 +43,8 @@ def parse_url(url: str) -> URL:
     if not url:
         raise DatabaseError("empty database URL; give e.g. sqlite:///packings.db or postgresql://user@host/db")
     if "://" not in url:
-        if url.endswith((".db", ".sqlite", ".sqlite3")):
+        looks_like_scheme = ":" in url or url.lower().startswith(("sqlite", "postgres"))
+        if url.endswith((".db", ".sqlite", ".sqlite3")) and not looks_like_scheme:
             url = f"sqlite:///{url}"
         else:
             raise DatabaseError(

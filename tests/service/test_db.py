@@ -1,0 +1,134 @@
+"""The schema: Alembic is its only source, and a database at another schema is refused."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from sqlalchemy import create_engine, inspect, text
+
+from service.db import DatabaseError, current_revision, head_revision, make_engine, open_database, parse_url
+from service.models import Base
+
+
+def cli(*args, cwd=None, env=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          timeout=600, cwd=cwd, env=env)
+
+
+def one_line_error(r) -> str:
+    assert r.returncode != 0, r.stdout
+    assert "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("packings: error:"), r.stderr
+    return lines[0]
+
+
+def test_migrations_head_matches_the_models(engine):
+    from alembic.autogenerate import compare_metadata
+    from alembic.migration import MigrationContext
+
+    with engine.connect() as conn:
+        diff = compare_metadata(MigrationContext.configure(conn, opts={"compare_type": True}), Base.metadata)
+    assert diff == []
+    assert current_revision(engine) == head_revision()
+
+
+def test_new_database_is_created_at_head_only_when_allowed(sqlite_url, tmp_path):
+    with pytest.raises(DatabaseError, match="no database"):
+        open_database(sqlite_url)
+    assert list(tmp_path.iterdir()) == []
+    eng = open_database(sqlite_url, create=True)
+    assert current_revision(eng) == head_revision()
+    assert {"runs", "clusters", "expansions", "transitions"} <= set(inspect(eng).get_table_names())
+    eng.dispose()
+
+
+def test_sqlite_settings(sqlite_url):
+    eng = open_database(sqlite_url, create=True)
+    with eng.connect() as c:
+        assert c.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+        assert c.exec_driver_sql("PRAGMA busy_timeout").scalar() >= 10_000
+        assert c.exec_driver_sql("PRAGMA foreign_keys").scalar() == 1
+    eng.dispose()
+
+
+def test_foreign_tables_are_refused_and_left_alone(db_url):
+    eng = create_engine(parse_url(db_url))
+    with eng.begin() as c:
+        c.execute(text("CREATE TABLE minima (id INTEGER PRIMARY KEY, energy FLOAT)"))
+    with pytest.raises(DatabaseError, match="not a packings database"):
+        open_database(db_url, create=True)
+    assert inspect(eng).get_table_names() == ["minima"]
+    r = cli("stats", "--db", db_url)
+    assert "not a packings database" in one_line_error(r)
+    r = cli("enumerate", "6", "--db", db_url, "--quiet")
+    assert "not a packings database" in one_line_error(r)
+    assert inspect(eng).get_table_names() == ["minima"]
+    eng.dispose()
+
+
+def test_older_and_unknown_schemas_are_refused_with_the_fix(engine):
+    url = engine.url.render_as_string(hide_password=False)
+    with engine.begin() as c:
+        c.execute(text("UPDATE alembic_version SET version_num = 'ffffffff'"))
+    r = cli("stats", "--db", url)
+    assert "upgrade packings" in one_line_error(r)
+    r = cli("db", "upgrade", "--db", url)
+    assert "newer than this code" in one_line_error(r)
+    # pretend the database is at a revision older than head
+    import service.db as db
+
+    real = db.known_revisions
+    db.known_revisions = lambda: real() | {"ffffffff"}
+    try:
+        with pytest.raises(DatabaseError, match="packings db upgrade"):
+            open_database(url)
+    finally:
+        db.known_revisions = real
+
+
+def test_db_upgrade_and_version(db_url):
+    r = cli("db", "version", "--db", db_url)
+    assert r.returncode == 0 and "database: none" in r.stdout and "empty" in r.stdout
+    r = cli("db", "upgrade", "--db", db_url)
+    assert r.returncode == 0, r.stderr
+    assert head_revision() in r.stdout
+    r = cli("db", "version", "--db", db_url)
+    assert r.returncode == 0 and "up to date" in r.stdout
+    r = cli("db", "upgrade", "--db", db_url)  # again: nothing to do, no error
+    assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.parametrize("url, words", [
+    ("sqlite//packings.db", "malformed database URL"),
+    ("mysql://root@localhost/x", "unsupported database"),
+    ("postgresql://nobody@127.0.0.1:1/nothing", "cannot connect"),
+    ("sqlite:////nonexistent-dir/sub/packings.db", "does not exist"),
+])
+def test_bad_database_urls_are_one_line(url, words, tmp_path):
+    r = cli("enumerate", "6", "--db", url, "--quiet", cwd=tmp_path)
+    assert words in one_line_error(r)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_query_commands_do_not_create_a_database(tmp_path):
+    for cmd in (["stats"], ["status"]):
+        r = cli(*cmd, cwd=tmp_path)
+        assert "no database" in one_line_error(r)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_default_database_comes_from_the_environment(tmp_path, sqlite_url):
+    import os
+
+    env = {**os.environ, "PACKINGS_DB": sqlite_url}
+    cwd = tmp_path / "elsewhere"
+    cwd.mkdir()
+    r = cli("db", "upgrade", cwd=cwd, env=env)
+    assert r.returncode == 0, r.stderr
+    assert current_revision(make_engine(sqlite_url)) == head_revision()
+    r = cli("stats", cwd=cwd, env=env)
+    assert r.returncode == 0 and "no clusters" in r.stdout
+    assert list(cwd.iterdir()) == []
