@@ -1,0 +1,210 @@
+"""The frontier and the write-back: leases, idempotence, failures, resume, concurrency."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from sqlalchemy import func, select
+
+from service import store
+from service.db import make_engine, sessions
+from service.models import DONE, FAILED, LEASED, PENDING, Cluster, Expansion, Run, Transition
+from service.tasks import run_expansion
+from workers.params import Params
+
+OWNER = f"{socket.gethostname()}:{os.getpid()}:test"
+
+
+def snapshot(engine) -> dict:
+    """Every row of every table, for comparing database states exactly."""
+    out = {}
+    with sessions(engine)() as s:
+        for model in (Run, Cluster, Expansion, Transition):
+            cols = [c for c in model.__table__.columns if c.name not in ("heartbeat_at",)]
+            out[model.__tablename__] = sorted(tuple(r) for r in s.execute(select(*cols)).all())
+    return out
+
+
+@pytest.fixture
+def run8(engine):
+    S = sessions(engine)
+    info = store.start_run(S, 8, Params(), OWNER)
+    return S, info
+
+
+def test_a_new_run_holds_the_seed_and_one_pending_expansion(run8):
+    S, info = run8
+    assert info.created
+    with S() as s:
+        assert store.frontier(s, info.id) == {PENDING: 1}
+        c = s.execute(select(Cluster)).scalar_one()
+        assert c.n == 8 and c.contacts == 18 and c.embedding == 0 and not c.singular
+        core = c.to_core()
+        assert core.coords.dtype == np.float64 and core.m == 18
+
+
+def test_coordinates_read_back_bit_exactly(run8):
+    from workers.seeds import seed_cluster
+
+    S, _ = run8
+    with S() as s:
+        c = s.execute(select(Cluster)).scalar_one()
+        assert np.array_equal(c.to_core().coords, seed_cluster(8).coords)
+        import json
+
+        assert np.array_equal(np.array(json.loads(c.coords_json)), seed_cluster(8).coords)
+
+
+def test_claim_leases_with_fresh_tokens(run8):
+    S, info = run8
+    [(eid, token)] = store.claim(S, info.id, OWNER, 5)
+    assert store.claim(S, info.id, OWNER, 5) == []
+    with S() as s:
+        e = s.get(Expansion, eid)
+        assert e.status == LEASED and e.lease_token == token and e.attempts == 1 and e.lease_owner == OWNER
+
+
+def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
+    S, info = run8
+    [(eid, token)] = store.claim(S, info.id, OWNER, 1)
+    first = run_expansion(S, eid, token)
+    assert first["new_clusters"] > 0 and not first.get("stale")
+    after_once = snapshot(engine)
+    second = run_expansion(S, eid, token)
+    assert second == {"expansion": eid, "stale": True}
+    assert snapshot(engine) == after_once
+    # also the write-back itself, given a result computed before the first write landed
+    task = store.Task(eid, info.id, 1, None, Params())  # cluster unused by record_expansion when stale
+    from workers.expand import Expansion as CoreExpansion
+
+    assert store.record_expansion(S, task, token, CoreExpansion(None, ()), 0.0, "w") is None
+    assert snapshot(engine) == after_once
+
+
+def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
+    S, info = run8
+    [(eid, token)] = store.claim(S, info.id, OWNER, 1)
+    before = snapshot(engine)
+    real = store.insert_or_match
+    calls = []
+
+    def dying(*a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise RuntimeError("worker died mid-write")
+        return real(*a, **k)
+
+    monkeypatch.setattr(store, "insert_or_match", dying)
+    with pytest.raises(RuntimeError):
+        run_expansion(S, eid, token)
+    assert snapshot(engine) == before  # nothing of the two clusters inserted before the failure
+    monkeypatch.setattr(store, "insert_or_match", real)
+    assert not run_expansion(S, eid, token).get("stale")
+
+
+def test_a_result_for_a_lease_given_to_another_is_rejected(run8, engine):
+    S, info = run8
+    [(eid, old)] = store.claim(S, info.id, OWNER, 1)
+    # a new coordinator takes the run over (the first one is gone): the lease goes back to pending
+    with S.begin() as s:
+        s.get(Run, info.id).coordinator = f"{socket.gethostname()}:999999999:gone"  # a process that is not alive
+    new_owner = f"{socket.gethostname()}:{os.getpid()}:new"
+    info2 = store.start_run(S, 8, Params(), new_owner)
+    assert not info2.created and info2.id == info.id
+    with S() as s:
+        assert store.frontier(s, info.id) == {PENDING: 1}
+    [(eid2, new)] = store.claim(S, info.id, new_owner, 1)
+    assert eid2 == eid and new != old
+    before = snapshot(engine)
+    assert run_expansion(S, eid, old)["stale"]
+    assert snapshot(engine) == before
+    assert not run_expansion(S, eid, new).get("stale")
+
+
+def test_a_live_coordinator_keeps_its_run(run8):
+    S, info = run8
+    with pytest.raises(store.RunBusy, match="being driven"):
+        store.start_run(S, 8, Params(), f"{socket.gethostname()}:{os.getpid()}:other")
+
+
+def test_failed_tasks_are_retried_then_marked_failed(run8):
+    S, info = run8
+    for attempt in (1, 2, 3):
+        [(eid, token)] = store.claim(S, info.id, OWNER, 1)
+        status = store.release(S, eid, token, f"ValueError: boom {attempt}", max_attempts=3)
+        assert status == (FAILED if attempt == 3 else PENDING)
+    assert store.claim(S, info.id, OWNER, 1) == []
+    with S() as s:
+        e = s.get(Expansion, eid)
+        assert e.status == FAILED and e.attempts == 3 and e.error == "ValueError: boom 3"
+    assert store.finish_run(S, info.id, OWNER, 1.0) == "incomplete"
+    assert store.release(S, eid, token, "late", 3) is None  # no longer leased: ignored
+
+
+def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
+    from tests.service.conftest import fill_database
+
+    run_id = fill_database(engine, 8)
+    with sessions(engine)() as s:
+        assert store.run_counts(s, run_id) == {18: 13}
+        assert s.get(Run, run_id).status == "complete"
+        d = store.run_diagnostics(s, run_id)
+        assert d["expansions"] == 13 and d["failed_tasks"] == 0 and d["paths_followed"] > 0
+        # every rigid transition points at a stored cluster of the run, and every cluster is reached
+        n_rigid = s.execute(select(func.count()).select_from(Transition).where(Transition.outcome == "rigid",
+                                                                                  Transition.target_id.is_(None))).scalar()
+        assert n_rigid == 0
+        assert s.execute(select(func.count()).select_from(Cluster).where(Cluster.n == 8)).scalar() == 13
+    assert paper_counts["totals"]["8"] == 13
+
+
+def _insert_all(url: str, clusters: list[dict], seed: int, barrier) -> list[tuple[int, bool]]:
+    """One process: insert every cluster (relabelled, rotated, in its own order), one transaction each."""
+    from workers.cluster import Cluster as Core
+    from workers.identity import certificate_key
+    from workers.rigidity import rigidity
+
+    rng = np.random.default_rng(seed)
+    engine = make_engine(url)
+    S = sessions(engine)
+    params = Params()
+    barrier.wait()
+    out = []
+    for k in rng.permutation(len(clusters)):
+        c = Core.from_dict(clusters[k])
+        p = rng.permutation(c.n)
+        inv = np.argsort(p)
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        c = Core(c.coords[p] @ q.T + rng.normal(size=3), tuple((int(inv[i]), int(inv[j])) for i, j in c.contacts))
+        rig = rigidity(c.coords, c.contacts, params)
+        with S.begin() as s:
+            store.lock_certificates(s, [(c.n, certificate_key(c))])
+            out.append(store.insert_or_match(s, c, rig, None, params.tol_d))
+    engine.dispose()
+    return out
+
+
+def test_concurrent_inserts_of_overlapping_clusters_make_no_duplicates(engine):
+    """Several processes insert the same 13 clusters (each relabelled and moved) at once."""
+    from workers.explore import explore
+
+    clusters = [c.to_dict() for c in explore(8).clusters]
+    url = engine.url.render_as_string(hide_password=False)
+    ctx = mp.get_context("spawn")
+    k = 4
+    with ctx.Manager() as m:
+        barrier = m.Barrier(k)
+        with ctx.Pool(k) as pool:
+            results = pool.starmap(_insert_all, [(url, clusters, seed, barrier) for seed in range(k)])
+    with sessions(engine)() as s:
+        rows = s.execute(select(Cluster.certificate, Cluster.embedding)).all()
+    assert len(rows) == 13 and len(set(rows)) == 13
+    new = [is_new for r in results for _, is_new in r]
+    assert sum(new) == 13 and len(new) == 13 * k
+    assert len({cid for r in results for cid, _ in r}) == 13
