@@ -163,8 +163,12 @@ def _connect_error(engine: Engine, e: Exception) -> DatabaseError:
     return DatabaseError(f"cannot connect to {display_url(engine.url)}: {first}")
 
 
-def check_schema(engine: Engine, create: bool) -> None:
-    """Refuse a database whose schema is not this code's head (see module doc)."""
+def check_schema(engine: Engine, create: bool, allow_empty: bool = False) -> None:
+    """Refuse a database whose schema is not this code's head (see module doc).
+
+    An empty database is created at head if ``create``, accepted untouched if
+    ``allow_empty``, and refused otherwise.
+    """
     where = display_url(engine.url)
     head = head_revision()
     try:
@@ -174,6 +178,8 @@ def check_schema(engine: Engine, create: bool) -> None:
     except OperationalError as e:
         raise _connect_error(engine, e) from None
     if not tables:
+        if allow_empty and not create:
+            return
         if not create:
             raise DatabaseError(f"{where} is empty: run `packings db upgrade` or `packings enumerate N` first")
         upgrade(engine)
@@ -210,6 +216,23 @@ def open_database(url: str, create: bool = False) -> Engine:
         engine.dispose()
         raise _connect_error(engine, e) from None
     return engine
+
+
+def preflight(url: str) -> None:
+    """Every check of :func:`open_database` that writes nothing: the URL, the
+    connection, the schema (an empty or missing database passes)."""
+    engine = make_engine(url)
+    try:
+        path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
+        if path is not None and not path.exists():
+            if not path.parent.exists():
+                raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
+            return
+        check_schema(engine, create=False, allow_empty=True)
+    except SQLAlchemyError as e:
+        raise _connect_error(engine, e) from None
+    finally:
+        engine.dispose()
 
 
 def sessions(engine: Engine) -> sessionmaker[Session]:
