@@ -287,6 +287,154 @@ def _table(cols: list[str], rows: list[list]) -> str:
     return "\n".join(out)
 
 
+# --------------------------------------------------------------------------- queries: select, show, export
+
+from service import export as _export  # noqa: E402 - the query commands' formats
+from service.selection import describe_keys as _describe_keys  # noqa: E402
+
+_SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
+                   "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
+                   "'n=10,contacts<24,singular', '!singular,min_gap>0.1', hyperstatic, run=1.  Keys:\n\n\b\n"
+                   + _describe_keys())
+_TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "certificate"]
+
+
+def _query(selection: str | None, **kw):
+    """The SELECT for a selection; a bad one is a usage error (checked before the database is opened)."""
+    from service.selection import SelectionError, query
+
+    try:
+        return query(selection, **kw)
+    except SelectionError as e:
+        raise click.UsageError(str(e)) from None
+
+
+class _reading:
+    """A session on an existing database, disposed of afterwards."""
+
+    def __init__(self, db_url: str | None):
+        self.engine = open_db(db_url)
+
+    def __enter__(self):
+        from service.db import sessions
+
+        self.session = sessions(self.engine)()
+        return self.session
+
+    def __exit__(self, *exc):
+        self.session.close()
+        self.engine.dispose()
+        return False
+
+
+def _echo_chunks(chunks) -> None:
+    for chunk in chunks:
+        click.echo(chunk, nl=False)
+
+
+def _table_row(f: dict) -> list:
+    cert = f["certificate"]
+    return [f["id"], f["n"], f["contacts"], f["embedding"], f["singular"], f["flexes"], f["stresses"],
+            None if f["min_gap"] is None else f"{f['min_gap']:.6g}", cert if len(cert) <= 16 else cert[:13] + "..."]
+
+
+@cli.command("select", epilog=_SELECTION_HELP)
+@click.argument("selection", required=False, default="")
+@db_option
+@click.option("--json", "as_json", is_flag=True, help="A JSON list: every fact, coords and contact_list.")
+@click.option("--csv", "as_csv", is_flag=True, help="CSV with a header line (no coordinates).")
+@click.option("--count", "as_count", is_flag=True, help="Only the number of clusters selected.")
+@click.option("--limit", type=click.IntRange(min=0), default=None, help="At most this many clusters.")
+@click.option("--sort", default=None, metavar="KEY", help="Sort by KEY (-KEY: descending); default n, contacts, id.")
+def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, as_count: bool, limit: int | None,
+               sort: str | None) -> None:
+    """The stored clusters that match SELECTION (default: all), as a table, JSON or CSV."""
+    if as_json + as_csv + as_count > 1:
+        raise click.UsageError("give at most one of --json, --csv, --count")
+    q = _query(selection, sort=sort, limit=limit)
+    with _reading(db_url) as s:
+        if as_count:
+            from sqlalchemy import func, select
+
+            click.echo(s.execute(select(func.count()).select_from(q.order_by(None).subquery())).scalar_one())
+            return
+        rows = s.execute(q.execution_options(yield_per=500)).scalars()
+        if as_json:
+            _echo_chunks(_export.to_json(_export.record(c) for c in rows))
+        elif as_csv:
+            _echo_chunks(_export.to_csv(_export.facts(c) for c in rows))
+        else:
+            table = [_table_row(_export.facts(c)) for c in rows]
+            click.echo(_table(_TABLE_COLUMNS, table) + f"\n{len(table)} clusters" if table else "no clusters match")
+
+
+@cli.command("show")
+@click.argument("cluster_id", metavar="ID", type=int)
+@db_option
+@click.option("--json", "as_json", is_flag=True, help="One JSON object.")
+def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
+    """Cluster ID in full: every fact, the exact coordinates, the contacts, the
+    paths leaving and reaching it, and the runs whose frontier holds it."""
+    from service.models import Cluster
+    from service.selection import links
+
+    with _reading(db_url) as s:
+        c = s.get(Cluster, cluster_id)
+        if c is None:
+            raise click.ClickException(f"no cluster with id {cluster_id}")
+        rec, info = _export.record(c), links(s, cluster_id)
+    if as_json:
+        click.echo(json.dumps({**rec, **info}))
+        return
+    excess = rec["excess"]
+    kind = "hypostatic" if excess < 0 else "isostatic" if excess == 0 else "hyperstatic"
+    out = [f"cluster {rec['id']}: n = {rec['n']}, {rec['contacts']} contacts (3n-6{excess:+d}, {kind})"]
+    out += [f"  {k:<13} {'' if rec[k] is None else repr(rec[k]) if isinstance(rec[k], float) else rec[k]}"
+            for k in _export.FACTS]
+    out += ["coordinates (unit: sphere diameter):",
+            _table(["i", "x", "y", "z"], [[i, *map(repr, x)] for i, x in enumerate(rec["coords"])])]
+    pairs = [f"{i}-{j}" for i, j in rec["contact_list"]]
+    out += [f"contacts ({len(pairs)}):"] + ["  " + " ".join(pairs[k:k + 12]) for k in range(0, len(pairs), 12)]
+    by = ", ".join(f"{o} {c}" for o, c in info["leaving_by_outcome"].items())
+    out += [f"paths leaving: {info['paths_leaving']}" + (f" ({by})" if by else ""),
+            f"paths reaching: {info['paths_reaching']} from {info['reached_from']} clusters"]
+    out += [f"run {r['run']} (n = {r['n']}, {r['run_status']}): expansion {r['expansion']}"
+            + ("" if r["paths"] is None else f", {r['paths']} paths") for r in info["runs"]] or ["in no run's frontier"]
+    click.echo("\n".join(out))
+
+
+@cli.command("export", epilog=_SELECTION_HELP)
+@click.argument("selection", required=False, default="")
+@click.option("--n", "n", type=int, default=None, help="Only clusters of N spheres.")
+@click.option("--format", "fmt", type=click.Choice(_export.FORMATS), default=None,
+              help="Default: from the suffix of -o (.extxyz, .xyz, .json), else extxyz.")
+@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
+              help="Write to this file (replaced whole, never half-written); default standard output.")
+@db_option
+def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | None, db_url: str | None) -> None:
+    """Write the clusters that match SELECTION (default: all), ordered by n, contacts, id: extended XYZ
+    (readable by ase.io.read), plain XYZ, or JSON with every fact, coordinates and contacts."""
+    fmt = fmt or _export.format_for(output)
+    q = _query(selection, n=n)
+    written = 0
+    with _reading(db_url) as s:
+        def records():
+            nonlocal written
+            for c in s.execute(q.execution_options(yield_per=500)).scalars():
+                written += 1
+                yield _export.record(c)
+
+        chunks = _export.render(fmt, records())
+        if output is None:
+            _echo_chunks(chunks)
+            return
+        try:
+            _export.write_atomic(output, chunks)
+        except OSError as e:
+            raise click.ClickException(f"cannot write {output}: {e.strerror or e}") from None
+    click.echo(f"wrote {written} clusters ({fmt}) to {output}")
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     try:

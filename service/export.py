@@ -1,0 +1,130 @@
+"""Clusters as text: records, JSON, CSV, XYZ and extended XYZ.
+
+Pure functions from cluster rows (:class:`service.models.Cluster`) to records
+(plain dicts) and from records to text chunks, plus :func:`write_atomic`.
+
+* Coordinates are the exact float64 values of the ``coords`` blob, written with
+  Python's shortest round-trip repr, so every format reads back bit-exactly.
+  Positions are in units of the sphere diameter.
+* XYZ and extended XYZ name every sphere ``X`` (ASE reads it as its dummy
+  element, atomic number 0).  The extended XYZ comment line carries
+  ``Properties=species:S:1:pos:R:3`` and the cluster's facts as key=value
+  pairs; note that ASE turns any value that looks like a number into one, so a
+  certificate made only of digits reads back as an int there (``id`` is the
+  key to join back to the database).
+* In records ``contacts`` is the number of contacts (as in the database and the
+  selection language) and ``contact_list`` the pairs ``[[i, j], ...]``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Iterable, Iterator
+
+#: the scalar facts of a cluster, in the order the formats list them
+FACTS = ("id", "n", "contacts", "excess", "embedding", "certificate", "rigid_kind", "rigid_method", "margin",
+         "flexes", "stresses", "singular", "min_gap", "found_in_run", "created_at")
+#: the facts on an extended XYZ comment line (None values are left out)
+XYZ_FACTS = ("id", "n", "contacts", "embedding", "certificate", "singular", "flexes", "stresses", "min_gap")
+SPECIES = "X"
+FORMATS = ("extxyz", "xyz", "json")
+
+
+def facts(c) -> dict:
+    """The scalar facts of a cluster row."""
+    out = {name: getattr(c, name) for name in FACTS if name not in ("excess", "created_at")}
+    out["excess"] = c.contacts - (3 * c.n - 6)
+    out["created_at"] = c.created_at.isoformat() if c.created_at is not None else None
+    return {name: out[name] for name in FACTS}
+
+
+def record(c) -> dict:
+    """Facts, coordinates (n x 3 lists of floats) and contact pairs of a cluster row."""
+    core = c.to_core()
+    return {**facts(c), "coords": core.coords.tolist(), "contact_list": [list(p) for p in core.contacts]}
+
+
+def to_json(records: Iterable[dict]) -> Iterator[str]:
+    """A JSON list, one object a line."""
+    sep = "[\n"
+    for r in records:
+        yield sep + json.dumps(r)
+        sep = ",\n"
+    yield "[]\n" if sep == "[\n" else "\n]\n"
+
+
+def to_csv(records: Iterable[dict], columns=FACTS) -> Iterator[str]:
+    """CSV with a header line; missing values are empty."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(columns)
+    for r in records:
+        w.writerow(["" if r[c] is None else r[c] for c in columns])
+        yield buf.getvalue()
+        buf.seek(0)
+        buf.truncate()
+    yield buf.getvalue()
+
+
+def _xyz_value(v) -> str:
+    if isinstance(v, bool):
+        return "T" if v else "F"
+    if isinstance(v, float):
+        return repr(v)
+    s = str(v)
+    return f'"{s}"' if not s or any(ch.isspace() or ch in "=\"'" for ch in s) else s
+
+
+def xyz_comment(r: dict, extended: bool = True) -> str:
+    pairs = [f"{k}={_xyz_value(r[k])}" for k in XYZ_FACTS if r[k] is not None]
+    return " ".join((["Properties=species:S:1:pos:R:3"] if extended else []) + pairs)
+
+
+def to_xyz(records: Iterable[dict], extended: bool = True) -> Iterator[str]:
+    """One XYZ frame per cluster: the count, a comment line, ``X x y z`` lines."""
+    for r in records:
+        lines = [str(len(r["coords"])), xyz_comment(r, extended)]
+        lines += [f"{SPECIES} {x!r} {y!r} {z!r}" for x, y, z in r["coords"]]
+        yield "\n".join(lines) + "\n"
+
+
+def render(fmt: str, records: Iterable[dict]) -> Iterator[str]:
+    """``records`` as text chunks in one of :data:`FORMATS`."""
+    if fmt == "json":
+        return to_json(records)
+    if fmt in ("extxyz", "xyz"):
+        return to_xyz(records, extended=fmt == "extxyz")
+    raise ValueError(f"unknown format {fmt!r}: use one of {', '.join(FORMATS)}")
+
+
+def format_for(path: str | None) -> str:
+    """The format a file name implies (.json, .xyz, .extxyz), else extxyz."""
+    suffix = Path(path).suffix.lower().lstrip(".") if path else ""
+    return suffix if suffix in FORMATS else "extxyz"
+
+
+def write_atomic(path: str | os.PathLike, chunks: Iterable[str]) -> None:
+    """Write ``chunks`` to a temporary file beside ``path``, then rename it:
+    ``path`` is either left as it was or holds the whole text."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            for chunk in chunks:
+                f.write(chunk)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise

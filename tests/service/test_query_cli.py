@@ -1,0 +1,270 @@
+"""The query commands (select, show, export), run as a user runs them, on both backends."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from sqlalchemy import func, select
+
+from service.models import Cluster, Transition
+from tests.service.querydb import filled_catalog
+
+catalog = filled_catalog(7, 8)
+
+TABLE_HEADER = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "certificate"]
+
+
+def run(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=120,
+                          cwd=cwd)
+
+
+def run_many(*commands, cwd=None):
+    """Several commands at once (each a list of arguments), in order."""
+    with ThreadPoolExecutor(max_workers=8) as pool:
+        return list(pool.map(lambda args: run(*args, cwd=cwd), commands))
+
+
+def ok(*args, cwd=None) -> str:
+    r = run(*args, cwd=cwd)
+    assert r.returncode == 0, r.stderr
+    return r.stdout
+
+
+def one_line_error(r, *words):
+    assert r.returncode != 0, r.args
+    assert r.stdout == "", r.args
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("packings: error:"), (r.args, r.stderr)
+    assert all(w in lines[0] for w in words), (r.args, lines[0])
+
+
+@pytest.fixture(scope="module")
+def stored(catalog):
+    """{id: (row, exact coordinates)} of every stored cluster."""
+    from service.db import sessions
+
+    with sessions(catalog.engine)() as s:
+        rows = s.execute(select(Cluster).order_by(Cluster.n, Cluster.contacts, Cluster.id)).scalars().all()
+    return {c.id: (c, c.to_core().coords) for c in rows}
+
+
+def read_xyz(text: str) -> list[tuple[str, list[str], np.ndarray]]:
+    """Frames of an XYZ file: (comment, species, coordinates parsed with float())."""
+    lines, frames = text.splitlines(), []
+    while lines:
+        k = int(lines[0])
+        body = [line.split() for line in lines[2:2 + k]]
+        frames.append((lines[1], [b[0] for b in body], np.array([[float(v) for v in b[1:]] for b in body])))
+        lines = lines[2 + k:]
+    return frames
+
+
+# --------------------------------------------------------------------------- select
+
+
+def test_select_table(catalog, stored):
+    out = ok("select", "--db", catalog.url).splitlines()
+    assert out[0].split() == TABLE_HEADER
+    assert [int(line.split()[0]) for line in out[1:-1]] == list(stored)
+    assert out[-1] == "18 clusters"
+    out = ok("select", "n=8,contacts<18", "--db", catalog.url)
+    assert out.strip() == "no clusters match"
+
+
+def test_select_count(catalog):
+    counts = {"": 18, "n=8": 13, "isostatic,!singular,n>=7": 18, "hyperstatic": 0, f"run={catalog.runs[8]}": 13,
+              "m=15,n=7": 5}
+    results = run_many(*(["select", text, "--count", "--db", catalog.url] for text in counts))
+    for r, expected in zip(results, counts.values()):
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.strip() == str(expected), r.args
+
+
+def test_select_json(catalog, stored):
+    out = json.loads(ok("select", "n=7", "--json", "--db", catalog.url))
+    assert [o["id"] for o in out] == [i for i, (c, _) in stored.items() if c.n == 7]
+    for o in out:
+        c, x = stored[o["id"]]
+        assert set(TABLE_HEADER) <= set(o)
+        assert (o["n"], o["contacts"], o["certificate"], o["singular"], o["min_gap"]) == \
+            (c.n, c.contacts, c.certificate, c.singular, c.min_gap)
+        assert np.array_equal(np.array(o["coords"]), x)
+        assert o["contact_list"] == json.loads(c.contact_list) and len(o["contact_list"]) == c.contacts
+    assert json.loads(ok("select", "n=5", "--json", "--db", catalog.url)) == []
+
+
+def test_select_csv_sort_and_limit(catalog, stored):
+    out = list(csv.DictReader(io.StringIO(ok("select", "n=8", "--csv", "--sort", "-min_gap", "--limit", "4",
+                                             "--db", catalog.url))))
+    expected = sorted((c for c, _ in stored.values() if c.n == 8), key=lambda c: (-c.min_gap, c.id))[:4]
+    assert [int(r["id"]) for r in out] == [c.id for c in expected]
+    assert "coords" not in out[0] and "contact_list" not in out[0]
+    assert set(TABLE_HEADER) <= set(out[0])
+    assert [float(r["min_gap"]) for r in out] == [c.min_gap for c in expected]
+    assert [r["certificate"] for r in out] == [c.certificate for c in expected]
+
+
+SELECT_ERRORS = [
+    (["n==7"], ["bad operator '=='"]),
+    (["colour=red"], ["unknown key 'colour'", "known keys:"]),
+    (["n=seven"], ["bad value 'seven'"]),
+    (["singular<1"], ["does not apply"]),
+    (["--sort", "nope"], ["unknown key 'nope'"]),
+    (["--json", "--csv"], ["at most one of"]),
+    (["--limit", "-1"], ["--limit"]),
+    ([], ["no database at"]),  # select never creates a database
+]
+
+
+def test_select_errors_are_one_line(tmp_path):
+    missing = f"sqlite:///{tmp_path / 'none.db'}"
+    results = run_many(*(["select", *args, "--db", missing] for args, _ in SELECT_ERRORS), cwd=tmp_path)
+    for r, (_, words) in zip(results, SELECT_ERRORS):
+        one_line_error(r, *words)
+    assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- show
+
+
+def test_show(catalog, stored):
+    from service.db import sessions
+
+    cid = next(i for i, (c, _) in stored.items() if c.n == 8)
+    c, x = stored[cid]
+    out = ok("show", str(cid), "--db", catalog.url)
+    assert out.startswith(f"cluster {cid}: n = 8, 18 contacts (3n-6+0, isostatic)")
+    for name in ("certificate", "rigid_kind", "rigid_method", "margin", "min_gap", "found_in_run", "created_at"):
+        assert f"\n  {name} " in out
+    for row in x:  # every coordinate, exactly
+        assert all(repr(float(v)) in out for v in row)
+    assert f"contacts ({c.contacts}):" in out
+    assert f"run {catalog.runs[8]} (n = 8, complete): expansion done" in out
+
+    info = json.loads(ok("show", str(cid), "--json", "--db", catalog.url))
+    assert np.array_equal(np.array(info["coords"]), x)
+    with sessions(catalog.engine)() as s:
+        leaving = s.execute(select(func.count()).where(Transition.source_id == cid,
+                                                       Transition.direction != 0)).scalar_one()
+        reaching = s.execute(select(func.count()).where(Transition.target_id == cid,
+                                                        Transition.direction != 0)).scalar_one()
+    assert (info["paths_leaving"], info["paths_reaching"]) == (leaving, reaching)
+    assert leaving > 0 and sum(info["leaving_by_outcome"].values()) == leaving
+    assert f"paths leaving: {leaving} (" in out and f"paths reaching: {reaching} from" in out
+    assert [r["run"] for r in info["runs"]] == [catalog.runs[8]]
+
+
+def test_show_missing_id(catalog):
+    missing, bad = run_many(["show", "9999", "--db", catalog.url], ["show", "abc", "--db", catalog.url])
+    one_line_error(missing, "no cluster with id 9999")
+    one_line_error(bad, "'abc'")
+
+
+# --------------------------------------------------------------------------- export
+
+
+def test_export_extxyz_reads_in_ase(catalog, stored, tmp_path):
+    import ase.io
+
+    path = tmp_path / "clusters.extxyz"
+    out = ok("export", "--format", "extxyz", "-o", str(path), "--db", catalog.url)
+    assert out.strip() == f"wrote 18 clusters (extxyz) to {path}"
+    frames = ase.io.read(path, index=":")
+    assert [a.info["id"] for a in frames] == list(stored)
+    for atoms in frames:
+        c, x = stored[int(atoms.info["id"])]
+        assert np.array_equal(atoms.positions, x)
+        assert len(atoms) == c.n and set(atoms.get_chemical_symbols()) == {"X"}
+        assert (atoms.info["n"], atoms.info["contacts"], atoms.info["embedding"]) == (c.n, c.contacts, c.embedding)
+        assert (atoms.info["singular"], atoms.info["flexes"], atoms.info["stresses"]) == \
+            (c.singular, c.flexes, c.stresses)
+        assert atoms.info["min_gap"] == c.min_gap
+        cert = atoms.info["certificate"]  # ASE reads a value made only of digits as a number
+        assert cert == c.certificate if isinstance(cert, str) else int(c.certificate) == cert
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left
+
+
+def test_export_extxyz_to_stdout_is_exact(catalog, stored):
+    frames = read_xyz(ok("export", "n>7", "--db", catalog.url))  # extxyz is the default
+    assert len(frames) == 13
+    for comment, species, x in frames:
+        facts = dict(kv.split("=", 1) for kv in comment.split())
+        assert facts["Properties"] == "species:S:1:pos:R:3"
+        c, stored_x = stored[int(facts["id"])]
+        assert facts["certificate"] == c.certificate and facts["singular"] == "TF"[not c.singular]
+        assert float(facts["min_gap"]) == c.min_gap
+        assert species == ["X"] * c.n
+        assert np.array_equal(x, stored_x)
+
+
+def test_export_xyz_is_exact(catalog, stored, tmp_path):
+    path = tmp_path / "n8.xyz"  # the format follows the suffix
+    ok("export", "--n", "8", "-o", str(path), "--db", catalog.url)
+    frames = read_xyz(path.read_text())
+    ids = [i for i, (c, _) in stored.items() if c.n == 8]
+    assert [int(dict(kv.split("=", 1) for kv in f[0].split())["id"]) for f in frames] == ids
+    for (comment, species, x), i in zip(frames, ids):
+        assert "Properties" not in comment
+        assert species == ["X"] * 8 and np.array_equal(x, stored[i][1])
+
+
+def test_export_json_is_exact(catalog, stored, tmp_path):
+    path = tmp_path / "all.json"
+    ok("export", "--format", "json", "-o", str(path), "--db", catalog.url)
+    out = json.loads(path.read_text())
+    assert [o["id"] for o in out] == list(stored)
+    for o in out:
+        c, x = stored[o["id"]]
+        assert np.array_equal(np.array(o["coords"], dtype=np.float64), x)
+        assert o["contact_list"] == json.loads(c.contact_list)
+        for name in ("n", "contacts", "embedding", "certificate", "rigid_kind", "rigid_method", "margin", "flexes",
+                     "stresses", "singular", "min_gap", "found_in_run"):
+            assert o[name] == getattr(c, name), name
+        assert o["excess"] == c.contacts - (3 * c.n - 6)
+    assert json.loads(ok("export", "n=5", "--format", "json", "--db", catalog.url)) == []
+
+
+def test_export_replaces_a_file_whole(catalog, tmp_path):
+    path = tmp_path / "out.json"
+    path.write_text("old")
+    ok("export", "n=7", "-o", str(path), "--db", catalog.url)
+    assert len(json.loads(path.read_text())) == 5
+    r = run("export", "n=7,", "-o", str(path), "--db", catalog.url)  # an error leaves the old file alone
+    one_line_error(r, "empty term")
+    assert len(json.loads(path.read_text())) == 5
+    assert [p.name for p in tmp_path.iterdir()] == ["out.json"]
+
+
+EXPORT_ERRORS = [
+    (["--format", "pdb"], ["'pdb' is not one of"]),
+    (["n=", "--format", "xyz"], ["missing value"]),
+    (["lattice=fcc"], ["unknown key 'lattice'"]),
+    ([], ["no database at"]),
+]
+
+
+def test_export_errors_are_one_line_and_write_nothing(tmp_path):
+    db, out = f"sqlite:///{tmp_path / 'none.db'}", str(tmp_path / "out.xyz")
+    results = run_many(*(["export", *args, "-o", out, "--db", db] for args, _ in EXPORT_ERRORS), cwd=tmp_path)
+    for r, (_, words) in zip(results, EXPORT_ERRORS):
+        one_line_error(r, *words)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_export_to_a_missing_directory(catalog, tmp_path):
+    one_line_error(run("export", "-o", str(tmp_path / "no" / "out.xyz"), "--db", catalog.url), "cannot write")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_help_lists_the_keys():
+    for r in run_many(["select", "--help"], ["export", "--help"]):
+        assert r.returncode == 0, r.stderr
+        assert "hyperstatic" in r.stdout and "run=1" in r.stdout and "min_gap" in r.stdout
