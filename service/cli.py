@@ -87,13 +87,16 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
         raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
     params = Params(max_break=max_break, min_contacts=min_contacts)
     url = resolve_url(db_url)
-    engine = open_db(url, create=True)
-    if scheduler and engine.dialect.name == "sqlite":
-        click.echo("packings: warning: SQLite with --scheduler works only if every worker sees this file "
-                   f"({engine.url.database}); use PostgreSQL for many machines", err=True)
+    from service.db import preflight
+
+    preflight(url)  # a bad URL, server or schema is reported before any Dask cluster starts
     from service.coordinator import run_enumeration
 
     with _dask_client(scheduler, n_workers, quiet) as client:
+        engine = open_db(url, create=True)
+        if scheduler and engine.dialect.name == "sqlite":
+            click.echo("packings: warning: SQLite with --scheduler works only if every worker sees this file "
+                       f"({engine.url.database}); use PostgreSQL for many machines", err=True)
         bar = _progress_bar(quiet)
         try:
             result = run_enumeration(engine, url, n, params, client, on_progress=bar)

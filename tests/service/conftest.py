@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import uuid
+from contextlib import contextmanager
 
 import pytest
 
@@ -43,9 +44,10 @@ def _pg_available() -> str | None:
     return _pg_problem[0] or None
 
 
-@pytest.fixture
-def pg_url():
-    """A fresh, empty PostgreSQL database (URL), dropped after the test."""
+@contextmanager
+def pg_database():
+    """A fresh, empty PostgreSQL database (URL) at any scope, dropped on leaving;
+    skips (or fails, under PACKINGS_REQUIRE_PG=1) without a server."""
     from sqlalchemy import text
 
     from service.db import parse_url
@@ -59,11 +61,19 @@ def pg_url():
     admin = _pg_admin_engine()
     with admin.connect() as c:
         c.execute(text(f'CREATE DATABASE "{name}"'))
-    url = parse_url(PG_ADMIN).set(database=name).render_as_string(hide_password=False)
-    yield url
-    with admin.connect() as c:
-        c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-    admin.dispose()
+    try:
+        yield parse_url(PG_ADMIN).set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as c:
+            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+@pytest.fixture
+def pg_url():
+    """A fresh, empty PostgreSQL database (URL), dropped after the test."""
+    with pg_database() as url:
+        yield url
 
 
 @pytest.fixture

@@ -7,23 +7,13 @@ a database holding the complete enumerations of those n, filled once.
 
 from __future__ import annotations
 
-from contextlib import contextmanager, nullcontext
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import pytest
 from sqlalchemy import Engine
 
-from tests.service.conftest import fill_database, pg_url
-
-@contextmanager
-def pg_database():
-    """conftest's fresh PostgreSQL database (it skips or fails as there), at any scope; dropped on leaving."""
-    steps = pg_url.__wrapped__()
-    url = next(steps)
-    try:
-        yield url
-    finally:
-        next(steps, None)
+from tests.service.conftest import fill_database, pg_database
 
 
 @dataclass
