@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import click
+from sqlalchemy.exc import SQLAlchemyError
 
 from service.db import DatabaseError, default_url, display_url, parse_url
 from workers.params import Params
@@ -238,7 +239,7 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
 
     engine = open_db(db_url)
     rows = []
-    with sessions(engine)() as s:
+    with sessions(engine, readonly=True)() as s:
         for run in s.execute(select(Run).order_by(Run.id)).scalars():
             f = store.frontier(s, run.id)
             params = json.loads(run.params)
@@ -269,7 +270,7 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     from service.db import sessions
 
     engine = open_db(db_url)
-    with sessions(engine)() as s:
+    with sessions(engine, readonly=True)() as s:
         counts = store.counts_by_n(s, n)
     engine.dispose()
     if as_json:
@@ -321,7 +322,7 @@ class _reading:
     def __enter__(self):
         from service.db import sessions
 
-        self.session = sessions(self.engine)()
+        self.session = sessions(self.engine, readonly=True)()
         return self.session
 
     def __exit__(self, *exc):
@@ -450,6 +451,10 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(e.exit_code)
     except DatabaseError as e:
         click.echo(f"packings: error: {e}", err=True)
+        sys.exit(1)
+    except SQLAlchemyError as e:  # e.g. the server went away mid-command; transactions roll back
+        first = (str(getattr(e, "orig", None) or e).strip().splitlines() or [type(e).__name__])[0]
+        click.echo(f"packings: error: database: {first}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
         click.echo("packings: interrupted; rerun the same command to resume", err=True)

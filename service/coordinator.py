@@ -11,6 +11,7 @@ them back to pending when it starts.
 
 from __future__ import annotations
 
+import threading
 import time
 import uuid
 from dataclasses import dataclass, field
@@ -57,8 +58,30 @@ class RunResult:
         return sum(self.by_contacts.values())
 
 
-def _progress(Session_, run_id: int) -> Progress:
-    with Session_() as s:
+class _Heartbeat(threading.Thread):
+    """Marks the run as driven by this coordinator every HEARTBEAT_SECONDS,
+    however long the tasks take, so that other hosts do not take it over."""
+
+    def __init__(self, Session_, run_id: int, owner: str):
+        super().__init__(name="packings-heartbeat", daemon=True)
+        self.args = (Session_, run_id, owner)
+        self.stopped = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        while not self.stopped.wait(HEARTBEAT_SECONDS):
+            try:
+                store.heartbeat(*self.args)
+            except Exception:  # noqa: BLE001 - a missed beat is retried at the next one
+                pass
+
+    def stop(self) -> None:
+        self.stopped.set()
+        self.join()
+
+
+def _progress(Reader, run_id: int) -> Progress:
+    with Reader() as s:
         f = store.frontier(s, run_id)
     p = Progress(f.get(DONE, 0), f.get(PENDING, 0), f.get(LEASED, 0), f.get(FAILED, 0))
     p.clusters = p.total
@@ -81,12 +104,12 @@ def run_enumeration(
     through :class:`service.tasks.DatabasePlugin`).
     """
     Session_ = sessions(engine)
+    Reader = sessions(engine, readonly=True)
     owner = f"{store.process_name()}:{uuid.uuid4().hex[:8]}"
     info = store.start_run(Session_, n, params, owner)
     plugin = DatabasePlugin(url)
     client.register_plugin(plugin)
     start = time.perf_counter()
-    last_beat = time.monotonic()
     errors: list[str] = []
     ac = as_completed()
     in_flight = 0
@@ -103,10 +126,11 @@ def run_enumeration(
             ac.add(fut)
             in_flight += 1
 
+    beat = _Heartbeat(Session_, info.id, owner)
     try:
         fill()
         if on_progress:
-            on_progress(_progress(Session_, info.id))
+            on_progress(_progress(Reader, info.id))
         while in_flight:
             for fut in ac:
                 in_flight -= 1
@@ -119,19 +143,18 @@ def run_enumeration(
                 elif fut.status == "cancelled":
                     store.release(Session_, eid, token, "task cancelled", max_attempts)
                 fut.release()
-                if time.monotonic() - last_beat > HEARTBEAT_SECONDS:
-                    store.heartbeat(Session_, info.id, owner)
-                    last_beat = time.monotonic()
                 fill()
                 if on_progress:
-                    on_progress(_progress(Session_, info.id))
+                    on_progress(_progress(Reader, info.id))
             fill()
     except BaseException:
+        beat.stop()
         store.abandon(Session_, info.id, owner, time.perf_counter() - start)
         raise
+    beat.stop()
     seconds = time.perf_counter() - start
     status = store.finish_run(Session_, info.id, owner, seconds)
-    with Session_() as s:
+    with Reader() as s:
         by_contacts = store.run_counts(s, info.id)
         diagnostics = store.run_diagnostics(s, info.id)
         if not errors:

@@ -26,6 +26,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 DEFAULT_URL = "sqlite:///packings.db"
 SQLITE_BUSY_TIMEOUT_MS = 120_000
+READONLY = "packings_readonly"  #: execution option: a SQLite transaction that only reads begins DEFERRED
 ALEMBIC_DIR = Path(__file__).resolve().parent.parent / "alembic"
 
 
@@ -100,7 +101,8 @@ def _configure_sqlite(engine: Engine) -> None:
 
     @event.listens_for(engine, "begin")
     def _on_begin(conn):
-        conn.exec_driver_sql("BEGIN IMMEDIATE")
+        # Readers (sessions(engine, readonly=True)) take no lock: WAL gives them a snapshot.
+        conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READONLY) else "BEGIN IMMEDIATE")
 
 
 def is_postgresql(engine_or_session) -> bool:
@@ -235,5 +237,7 @@ def preflight(url: str) -> None:
         engine.dispose()
 
 
-def sessions(engine: Engine) -> sessionmaker[Session]:
-    return sessionmaker(engine, expire_on_commit=False)
+def sessions(engine: Engine, readonly: bool = False) -> sessionmaker[Session]:
+    """Sessions on ``engine``; ``readonly`` ones must not write (on SQLite they
+    begin DEFERRED and so never wait for, or block, a writer)."""
+    return sessionmaker(engine.execution_options(**{READONLY: True}) if readonly else engine, expire_on_commit=False)

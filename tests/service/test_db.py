@@ -132,3 +132,35 @@ def test_the_default_database_comes_from_the_environment(tmp_path, sqlite_url):
     r = cli("stats", cwd=cwd, env=env)
     assert r.returncode == 0 and "no clusters" in r.stdout
     assert list(cwd.iterdir()) == []
+
+
+def test_sqlite_readers_do_not_wait_for_a_writer(sqlite_url):
+    """Writers begin IMMEDIATE (one at a time); readonly sessions begin DEFERRED and read a snapshot."""
+    import threading
+
+    from service.db import sessions
+    from service.models import Run
+
+    eng = open_database(sqlite_url, create=True)
+    writer = sessions(eng)
+    result = []
+    with writer.begin() as w:
+        w.add(Run(n=5, params="{}", code_version="t"))
+        w.flush()  # holds the write lock, uncommitted
+
+        def read():
+            with sessions(eng, readonly=True)() as r:
+                result.append(r.query(Run).count())
+
+        t = threading.Thread(target=read)
+        t.start()
+        t.join(timeout=20)
+        assert not t.is_alive() and result == [0]
+        # a second writer would wait: BEGIN IMMEDIATE on another connection times out
+        import sqlite3
+
+        raw = sqlite3.connect(eng.url.database, timeout=0.2, isolation_level=None)
+        with pytest.raises(sqlite3.OperationalError, match="locked"):
+            raw.execute("BEGIN IMMEDIATE")
+        raw.close()
+    eng.dispose()

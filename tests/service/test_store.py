@@ -208,3 +208,20 @@ def test_concurrent_inserts_of_overlapping_clusters_make_no_duplicates(engine):
     new = [is_new for r in results for _, is_new in r]
     assert sum(new) == 13 and len(new) == 13 * k
     assert len({cid for r in results for cid, _ in r}) == 13
+
+
+def test_the_coordinator_heartbeat_runs_on_its_own(run8, monkeypatch):
+    """The run's heartbeat advances while the coordinator waits for long tasks."""
+    import time
+
+    from service import coordinator
+
+    S, info = run8
+    monkeypatch.setattr(coordinator, "HEARTBEAT_SECONDS", 0.05)
+    with S() as s:
+        first = s.get(Run, info.id).heartbeat_at
+    beat = coordinator._Heartbeat(S, info.id, OWNER)
+    time.sleep(0.5)
+    beat.stop()
+    with S() as s:
+        assert s.get(Run, info.id).heartbeat_at > first
