@@ -174,3 +174,46 @@ def test_workers_and_scheduler_are_exclusive(tmp_path):
     r = packings("enumerate", "7", "--workers", "2", "--scheduler", "tcp://127.0.0.1:8786", cwd=tmp_path)
     assert r.returncode != 0 and len(r.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_joining_an_existing_dask_cluster(db_url, paper_counts):
+    """The README's many-machine recipe on one machine: `dask scheduler`, `dask worker`, `--scheduler`."""
+    import os
+
+    dask = os.path.join(os.path.dirname(sys.executable), "dask")
+    port, dash = _free_port(), _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", f"127.0.0.1:{dash}"], stderr=subprocess.DEVNULL)]
+    try:
+        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads", "1"],
+                                      stderr=subprocess.DEVNULL))
+        r = packings("db", "upgrade", "--db", db_url)
+        assert r.returncode == 0, r.stderr
+        r = packings("enumerate", "8", "--db", db_url, "--scheduler", address, "--json")
+        assert r.returncode == 0, r.stderr
+        out = json.loads(r.stdout)
+        assert out["by_contacts"] == paper_counts["clusters_by_contacts"]["8"]
+        assert f"dashboard http://127.0.0.1:{dash}/status" in r.stderr
+        # the workers wrote the results themselves: every expansion names a worker of that cluster
+        engine = make_engine(db_url)
+        with sessions(engine)() as s:
+            workers = {w for (w,) in s.execute(select(Expansion.worker))}
+        engine.dispose()
+        assert workers and all(w.startswith("tcp://127.0.0.1:") for w in workers)
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
