@@ -36,10 +36,10 @@ def resolve_url(db_url: str | None) -> str:
     return url.render_as_string(hide_password=False)
 
 
-def open_db(db_url: str | None, create: bool = False):
+def open_db(db_url: str | None, create: bool = False, migrate: bool = False):
     from service.db import open_database
 
-    return open_database(resolve_url(db_url), create=create)
+    return open_database(resolve_url(db_url), create=create, migrate=migrate)
 
 
 def format_counts(n: int, by_contacts: dict[int, int]) -> str:
@@ -181,44 +181,24 @@ def db_group() -> None:
 @db_option
 def db_upgrade(db_url: str | None) -> None:
     """Create the schema, or migrate it to this code's version."""
-    from service.db import current_revision, head_revision, known_revisions, make_engine, upgrade
+    from service.db import current_revision, head_revision
 
-    engine = make_engine(resolve_url(db_url))
-    try:
-        rev = current_revision(engine)
-        if rev is not None and rev not in known_revisions():
-            raise DatabaseError(f"schema {rev} is newer than this code ({head_revision()}): upgrade packings")
-        if rev is None:
-            from sqlalchemy import inspect
-
-            with engine.connect() as conn:
-                tables = inspect(conn).get_table_names()
-            if tables:
-                raise DatabaseError(f"{display_url(engine.url)} holds tables that are not a packings database "
-                                    f"({', '.join(sorted(tables)[:5])}); use another database")
-        upgrade(engine)
-        click.echo(f"{display_url(engine.url)}: schema {rev or 'none'} -> {head_revision()}")
-    except DatabaseError:
-        raise
-    except Exception as e:  # connection problems
-        from service.db import _connect_error
-
-        raise _connect_error(engine, e) from None
-    finally:
-        engine.dispose()
+    engine = open_db(db_url, create=True, migrate=True)
+    click.echo(f"{display_url(engine.url)}: schema {current_revision(engine)} (this code: {head_revision()})")
+    engine.dispose()
 
 
 @db_group.command("version")
 @db_option
 def db_version(db_url: str | None) -> None:
     """Print the database's schema version and this code's."""
-    from service.db import _connect_error, current_revision, head_revision, make_engine
+    from service.db import connect_error, current_revision, head_revision, make_engine
 
     engine = make_engine(resolve_url(db_url))
     try:
         rev = current_revision(engine)
     except Exception as e:
-        raise _connect_error(engine, e) from None
+        raise connect_error(engine, e) from None
     finally:
         engine.dispose()
     head = head_revision()

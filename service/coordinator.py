@@ -35,11 +35,15 @@ class Progress:
     pending: int = 0
     leased: int = 0
     failed: int = 0
-    clusters: int = 0
 
     @property
     def total(self) -> int:
         return self.done + self.pending + self.leased + self.failed
+
+    @property
+    def clusters(self) -> int:
+        """Clusters the run has reached: one expansion each."""
+        return self.total
 
 
 @dataclass
@@ -83,9 +87,7 @@ class _Heartbeat(threading.Thread):
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
         f = store.frontier(s, run_id)
-    p = Progress(f.get(DONE, 0), f.get(PENDING, 0), f.get(LEASED, 0), f.get(FAILED, 0))
-    p.clusters = p.total
-    return p
+    return Progress(f.get(DONE, 0), f.get(PENDING, 0), f.get(LEASED, 0), f.get(FAILED, 0))
 
 
 def run_enumeration(

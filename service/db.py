@@ -159,17 +159,19 @@ def upgrade(engine: Engine) -> None:
         command.upgrade(cfg, "head")
 
 
-def _connect_error(engine: Engine, e: Exception) -> DatabaseError:
+def connect_error(engine: Engine, e: Exception) -> DatabaseError:
     msg = str(getattr(e, "orig", e)).strip().splitlines()
     first = msg[0] if msg else type(e).__name__
     return DatabaseError(f"cannot connect to {display_url(engine.url)}: {first}")
 
 
-def check_schema(engine: Engine, create: bool, allow_empty: bool = False) -> None:
+def check_schema(engine: Engine, create: bool, allow_empty: bool = False, migrate: bool = False) -> str | None:
     """Refuse a database whose schema is not this code's head (see module doc).
 
     An empty database is created at head if ``create``, accepted untouched if
-    ``allow_empty``, and refused otherwise.
+    ``allow_empty``, and refused otherwise.  A database at an older revision is
+    migrated to head if ``migrate`` (``packings db upgrade``), else refused.
+    Returns the revision the database had (None if it was empty).
     """
     where = display_url(engine.url)
     head = head_revision()
@@ -178,26 +180,30 @@ def check_schema(engine: Engine, create: bool, allow_empty: bool = False) -> Non
             tables = set(inspect(conn).get_table_names())
         rev = current_revision(engine) if "alembic_version" in tables else None
     except OperationalError as e:
-        raise _connect_error(engine, e) from None
+        raise connect_error(engine, e) from None
     if not tables:
         if allow_empty and not create:
-            return
+            return None
         if not create:
             raise DatabaseError(f"{where} is empty: run `packings db upgrade` or `packings enumerate N` first")
         upgrade(engine)
-        return
+        return None
     if rev is None:
         shown = ", ".join(sorted(tables)[:5])
         raise DatabaseError(f"{where} holds tables that are not a packings database ({shown}); use another database")
     if rev == head:
-        return
+        return rev
     if rev in known_revisions():
+        if migrate:
+            upgrade(engine)
+            return rev
         raise DatabaseError(f"{where} has schema {rev}, older than this code's {head}: run `packings db upgrade`")
     raise DatabaseError(f"{where} has schema {rev}, which this code does not know (newer?): upgrade packings")
 
 
-def open_database(url: str, create: bool = False) -> Engine:
-    """Connect and check the schema; create an empty database at head if ``create``.
+def open_database(url: str, create: bool = False, migrate: bool = False) -> Engine:
+    """Connect and check the schema; create an empty database at head if
+    ``create``, and migrate an older one to head if ``migrate``.
 
     A SQLite file that does not exist is created only if ``create``; otherwise
     the error says so and nothing is written.
@@ -210,13 +216,13 @@ def open_database(url: str, create: bool = False) -> Engine:
         if not path.parent.exists():
             raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
     try:
-        check_schema(engine, create)
+        check_schema(engine, create, migrate=migrate)
     except DatabaseError:
         engine.dispose()
         raise
     except SQLAlchemyError as e:
         engine.dispose()
-        raise _connect_error(engine, e) from None
+        raise connect_error(engine, e) from None
     return engine
 
 
@@ -232,7 +238,7 @@ def preflight(url: str) -> None:
             return
         check_schema(engine, create=False, allow_empty=True)
     except SQLAlchemyError as e:
-        raise _connect_error(engine, e) from None
+        raise connect_error(engine, e) from None
     finally:
         engine.dispose()
 

@@ -75,8 +75,9 @@ def test_older_and_unknown_schemas_are_refused_with_the_fix(engine):
         c.execute(text("UPDATE alembic_version SET version_num = 'ffffffff'"))
     r = cli("stats", "--db", url)
     assert "upgrade packings" in one_line_error(r)
-    r = cli("db", "upgrade", "--db", url)
-    assert "newer than this code" in one_line_error(r)
+    r = cli("db", "upgrade", "--db", url)  # an unknown (newer) schema is not touched
+    line = one_line_error(r)
+    assert "does not know" in line and "upgrade packings" in line
     # pretend the database is at a revision older than head
     import service.db as db
 
