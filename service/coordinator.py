@@ -112,7 +112,6 @@ def run_enumeration(
     plugin = DatabasePlugin(url)
     client.register_plugin(plugin)
     start = time.perf_counter()
-    errors: list[str] = []
     ac = as_completed()
     in_flight = 0
 
@@ -139,9 +138,7 @@ def run_enumeration(
                 eid, token = fut.expansion
                 if fut.status == "error":
                     exc = fut.exception()
-                    msg = f"{type(exc).__name__}: {exc}".splitlines()[0]
-                    if store.release(Session_, eid, token, msg, max_attempts) == FAILED:
-                        errors.append(f"expansion {eid}: {msg}")
+                    store.release(Session_, eid, token, f"{type(exc).__name__}: {exc}".splitlines()[0], max_attempts)
                 elif fut.status == "cancelled":
                     store.release(Session_, eid, token, "task cancelled", max_attempts)
                 fut.release()
@@ -159,7 +156,6 @@ def run_enumeration(
     with Reader() as s:
         by_contacts = store.run_counts(s, info.id)
         diagnostics = store.run_diagnostics(s, info.id)
-        if not errors:
-            errors = [f"expansion {i}: {e}" for i, e in s.execute(
-                select(Expansion.id, Expansion.error).where(Expansion.run_id == info.id, Expansion.status == FAILED))]
+        errors = [f"expansion {i}: {e}" for i, e in s.execute(
+            select(Expansion.id, Expansion.error).where(Expansion.run_id == info.id, Expansion.status == FAILED))]
     return RunResult(info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors)

@@ -5,7 +5,8 @@ service safe under concurrency and failure:
 
 * Claims: a batch of pending expansions becomes ``leased`` with a fresh token
   (PostgreSQL: ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite: the transaction
-  begins IMMEDIATE, so claims are serial).
+  begins IMMEDIATE, so claims are serial, and SQLAlchemy's SQLite dialect
+  leaves ``FOR UPDATE`` out of every statement here).
 * Write-back (:func:`record_expansion`): one transaction inserts the new
   clusters, their pending expansions and the transitions, and marks the
   expansion done, and only if the expansion is still leased with the token the
@@ -178,10 +179,7 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
     """
     pj = params_json(params)
     with Session_.begin() as s:
-        q = select(Run).where(Run.n == n, Run.params == pj)
-        if is_postgresql(s):
-            q = q.with_for_update()
-        run = s.execute(q).scalar_one_or_none()
+        run = s.execute(select(Run).where(Run.n == n, Run.params == pj).with_for_update()).scalar_one_or_none()
         created = run is None
         if created:
             run = Run(n=n, params=pj, status=RUNNING, code_version=code_version())
@@ -195,11 +193,7 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
         elif run.coordinator and run.coordinator != owner and _coordinator_alive(run.coordinator, run.heartbeat_at):
             raise RunBusy(f"run {run.id} (n = {n}) is being driven by coordinator {run.coordinator}; "
                           "wait for it to finish or stop it first")
-        s.execute(
-            update(Expansion)
-            .where(Expansion.run_id == run.id, Expansion.status == LEASED)
-            .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
-        )
+        _unlease(s, run.id)
         run.coordinator = owner
         run.heartbeat_at = utcnow()
         if run.status != COMPLETE:
@@ -220,25 +214,33 @@ def finish_run(Session_: sessionmaker, run_id: int, owner: str, seconds: float) 
         counts = frontier(s, run_id)
         if counts.get(PENDING, 0) == 0 and counts.get(LEASED, 0) == 0:
             run.status = INCOMPLETE if counts.get(FAILED, 0) else COMPLETE
-            run.finished_at = run.finished_at if run.finished_at and run.status == COMPLETE else utcnow()
-        run.seconds = (run.seconds or 0.0) + seconds
-        if run.coordinator == owner:
-            run.coordinator = None
+            if not (run.finished_at and run.status == COMPLETE):  # a resumed complete run keeps its time
+                run.finished_at = utcnow()
+        _let_go(run, owner, seconds)
         return run.status
 
 
 def abandon(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> None:
     """An interrupted coordinator puts its leases back and lets the run go."""
     with Session_.begin() as s:
-        s.execute(
-            update(Expansion)
-            .where(Expansion.run_id == run_id, Expansion.status == LEASED, Expansion.lease_owner == owner)
-            .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
-        )
-        run = s.get(Run, run_id)
-        run.seconds = (run.seconds or 0.0) + seconds
-        if run.coordinator == owner:
-            run.coordinator = None
+        _unlease(s, run_id, Expansion.lease_owner == owner)
+        _let_go(s.get(Run, run_id), owner, seconds)
+
+
+def _unlease(s: Session, run_id: int, *where) -> None:
+    """Put the run's leased expansions (those matching ``where``) back to pending."""
+    s.execute(
+        update(Expansion)
+        .where(Expansion.run_id == run_id, Expansion.status == LEASED, *where)
+        .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
+    )
+
+
+def _let_go(run: Run, owner: str, seconds: float) -> None:
+    """Add this coordinator's time to the run and release the run if it holds it."""
+    run.seconds = (run.seconds or 0.0) + seconds
+    if run.coordinator == owner:
+        run.coordinator = None
 
 
 # --------------------------------------------------------------------------- frontier
@@ -275,10 +277,7 @@ def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, m
     Returns the new status, or None if the lease was no longer this token's.
     """
     with Session_.begin() as s:
-        q = select(Expansion).where(Expansion.id == expansion_id)
-        if is_postgresql(s):
-            q = q.with_for_update()
-        e = s.execute(q).scalar_one()
+        e = s.execute(select(Expansion).where(Expansion.id == expansion_id).with_for_update()).scalar_one()
         if e.status != LEASED or e.lease_token != token:
             return None
         e.error = error[:4000]
@@ -338,10 +337,7 @@ def record_expansion(
     params = task.params
     rigid = [e for e in ex.endpoints if e.outcome == RIGID]
     with Session_.begin() as s:
-        q = select(Expansion).where(Expansion.id == task.expansion_id)
-        if is_postgresql(s):
-            q = q.with_for_update()
-        row = s.execute(q).scalar_one_or_none()
+        row = s.execute(select(Expansion).where(Expansion.id == task.expansion_id).with_for_update()).scalar_one_or_none()
         if row is None or row.status != LEASED or row.lease_token != token:
             return None
         lock_certificates(s, [(task.cluster.n, certificate_key(e.cluster)) for e in rigid])
