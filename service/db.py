@@ -73,6 +73,19 @@ def _sqlite_path(url: URL) -> Path | None:
     return Path(db)
 
 
+def _missing_sqlite_file(engine: Engine, create: bool) -> bool:
+    """Whether ``engine`` is a SQLite file that does not exist yet; an error
+    unless it may be created (``create``) in a directory that exists."""
+    path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
+    if path is None or path.exists():
+        return False
+    if not create:
+        raise DatabaseError(f"no database at {path}: run `packings enumerate N` first, or pass --db")
+    if not path.parent.exists():
+        raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
+    return True
+
+
 def make_engine(url: str | URL) -> Engine:
     """An engine for ``url`` with this project's connection settings (no I/O yet)."""
     u = parse_url(url) if isinstance(url, str) else url
@@ -209,12 +222,7 @@ def open_database(url: str, create: bool = False, migrate: bool = False) -> Engi
     the error says so and nothing is written.
     """
     engine = make_engine(url)
-    path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
-    if path is not None and not path.exists():
-        if not create:
-            raise DatabaseError(f"no database at {path}: run `packings enumerate N` first, or pass --db")
-        if not path.parent.exists():
-            raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
+    _missing_sqlite_file(engine, create)
     try:
         check_schema(engine, create, migrate=migrate)
     except DatabaseError:
@@ -231,10 +239,7 @@ def preflight(url: str) -> None:
     connection, the schema (an empty or missing database passes)."""
     engine = make_engine(url)
     try:
-        path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
-        if path is not None and not path.exists():
-            if not path.parent.exists():
-                raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
+        if _missing_sqlite_file(engine, create=True):
             return
         check_schema(engine, create=False, allow_empty=True)
     except SQLAlchemyError as e:
