@@ -217,3 +217,48 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
                 p.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 p.kill()
+
+
+def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatch):
+    """A task that always fails is tried max_attempts times, then the run ends incomplete with its error."""
+    from distributed import Client, LocalCluster
+
+    import service.tasks
+    from service.coordinator import run_enumeration
+
+    def broken(cluster, params):
+        raise FloatingPointError("injected failure")
+
+    monkeypatch.setattr(service.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
+    url = engine.url.render_as_string(hide_password=False)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        result = run_enumeration(engine, url, 6, Params(), client, max_attempts=2)
+    assert result.status == "incomplete"
+    assert result.errors == ["expansion 1: FloatingPointError: injected failure"]
+    assert result.diagnostics["failed_tasks"] == 1
+    with sessions(engine)() as s:
+        e = s.get(Expansion, 1)
+        assert e.status == "failed" and e.attempts == 2 and e.lease_token is None
+
+
+def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch):
+    from contextlib import nullcontext
+
+    from click.testing import CliRunner
+
+    import service.cli
+    import service.coordinator
+    from service.coordinator import RunResult
+
+    seen = {}
+
+    def fake_run(engine, url, n, params, client, on_progress=None, max_attempts=3):
+        seen["max_attempts"] = max_attempts
+        return RunResult(1, n, "complete", {}, {}, 0.0, False)
+
+    monkeypatch.setattr(service.coordinator, "run_enumeration", fake_run)
+    monkeypatch.setattr(service.cli, "_dask_client", lambda *a: nullcontext(None))
+    r = CliRunner().invoke(service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert seen == {"max_attempts": 7}
