@@ -185,7 +185,36 @@ def db_upgrade(db_url: str | None) -> None:
 
     engine = open_db(db_url, create=True, migrate=True)
     click.echo(f"{display_url(engine.url)}: schema {current_revision(engine)} (this code: {head_revision()})")
+    _backfill(engine, recompute=False)
     engine.dispose()
+
+
+@db_group.command("backfill")
+@db_option
+@click.option("--all", "recompute", is_flag=True, help="Recompute every cluster's facts, not only missing ones.")
+def db_backfill(db_url: str | None, recompute: bool) -> None:
+    """Compute the facts (lattice, min_gap) of clusters stored by an older version.
+
+    `packings db upgrade` runs this itself; it is safe to interrupt and rerun."""
+    engine = open_db(db_url)
+    _backfill(engine, recompute)
+    engine.dispose()
+
+
+def _backfill(engine, recompute: bool) -> None:
+    from tqdm import tqdm
+
+    from service import store
+    from service.db import sessions
+
+    Session_ = sessions(engine)
+    with Session_() as s:
+        todo = store.to_backfill(s, recompute)
+    if not todo:
+        return
+    with tqdm(total=todo, desc="facts", unit="cluster", disable=None) as bar:
+        done = store.backfill(Session_, recompute, on_batch=lambda k: bar.update(k - bar.n))
+    click.echo(f"computed the facts of {done} cluster{'s' if done != 1 else ''}")
 
 
 @db_group.command("version")
@@ -245,22 +274,28 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
 @click.option("--n", "n", type=int, default=None, help="Only this n.")
 @click.option("--json", "as_json", is_flag=True, help="A JSON list with one object per n.")
 def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
-    """Counts of stored clusters per n, by number of contacts."""
-    from service import store
+    """What the catalogue contains, per n, in the paper's style.
+
+    Clusters, singular clusters and close-packed fragments by number of
+    contacts; fragments by lattice; adjacency matrices with several
+    geometries; the smallest gaps; paths and circular paths; the fit of the
+    totals to b·(n−5)!."""
     from service.db import sessions
+    from service.stats import fit_all, format_fit, format_stats, stats
+    from service.store import counts_by_n
 
     engine = open_db(db_url)
     with sessions(engine, readonly=True)() as s:
-        counts = store.counts_by_n(s, n)
+        rows = stats(s, n)
+        fit = fit_all(counts_by_n(s))
     engine.dispose()
     if as_json:
-        click.echo(json.dumps([{"n": k, "total": sum(v.values()), "by_contacts": {str(m): c for m, c in v.items()}}
-                               for k, v in counts.items()]))
+        click.echo(json.dumps(rows))
         return
-    if not counts:
+    if not rows:
         click.echo("no clusters" + (f" with n = {n}" if n is not None else ""))
         return
-    click.echo("\n\n".join(format_counts(k, v) for k, v in counts.items()))
+    click.echo("\n\n".join(format_stats(r) for r in rows) + "\n\n" + format_fit(fit))
 
 
 def _table(cols: list[str], rows: list[list]) -> str:
@@ -280,7 +315,8 @@ _SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: 
                    "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
                    "'n=10,contacts<24,singular', '!singular,min_gap>0.1', hyperstatic, run=1.  Keys:\n\n\b\n"
                    + _describe_keys())
-_TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "certificate"]
+_TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "lattice",
+                  "certificate"]
 
 
 def _query(selection: str | None, **kw):
@@ -319,7 +355,7 @@ def _echo_chunks(chunks) -> None:
 def _table_row(f: dict) -> list:
     cert = f["certificate"]
     return [f["id"], f["n"], f["contacts"], f["embedding"], f["singular"], f["flexes"], f["stresses"],
-            None if f["min_gap"] is None else f"{f['min_gap']:.6g}", cert if len(cert) <= 16 else cert[:13] + "..."]
+            None if f["min_gap"] is None else f"{f['min_gap']:.6g}", f["lattice"], cert if len(cert) <= 16 else cert[:13] + "..."]
 
 
 @cli.command("select", epilog=_SELECTION_HELP)
@@ -359,20 +395,17 @@ def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, 
 def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     """Cluster ID in full: every fact, the exact coordinates, the contacts, the
     paths leaving and reaching it, and the runs whose frontier holds it."""
-    from service.models import Cluster
-    from service.selection import links
+    from service.selection import links, query
 
     with _reading(db_url) as s:
-        c = s.get(Cluster, cluster_id)
+        c = s.execute(query(f"id={cluster_id}")).scalar_one_or_none()
         if c is None:
             raise click.ClickException(f"no cluster with id {cluster_id}")
         rec, info = _export.record(c), links(s, cluster_id)
     if as_json:
         click.echo(json.dumps({**rec, **info}))
         return
-    excess = rec["excess"]
-    kind = "hypostatic" if excess < 0 else "isostatic" if excess == 0 else "hyperstatic"
-    out = [f"cluster {rec['id']}: n = {rec['n']}, {rec['contacts']} contacts (3n-6{excess:+d}, {kind})"]
+    out = [f"cluster {rec['id']}: n = {rec['n']}, {rec['contacts']} contacts (3n-6{rec['excess']:+d}, {rec['static']})"]
     out += [f"  {k:<13} {'' if rec[k] is None else repr(rec[k]) if isinstance(rec[k], float) else rec[k]}"
             for k in _export.FACTS]
     out += ["coordinates (unit: sphere diameter):",
@@ -417,6 +450,11 @@ def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | Non
         except OSError as e:
             raise click.ClickException(f"cannot write {output}: {e.strerror or e}") from None
     click.echo(f"wrote {written} clusters ({fmt}) to {output}")
+
+
+from service.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws
+
+cli.add_command(_plot)
 
 
 def main(argv: list[str] | None = None) -> None:

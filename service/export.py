@@ -25,21 +25,29 @@ import json
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import IO, Callable, Iterable, Iterator
+
+from workers.classify import LATTICES, static_class
 
 #: the scalar facts of a cluster, in the order the formats list them
-FACTS = ("id", "n", "contacts", "excess", "embedding", "certificate", "rigid_kind", "rigid_method", "margin",
-         "flexes", "stresses", "singular", "min_gap", "found_in_run", "created_at")
+FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
+         "rigid_method", "margin", "flexes", "stresses", "singular", "min_gap", "lattice", "close_packed",
+         "found_in_run", "created_at")
 #: the facts on an extended XYZ comment line (None values are left out)
-XYZ_FACTS = ("id", "n", "contacts", "embedding", "certificate", "singular", "flexes", "stresses", "min_gap")
+XYZ_FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
+             "rigid_method", "margin", "flexes", "stresses", "singular", "min_gap", "lattice", "close_packed")
+#: facts computed from the row rather than read from a column
+_DERIVED = ("excess", "static", "close_packed", "created_at")
 SPECIES = "X"
 FORMATS = ("extxyz", "xyz", "json")
 
 
 def facts(c) -> dict:
     """The scalar facts of a cluster row."""
-    out = {name: getattr(c, name) for name in FACTS if name not in ("excess", "created_at")}
+    out = {name: getattr(c, name) for name in FACTS if name not in _DERIVED}
     out["excess"] = c.contacts - (3 * c.n - 6)
+    out["static"] = static_class(c.n, c.contacts)
+    out["close_packed"] = None if c.lattice is None else c.lattice in LATTICES
     out["created_at"] = c.created_at.isoformat() if c.created_at is not None else None
     return {name: out[name] for name in FACTS}
 
@@ -109,15 +117,15 @@ def format_for(path: str | None) -> str:
     return suffix if suffix in FORMATS else "extxyz"
 
 
-def write_atomic(path: str | os.PathLike, chunks: Iterable[str]) -> None:
-    """Write ``chunks`` to a temporary file beside ``path``, then rename it:
-    ``path`` is either left as it was or holds the whole text."""
+def replace_file(path: str | os.PathLike, write: Callable[[IO], None], binary: bool = False) -> Path:
+    """Call ``write(f)`` on a temporary file beside ``path``, then rename it
+    over ``path``: ``path`` is either left as it was or holds the whole
+    content, and on any failure no temporary file is left."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            for chunk in chunks:
-                f.write(chunk)
+        with (os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="\n")) as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         umask = os.umask(0)
@@ -128,3 +136,9 @@ def write_atomic(path: str | os.PathLike, chunks: Iterable[str]) -> None:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    return path
+
+
+def write_atomic(path: str | os.PathLike, chunks: Iterable[str]) -> None:
+    """Write the text ``chunks`` to ``path`` through :func:`replace_file`."""
+    replace_file(path, lambda f: f.writelines(chunks))

@@ -35,7 +35,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
 )
-from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
+from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, query_expression
 
 from workers.cluster import Cluster as CoreCluster
 
@@ -99,12 +99,19 @@ class Cluster(Base):
     stresses: Mapped[int] = mapped_column(Integer)
     singular: Mapped[bool] = mapped_column(Boolean)
     min_gap: Mapped[float | None] = mapped_column(Float, nullable=True)  #: None if every pair touches
+    #: workers.classify.lattice_type: fcc, hcp, both, random, 2d, or 'none' (not close-packed);
+    #: NULL only for rows stored before revision 0002 until the backfill (``packings db upgrade``) ran
+    lattice: Mapped[str | None] = mapped_column(String(16), nullable=True)
     found_in_run: Mapped[int | None] = mapped_column(ForeignKey("runs.id"), nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    #: not a column: the number of stored clusters sharing this one's contact graph, filled in by
+    #: service.selection.query (None when the row was loaded another way)
+    geometries: Mapped[int | None] = query_expression()
 
     __table_args__ = (
         UniqueConstraint("n", "certificate", "embedding", name="uq_clusters_key"),
         Index("ix_clusters_n_contacts", "n", "contacts"),
+        Index("ix_clusters_n_lattice", "n", "lattice"),
     )
 
     def to_core(self) -> CoreCluster:
@@ -157,4 +164,5 @@ class Transition(Base):
     __table_args__ = (
         UniqueConstraint("run_id", "source_id", "broken", "direction", name="uq_transitions_attempt"),
         Index("ix_transitions_target", "target_id"),
+        Index("ix_transitions_source", "source_id"),
     )

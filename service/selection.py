@@ -3,6 +3,7 @@
 A selection is comma-separated terms, all of which must hold::
 
     n=10,contacts<24,singular      !singular,min_gap>0.1      hyperstatic      run=1
+    n=11,lattice=fcc               close_packed,geometries>1  !reached
 
 Terms:
 
@@ -25,10 +26,12 @@ import re
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
-from sqlalchemy import ColumnElement, Select, and_, func, not_, select, true
-from sqlalchemy.orm import Session
+from sqlalchemy import ColumnElement, Select, and_, case, false, func, not_, select, true
+from sqlalchemy.orm import Session, aliased, with_expression
 
 from service.models import Cluster, Expansion, Run, Transition
+from workers.classify import LATTICES
+from workers.expand import CIRCULAR
 
 OPERATORS = ("=", "!=", "<", "<=", ">", ">=")
 EQUALITY = ("=", "!=")
@@ -69,6 +72,32 @@ def _excess() -> ColumnElement:
     return Cluster.contacts - (3 * Cluster.n - 6)
 
 
+def _lattice_in(*labels: str) -> Callable[[], ColumnElement]:
+    return lambda: func.coalesce(Cluster.lattice.in_(labels), false())
+
+
+def _static() -> ColumnElement:
+    return case((_excess() < 0, "hypostatic"), (_excess() == 0, "isostatic"), else_="hyperstatic")
+
+
+def _geometries() -> ColumnElement:
+    """How many stored clusters share this one's contact graph (itself included)."""
+    other = aliased(Cluster)
+    return (select(func.count()).where(other.n == Cluster.n, other.certificate == Cluster.certificate)
+            .correlate(Cluster).scalar_subquery())
+
+
+def _paths(conds: Callable[[], tuple]) -> Callable[[], ColumnElement]:
+    """The number of paths (transitions with a direction) that satisfy ``conds``, over every run."""
+    return lambda: (select(func.count()).select_from(Transition).where(Transition.direction != 0, *conds())
+                    .correlate(Cluster).scalar_subquery())
+
+
+_paths_out = _paths(lambda: (Transition.source_id == Cluster.id,))
+_paths_in = _paths(lambda: (Transition.target_id == Cluster.id, Transition.source_id != Cluster.id))
+_circular = _paths(lambda: (Transition.source_id == Cluster.id, Transition.outcome == CIRCULAR))
+
+
 def _in_run(op: str, run_id: int) -> ColumnElement:
     frontier = select(Expansion.cluster_id).where(Expansion.run_id == run_id)
     return Cluster.id.in_(frontier) if op == "=" else Cluster.id.not_in(frontier)
@@ -92,6 +121,19 @@ KEYS: dict[str, Key] = {
     "hypostatic": Key(bool, "excess < 0", expr=lambda: _excess() < 0),
     "isostatic": Key(bool, "excess = 0", expr=lambda: _excess() == 0),
     "hyperstatic": Key(bool, "excess > 0", expr=lambda: _excess() > 0),
+    "static": Key(str, "hypostatic, isostatic or hyperstatic", expr=_static),
+    "lattice": _column("lattice", str, "close-packed lattice: fcc, hcp, both (two layers), random (stacking), 2d, "
+                                       "or none", nullable=True),
+    "close_packed": Key(bool, "a fragment of a close-packed lattice (lattice is not none)",
+                        expr=_lattice_in(*LATTICES)),
+    "fcc": Key(bool, "a fragment of fcc (lattice fcc or both)", expr=_lattice_in("fcc", "both")),
+    "hcp": Key(bool, "a fragment of hcp (lattice hcp or both)", expr=_lattice_in("hcp", "both")),
+    "geometries": Key(int, "clusters with this contact graph (1: its adjacency has one geometry)", expr=_geometries),
+    "paths_out": Key(int, "paths followed from it, all runs", expr=_paths_out),
+    "paths_in": Key(int, "paths from other clusters that reached it, all runs", expr=_paths_in),
+    "circular": Key(int, "paths from it that came back to it", expr=_circular),
+    "reached": Key(bool, "some path from another cluster reaches it (false: only a seed)",
+                   expr=lambda: _paths_in() > 0),
     "run": Key(int, "in the frontier of run R (run=R, run!=R)", where=_in_run, ops=EQUALITY),
 }
 ALIASES: dict[str, str] = {"m": "contacts"}
@@ -219,7 +261,8 @@ def order_by(sort: str | None) -> list:
 def query(selection: str | None = None, sort: str | None = None, limit: int | None = None,
           n: int | None = None) -> Select:
     """SELECT the clusters of a selection (and of ``n`` if given), in order."""
-    q = select(Cluster).where(where(selection)).order_by(*order_by(sort))
+    q = (select(Cluster).options(with_expression(Cluster.geometries, _geometries()))
+         .where(where(selection)).order_by(*order_by(sort)))
     if n is not None:
         q = q.where(Cluster.n == n)
     return q if limit is None else q.limit(limit)

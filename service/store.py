@@ -47,6 +47,7 @@ from service.models import (
     Transition,
     utcnow,
 )
+from workers.classify import lattice_type
 from workers.cluster import Cluster as CoreCluster
 from workers.expand import CIRCULAR, Expansion as CoreExpansion
 from workers.identity import certificate_key, find_match
@@ -54,6 +55,9 @@ from workers.params import Params
 from workers.paths import RIGID
 from workers.rigidity import Rigidity, rigidity
 from workers.seeds import seed_cluster
+
+#: clusters.lattice of a cluster that is not a close-packed fragment (NULL means not yet classified)
+NOT_CLOSE_PACKED = "none"
 
 #: a coordinator on another host whose heartbeat is older than this is taken to be gone
 HEARTBEAT_STALE_SECONDS = 120
@@ -85,8 +89,17 @@ def process_name() -> str:
 # --------------------------------------------------------------------------- clusters
 
 
+def lattice_value(c: CoreCluster) -> str:
+    """clusters.lattice of a cluster: its close-packed lattice, or :data:`NOT_CLOSE_PACKED`."""
+    return lattice_type(c.coords, c.contacts) or NOT_CLOSE_PACKED
+
+
 def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
-    """Column values of a cluster row (all but id, embedding and the run)."""
+    """Column values of a cluster row (all but id, embedding and the run).
+
+    Every fact of a cluster is computed here, once, when it is stored (see
+    :func:`backfill` for rows stored by an older version).
+    """
     gap = c.min_gap()
     return {
         "n": c.n,
@@ -102,6 +115,7 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
         "stresses": rig.stresses,
         "singular": rig.singular,
         "min_gap": gap if np.isfinite(gap) else None,
+        "lattice": lattice_value(c),
     }
 
 
@@ -376,6 +390,38 @@ def record_expansion(
         row.error = None
         return {"expansion": task.expansion_id, "new_clusters": new_clusters, "paths": ex.paths_followed,
                 "seconds": seconds}
+
+
+def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, on_batch=None) -> int:
+    """Compute the facts that rows stored by an older version lack (the
+    lattice, and min_gap from the coordinates); with ``recompute``, every
+    row's.  One transaction per batch, so an interruption loses nothing: a
+    row is either done or still NULL.  Returns the number of rows updated."""
+    done = 0
+    last_id = 0
+    while True:
+        with Session_.begin() as s:
+            q = select(Cluster).where(Cluster.id > last_id).order_by(Cluster.id).limit(batch)
+            if not recompute:
+                q = q.where(Cluster.lattice.is_(None))
+            rows = s.execute(q).scalars().all()
+            if not rows:
+                return done
+            for row in rows:
+                c = row.to_core()
+                gap = c.min_gap()
+                row.min_gap = gap if np.isfinite(gap) else None
+                row.lattice = lattice_value(c)
+            last_id = rows[-1].id
+            done += len(rows)
+        if on_batch is not None:
+            on_batch(done)
+
+
+def to_backfill(s: Session, recompute: bool = False) -> int:
+    """Rows that :func:`backfill` would update: those whose facts are missing, or all."""
+    q = select(func.count()).select_from(Cluster)
+    return s.execute(q if recompute else q.where(Cluster.lattice.is_(None))).scalar_one()
 
 
 # --------------------------------------------------------------------------- reading

@@ -18,7 +18,8 @@ from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7, 8)
 
-TABLE_HEADER = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "certificate"]
+TABLE_HEADER = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "lattice",
+                "certificate"]
 
 
 def run(*args, cwd=None):
@@ -246,7 +247,7 @@ def test_export_replaces_a_file_whole(catalog, tmp_path):
 EXPORT_ERRORS = [
     (["--format", "pdb"], ["'pdb' is not one of"]),
     (["n=", "--format", "xyz"], ["missing value"]),
-    (["lattice=fcc"], ["unknown key 'lattice'"]),
+    (["stacking=fcc"], ["unknown key 'stacking'"]),
     ([], ["no database at"]),
 ]
 

@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import json
+from collections import Counter
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from sqlalchemy import select
 
 from service import selection as sel
-from service.models import Cluster, Expansion
+from service.models import Cluster, Expansion, Transition
 from service.selection import SelectionError, Term, parse
 from tests.service.querydb import filled_catalog
 
@@ -57,7 +59,9 @@ def test_bool_values(value, expected):
 
 @pytest.mark.parametrize("text, message", [
     ("foo=1", "unknown key 'foo'"),
-    ("lattice=fcc", "known keys: id, n, contacts"),
+    ("stacking=fcc", "known keys: id, n, contacts"),
+    ("lattice<fcc", "operator '<' does not apply to lattice"),
+    ("geometries=two", "expected an integer"),
     ("n==10", "bad operator '=='"),
     ("n=>10", "bad operator '=>'"),
     ("n~10", "bad operator '~'"),
@@ -114,10 +118,10 @@ def test_describe_keys_names_every_key_and_alias():
 
 
 def test_a_new_key_is_one_registry_entry(monkeypatch):
-    monkeypatch.setitem(sel.KEYS, "lattice", sel.Key(str, "test key", expr=lambda: Cluster.rigid_kind))
-    assert parse("lattice=fcc") == [Term("lattice", "=", "fcc")]
-    assert "lattice" in sel.describe_keys()
-    assert "rigid_kind" in str(sel.where("lattice=fcc"))
+    monkeypatch.setitem(sel.KEYS, "stacking", sel.Key(str, "test key", expr=lambda: Cluster.rigid_kind))
+    assert parse("stacking=fcc") == [Term("stacking", "=", "fcc")]
+    assert "stacking" in sel.describe_keys()
+    assert "rigid_kind" in str(sel.where("stacking=fcc"))
 
 
 # --------------------------------------------------------------------------- the rows selected
@@ -126,11 +130,13 @@ def test_a_new_key_is_one_registry_entry(monkeypatch):
 #: missing min_gap, margins), so that every key has something to tell apart
 SYNTHETIC = [
     dict(n=9, contacts=22, certificate="0123", embedding=0, rigid_kind="prestress", rigid_method="sdp", margin=0.25,
-         flexes=1, stresses=2, singular=True, min_gap=None),
+         flexes=1, stresses=2, singular=True, min_gap=None, lattice="fcc"),
     dict(n=9, contacts=20, certificate="0123", embedding=1, rigid_kind="prestress", rigid_method="e_k", margin=0.01,
-         flexes=2, stresses=1, singular=True, min_gap=0.05),
+         flexes=2, stresses=1, singular=True, min_gap=0.05, lattice="both"),
     dict(n=9, contacts=21, certificate="abc", embedding=0, rigid_kind="first-order", rigid_method="first-order",
-         margin=None, flexes=0, stresses=0, singular=False, min_gap=0.5),
+         margin=None, flexes=0, stresses=0, singular=False, min_gap=0.5, lattice=None),
+    dict(n=9, contacts=21, certificate="abcd", embedding=0, rigid_kind="first-order", rigid_method="first-order",
+         margin=None, flexes=0, stresses=0, singular=False, min_gap=0.5, lattice="hcp"),
 ]
 
 
@@ -150,11 +156,23 @@ def rows(catalog):
 
 
 @pytest.fixture(scope="module")
-def frontier(catalog):
+def frontier(catalog, rows):
+    """Run 1's frontier (``ids``) and, counted here from the transitions, the paths leaving each
+    cluster (``out``), reaching it from another (``into``), circular (``circ``), and the geometries
+    of each contact graph (``geom``)."""
     from service.db import sessions
 
     with sessions(catalog.engine)() as s:
-        return set(s.execute(select(Expansion.cluster_id).where(Expansion.run_id == catalog.runs[7])).scalars())
+        ids = set(s.execute(select(Expansion.cluster_id).where(Expansion.run_id == catalog.runs[7])).scalars())
+        moving = s.execute(select(Transition.source_id, Transition.target_id, Transition.outcome)
+                           .where(Transition.direction != 0)).all()
+    return SimpleNamespace(
+        ids=ids,
+        out=Counter(a for a, _, _ in moving),
+        into=Counter(b for a, b, _ in moving if b is not None and b != a),
+        circ=Counter(a for a, _, o in moving if o == "circular"),
+        geom=Counter((c.n, c.certificate) for c in rows),
+    )
 
 
 def _excess(c):
@@ -199,8 +217,27 @@ CASES = {
     "found_in_run=1": lambda c, f: c.found_in_run == 1,
     "found_in_run!=1": lambda c, f: c.found_in_run != 1,
     "found_in_run": lambda c, f: c.found_in_run is not None,
-    "run=1": lambda c, f: c.id in f,
-    "run!=1": lambda c, f: c.id not in f,
+    "run=1": lambda c, f: c.id in f.ids,
+    "run!=1": lambda c, f: c.id not in f.ids,
+    "lattice=fcc": lambda c, f: c.lattice == "fcc",
+    "lattice!=fcc": lambda c, f: c.lattice != "fcc",
+    "lattice": lambda c, f: c.lattice is not None,
+    "!lattice": lambda c, f: c.lattice is None,
+    "close_packed": lambda c, f: c.lattice not in (None, "none"),
+    "!close_packed,n=9": lambda c, f: c.n == 9 and c.lattice in (None, "none"),
+    "fcc": lambda c, f: c.lattice in ("fcc", "both"),
+    "hcp,!fcc": lambda c, f: c.lattice == "hcp",
+    "static=hypostatic": lambda c, f: _excess(c) < 0,
+    "static!=isostatic": lambda c, f: _excess(c) != 0,
+    "geometries=2": lambda c, f: f.geom[c.n, c.certificate] == 2,
+    "geometries<2": lambda c, f: f.geom[c.n, c.certificate] < 2,
+    "paths_out>0": lambda c, f: f.out[c.id] > 0,
+    "paths_out>=9": lambda c, f: f.out[c.id] >= 9,
+    "paths_in=0": lambda c, f: f.into[c.id] == 0,
+    "paths_in>2": lambda c, f: f.into[c.id] > 2,
+    "circular>0": lambda c, f: f.circ[c.id] > 0,
+    "reached": lambda c, f: f.into[c.id] > 0,
+    "!reached,n=7": lambda c, f: c.n == 7 and f.into[c.id] == 0,
     "run=1,n=9": lambda c, f: False,
     "run=99": lambda c, f: False,
 }
@@ -224,10 +261,15 @@ def test_every_key_is_exercised():
 
 def test_the_data_tells_keys_apart(rows, frontier):
     """The cases are not vacuous: each side of the main distinctions has rows."""
-    assert len(frontier) == 5 and len(rows) == 8
+    assert len(frontier.ids) == 5 and len(rows) == 9
     assert {_excess(c) for c in rows} == {-1, 0, 1}
     assert {c.singular for c in rows} == {True, False}
     assert {c.min_gap is None for c in rows} == {True, False}
+    assert {c.lattice for c in rows} == {"fcc", "both", "hcp", "none", None}
+    assert set(frontier.geom.values()) == {1, 2}
+    for counts in (frontier.out, frontier.into, frontier.circ):
+        assert {counts[c.id] > 0 for c in rows} == {True, False}
+    assert len({frontier.into[c.id] for c in rows}) > 2
 
 
 def test_certificate_of_a_stored_cluster(catalog, rows):

@@ -1,0 +1,164 @@
+"""What a catalogue contains, per n, in the paper's style: ``packings stats``.
+
+:func:`stats` reads the facts stored with every cluster (contacts, singular,
+lattice, min_gap, certificate) and the transitions, and returns one plain dict
+per n; :func:`format_stats` prints them as tables.  Transition counts add up
+over every run of that n (normally there is one).
+"""
+
+from __future__ import annotations
+
+import math
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session, aliased
+
+from service.fit import fit_factorial
+from service.models import Cluster, Transition
+from service.store import NOT_CLOSE_PACKED, counts_by_n
+from workers.expand import CIRCULAR
+
+#: how many of the smallest gaps are listed
+SMALLEST = 10
+
+
+def _by(s: Session, n: int, *where) -> dict[int, int]:
+    """Clusters of n satisfying ``where``, by number of contacts."""
+    q = (select(Cluster.contacts, func.count()).where(Cluster.n == n, *where)
+         .group_by(Cluster.contacts).order_by(Cluster.contacts))
+    return {int(m): int(c) for m, c in s.execute(q)}
+
+
+def _lattices(s: Session, n: int) -> dict[str, int]:
+    q = select(Cluster.lattice, func.count()).where(Cluster.n == n).group_by(Cluster.lattice)
+    return {str(k): int(c) for k, c in s.execute(q)}
+
+
+def _multi_embedding(s: Session, n: int) -> dict[str, int]:
+    """{number of geometries: number of contact graphs having that many}, for 2 or more."""
+    per_graph = (select(func.count().label("k")).where(Cluster.n == n)
+                 .group_by(Cluster.certificate).having(func.count() > 1).subquery())
+    q = select(per_graph.c.k, func.count()).group_by(per_graph.c.k).order_by(per_graph.c.k)
+    return {str(int(k)): int(c) for k, c in s.execute(q)}
+
+
+def _paths(s: Session, n: int) -> dict:
+    """Counts over the transitions that start at clusters of n."""
+    src = aliased(Cluster)
+    base = select(func.count()).select_from(Transition).join(src, src.id == Transition.source_id).where(
+        src.n == n, Transition.direction != 0)
+    followed = s.execute(base).scalar_one()
+    circular = s.execute(base.where(Transition.outcome == CIRCULAR)).scalar_one()
+    reached_by_path = (select(Transition.target_id).where(Transition.direction != 0,
+                                                          Transition.target_id != Transition.source_id))
+    unreached = s.execute(select(Cluster.id).where(Cluster.n == n, Cluster.id.not_in(reached_by_path))
+                          .order_by(Cluster.id)).scalars().all()
+    return {"paths": followed, "circular_paths": circular, "unreached": list(unreached)}
+
+
+def _gaps(s: Session, n: int) -> list[dict]:
+    q = (select(Cluster.id, Cluster.contacts, Cluster.min_gap).where(Cluster.n == n, Cluster.min_gap.is_not(None))
+         .order_by(Cluster.min_gap, Cluster.id).limit(SMALLEST))
+    return [{"id": i, "contacts": m, "min_gap": g} for i, m, g in s.execute(q)]
+
+
+def stats(s: Session, n: int | None = None) -> list[dict]:
+    """One dict per n (ascending), with the keys documented in the README.
+
+    ``fit`` is the fit of the totals of every n in the database (not only
+    ``n``) to b·(n−5)!, and what it predicts for this n.
+    """
+    every = counts_by_n(s)
+    fit = fit_all(every)
+    out = []
+    for nn, by_contacts in every.items():
+        if n is not None and nn != n:
+            continue
+        total = sum(by_contacts.values())
+        iso = 3 * nn - 6
+        lattices = _lattices(s, nn)
+        unclassified = lattices.pop("None", 0)
+        lattices.pop(NOT_CLOSE_PACKED, None)
+        gaps = _gaps(s, nn)
+        paths = _paths(s, nn)
+        out.append({
+            "n": nn,
+            "total": total,
+            "by_contacts": {str(m): c for m, c in by_contacts.items()},
+            "hypostatic": sum(c for m, c in by_contacts.items() if m < iso),
+            "isostatic": by_contacts.get(iso, 0),
+            "hyperstatic": sum(c for m, c in by_contacts.items() if m > iso),
+            "singular": sum(_by(s, nn, Cluster.singular.is_(True)).values()),
+            "singular_by_contacts": {str(m): c for m, c in _by(s, nn, Cluster.singular.is_(True)).items()},
+            "close_packed": sum(lattices.values()),
+            "close_packed_by_contacts": {str(m): c for m, c in _by(
+                s, nn, Cluster.lattice.is_not(None), Cluster.lattice != NOT_CLOSE_PACKED).items()},
+            "lattice": dict(sorted(lattices.items())),
+            "unclassified": unclassified,
+            "multi_embedding": _multi_embedding(s, nn),
+            "min_gap": gaps[0]["min_gap"] if gaps else None,
+            "smallest_gaps": gaps,
+            "circular_paths": paths["circular_paths"],
+            "paths": paths["paths"],
+            "unreached": paths["unreached"],
+            "fit": None if fit is None else {"b": fit["b"], "predicted": fit["b"] * math.factorial(nn - 5)}
+            if nn >= 5 else None,
+        })
+    return out
+
+
+def _row_table(title: str, cols: list[str], rows: list[list]) -> str:
+    widths = [max(len(str(c)), *(len(str(r[i])) for r in rows)) if rows else len(str(c)) for i, c in enumerate(cols)]
+    lines = [title, "  ".join(f"{c:>{w}}" for c, w in zip(cols, widths))]
+    lines += ["  ".join(f"{v!s:>{w}}" for v, w in zip(r, widths)) for r in rows]
+    return "\n".join(lines)
+
+
+def format_stats(d: dict) -> str:
+    """The tables of one n, as text."""
+    n, iso = d["n"], 3 * d["n"] - 6
+    head = f"n = {n}: {d['total']} rigid clusters ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, " \
+           f"{d['hyperstatic']} hyperstatic)"
+    if d["fit"] is not None:
+        head += f"; the fit b·(n−5)! with b = {d['fit']['b']:.3f} gives {d['fit']['predicted']:.0f}"
+    contacts = sorted(int(m) for m in d["by_contacts"])
+    cols = ["contacts", "3n-6+", "clusters", "singular", "close-packed"]
+    rows = [[m, f"{m - iso:+d}", d["by_contacts"][str(m)], d["singular_by_contacts"].get(str(m), 0),
+             d["close_packed_by_contacts"].get(str(m), 0)] for m in contacts]
+    rows.append(["total", "", d["total"], d["singular"], d["close_packed"]])
+    parts = [head, _row_table("clusters, singular clusters and close-packed fragments by number of contacts:", cols, rows)]
+    if d["close_packed"]:
+        parts.append(_row_table("close-packed fragments by lattice:", ["lattice", "clusters"],
+                                [[k, v] for k, v in d["lattice"].items()]))
+    else:
+        parts.append("close-packed fragments: none")
+    if d["unclassified"]:
+        parts.append(f"{d['unclassified']} clusters are not classified yet: run `packings db backfill`")
+    if d["multi_embedding"]:
+        parts.append(_row_table("adjacency matrices with more than one geometry:", ["geometries", "adjacency matrices"],
+                                [[k, v] for k, v in d["multi_embedding"].items()]))
+    else:
+        parts.append("adjacency matrices with more than one geometry: none")
+    if d["smallest_gaps"]:
+        parts.append(f"smallest gap: {d['min_gap']:.6g}")
+        parts.append(_row_table(f"the {len(d['smallest_gaps'])} smallest gaps:", ["cluster", "contacts", "gap"],
+                                [[g["id"], g["contacts"], f"{g['min_gap']:.6g}"] for g in d["smallest_gaps"]]))
+    unreached = d["unreached"]
+    shown = ", ".join(map(str, unreached[:10])) + (", ..." if len(unreached) > 10 else "")
+    parts.append(f"paths followed: {d['paths']}; circular paths: {d['circular_paths']}; "
+                 f"clusters no path reaches: {len(unreached)}" + (f" (ids {shown})" if unreached else ""))
+    return "\n".join(parts)
+
+
+def fit_all(every: dict[int, dict[int, int]]) -> dict | None:
+    """The fit of the totals of ``counts_by_n`` to b·(n−5)!."""
+    return fit_factorial({k: sum(v.values()) for k, v in every.items()})
+
+
+def format_fit(fit: dict | None) -> str:
+    """One line on the fit of the totals to b·(n−5)!."""
+    if fit is None:
+        return "fit of the totals to b·(n−5)!: no n to fit"
+    return (f"fit of the totals to b·(n−5)!: b = {fit['b']:.3f} over {fit['points']} values of n "
+            f"(rms log residual {fit['rms_log_residual']:.3f}; the paper's totals give about 2.5)")
+

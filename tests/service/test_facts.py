@@ -1,0 +1,260 @@
+"""The facts of every cluster (issue 4): computed when it is stored or by the
+backfill, queryable by selection, summed up by ``packings stats``, carried by
+the exports; on both backends."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import Counter
+
+import numpy as np
+import pytest
+from sqlalchemy import select, text
+
+from service.models import Cluster, Transition
+from tests.service.querydb import filled_catalog
+from tests.service.test_query_cli import ok, one_line_error, run, run_many
+from workers.classify import lattice_type, static_class
+from workers.cluster import Cluster as CoreCluster
+from workers.params import DEFAULT
+
+catalog = filled_catalog(7, 8)
+
+H = math.sqrt(2.0 / 3.0)
+A1, A2 = np.array([1.0, 0.0, 0.0]), np.array([0.5, math.sqrt(3.0) / 2.0, 0.0])
+B, C = (A1 + A2) / 3.0, 2.0 * (A1 + A2) / 3.0
+
+
+def _core(points) -> CoreCluster:
+    return CoreCluster.from_coords(np.array(points, dtype=np.float64))
+
+
+def cuboctahedron() -> CoreCluster:
+    """13 spheres of fcc: a hexagon around a centre (layer A), a triangle above (B) and one below (C)."""
+    middle = [np.zeros(3), A1, -A1, A2, -A2, A1 - A2, A2 - A1]
+    up = [B + [0, 0, H], B - A1 + [0, 0, H], B - A2 + [0, 0, H]]
+    down = [C - A1 - A2 - [0, 0, H], C - A1 - [0, 0, H], C - A2 - [0, 0, H]]
+    return _core(middle + up + down)
+
+
+def anticuboctahedron() -> CoreCluster:
+    """13 spheres of hcp: as the cuboctahedron with the lower triangle in position B as well."""
+    middle = [np.zeros(3), A1, -A1, A2, -A2, A1 - A2, A2 - A1]
+    up = [B + [0, 0, H], B - A1 + [0, 0, H], B - A2 + [0, 0, H]]
+    down = [p - [0, 0, 2 * H] for p in up]
+    return _core(middle + up + down)
+
+
+def octahedron() -> CoreCluster:
+    """6 spheres: a triangle in layer A and the opposite triangle in C: a fragment of fcc and of hcp."""
+    return _core([np.zeros(3), A1, A2, C + [0, 0, H], C - A1 + [0, 0, H], C - A2 + [0, 0, H]])
+
+
+def pentagonal_bipyramid() -> CoreCluster:
+    r = 1.0 / (2.0 * math.sin(math.pi / 5.0))
+    ring = [[r * math.cos(2 * math.pi * k / 5), r * math.sin(2 * math.pi * k / 5), 0.0] for k in range(5)]
+    z = math.sqrt(1.0 - r * r)
+    return _core(ring + [[0.0, 0.0, z], [0.0, 0.0, -z]])
+
+
+CONSTRUCTED = {"fcc": cuboctahedron, "hcp": anticuboctahedron, "none": pentagonal_bipyramid}
+
+
+def store_clusters(engine, clusters) -> list[int]:
+    """Store clusters the way a finished expansion does (store.insert_or_match)."""
+    from service import store
+    from service.db import sessions
+    from workers.rigidity import rigidity
+
+    Session_ = sessions(engine)
+    ids = []
+    with Session_.begin() as s:
+        for c in clusters:
+            ids.append(store.insert_or_match(s, c, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d)[0])
+    return ids
+
+
+def url(engine) -> str:
+    return engine.url.render_as_string(hide_password=False)
+
+
+# --------------------------------------------------------------------------- stored facts
+
+
+def test_the_constructed_clusters_are_what_they_claim():
+    for label, build in {**CONSTRUCTED, "both": octahedron}.items():
+        c = build()
+        assert c.min_distance() > 1 - 1e-12
+        assert (lattice_type(c.coords, c.contacts) or "none") == label
+    assert cuboctahedron().m == anticuboctahedron().m == 36  # 12 radial + 24 on the surface
+    assert pentagonal_bipyramid().m == 15
+
+
+def test_facts_are_stored_selected_and_exported(engine, tmp_path):
+    import ase.io
+
+    ids = dict(zip(CONSTRUCTED, store_clusters(engine, [build() for build in CONSTRUCTED.values()])))
+    u = url(engine)
+    for label, cid in ids.items():
+        rec = json.loads(ok("show", str(cid), "--json", "--db", u))
+        assert rec["lattice"] == label and rec["close_packed"] == (label != "none")
+        assert rec["geometries"] == 1
+    assert rec["static"] == "isostatic" and rec["excess"] == 0  # the bipyramid: 15 = 3*7-6
+    fcc = json.loads(ok("select", "lattice=fcc", "--json", "--db", u))
+    assert [o["id"] for o in fcc] == [ids["fcc"]]
+    counts = {"close_packed": 2, "!close_packed": 1, "fcc": 1, "hcp": 1, "lattice=none": 1, "hyperstatic": 2,
+              "static=hyperstatic,lattice=hcp": 1, "n=13,close_packed,contacts=36": 2, "geometries=1": 3}
+    for (sel, expected), r in zip(counts.items(), run_many(*(["select", k, "--count", "--db", u] for k in counts))):
+        assert r.returncode == 0, r.stderr
+        assert int(r.stdout) == expected, sel
+    path = tmp_path / "cp.extxyz"
+    ok("export", "close_packed", "-o", str(path), "--db", u)
+    frames = ase.io.read(path, index=":")
+    assert sorted(a.info["lattice"] for a in frames) == ["fcc", "hcp"]
+    for a in frames:
+        assert a.info["static"] == "hyperstatic" and a.info["excess"] == 3 and a.info["close_packed"] is True
+        assert a.info["geometries"] == 1 and a.info["n"] == 13
+
+
+def test_two_geometries_of_one_contact_graph_are_counted(engine):
+    """Two rows sharing a certificate (embedding 0 and 1) count as one adjacency matrix with 2 geometries."""
+    from service import store
+    from service.db import sessions
+
+    c = pentagonal_bipyramid()
+    # a second geometry with the same contact graph, as the store keeps it (different coordinates, same
+    # certificate): the ring squeezed along one axis by more than tol_d
+    x = c.coords.copy()
+    x[:, 0] *= 1.001
+    other = CoreCluster(x, c.contacts)
+    from workers.rigidity import rigidity
+
+    Session_ = sessions(engine)
+    with Session_.begin() as s:
+        a, new_a = store.insert_or_match(s, c, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d)
+        b, new_b = store.insert_or_match(s, other, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d)
+    assert new_a and new_b and a != b
+    store_clusters(engine, [octahedron()])
+    u = url(engine)
+    assert int(ok("select", "geometries=2", "--count", "--db", u)) == 2
+    (n7,) = json.loads(ok("stats", "--n", "7", "--json", "--db", u))
+    assert n7["multi_embedding"] == {"2": 1} and n7["total"] == 2
+    (n6,) = json.loads(ok("stats", "--n", "6", "--json", "--db", u))
+    assert n6["multi_embedding"] == {} and n6["lattice"] == {"both": 1}
+
+
+# --------------------------------------------------------------------------- a real catalogue
+
+
+@pytest.fixture(scope="module")
+def rows(catalog):
+    from service.db import sessions
+
+    with sessions(catalog.engine)() as s:
+        clusters = s.execute(select(Cluster).order_by(Cluster.id)).scalars().all()
+        transitions = s.execute(select(Transition)).scalars().all()
+        s.expunge_all()
+    return clusters, transitions
+
+
+def test_every_stored_cluster_has_its_facts(rows):
+    clusters, _ = rows
+    assert clusters
+    for c in clusters:
+        core = c.to_core()
+        assert c.lattice == (lattice_type(core.coords, core.contacts) or "none")
+        assert c.min_gap == pytest.approx(core.min_gap(), abs=0)
+
+
+def test_stats_json_agrees_with_the_rows(catalog, rows):
+    clusters, transitions = rows
+    by_id = {c.id: c for c in clusters}
+    out = {d["n"]: d for d in json.loads(ok("stats", "--json", "--db", catalog.url))}
+    assert sorted(out) == [7, 8]
+    for n, d in out.items():
+        mine = [c for c in clusters if c.n == n]
+        by_contacts = Counter(c.contacts for c in mine)
+        assert d["total"] == len(mine) and d["by_contacts"] == {str(m): k for m, k in sorted(by_contacts.items())}
+        assert d["singular"] == sum(c.singular for c in mine)
+        assert d["singular_by_contacts"] == {str(m): k for m, k in sorted(Counter(c.contacts for c in mine
+                                                                                  if c.singular).items())}
+        statics = Counter(static_class(c.n, c.contacts) for c in mine)
+        assert (d["hypostatic"], d["isostatic"], d["hyperstatic"]) == \
+            (statics["hypostatic"], statics["isostatic"], statics["hyperstatic"])
+        cp = [c for c in mine if c.lattice != "none"]
+        assert d["close_packed"] == len(cp) and d["lattice"] == dict(sorted(Counter(c.lattice for c in cp).items()))
+        assert d["close_packed_by_contacts"] == {str(m): k for m, k in sorted(Counter(c.contacts for c in cp).items())}
+        per_graph = Counter(Counter(c.certificate for c in mine).values())
+        assert d["multi_embedding"] == {str(k): v for k, v in sorted(per_graph.items()) if k > 1}
+        gaps = sorted((c.min_gap, c.id) for c in mine if c.min_gap is not None)
+        assert d["min_gap"] == gaps[0][0]
+        assert [(g["min_gap"], g["id"]) for g in d["smallest_gaps"]] == gaps[:10]
+        paths = [t for t in transitions if t.direction != 0 and by_id[t.source_id].n == n]
+        assert d["paths"] == len(paths) > 0
+        assert d["circular_paths"] == sum(t.outcome == "circular" for t in paths)
+        reached = {t.target_id for t in transitions if t.direction != 0 and t.target_id not in (None, t.source_id)}
+        assert d["unreached"] == [c.id for c in mine if c.id not in reached]
+        assert d["fit"]["b"] > 0 and d["fit"]["predicted"] == pytest.approx(d["fit"]["b"] * math.factorial(n - 5))
+    assert out[7]["total"] == 5 and out[8]["total"] == 13
+
+
+def test_stats_prints_the_tables(catalog):
+    out = ok("stats", "--db", catalog.url)
+    for words in ("n = 7: 5 rigid clusters", "n = 8: 13 rigid clusters", "singular", "close-packed",
+                  "adjacency matrices with more than one geometry", "smallest gap", "smallest gaps",
+                  "circular paths", "fit of the totals to b·(n−5)!"):
+        assert words in out, words
+
+
+def test_path_keys_agree_with_the_transitions(catalog, rows):
+    clusters, transitions = rows
+    moving = [t for t in transitions if t.direction != 0]
+    out = Counter(t.source_id for t in moving)
+    into = Counter(t.target_id for t in moving if t.target_id is not None and t.target_id != t.source_id)
+    circ = Counter(t.source_id for t in moving if t.outcome == "circular")
+    records = json.loads(ok("select", "--json", "--db", catalog.url))
+    assert len(records) == len(clusters)
+    sel = {"paths_out>0": sum(1 for c in clusters if out[c.id] > 0),
+           "circular>0": sum(1 for c in clusters if circ[c.id] > 0),
+           "!reached": sum(1 for c in clusters if into[c.id] == 0),
+           "paths_in>=3": sum(1 for c in clusters if into[c.id] >= 3)}
+    for (s, expected), r in zip(sel.items(), run_many(*(["select", s, "--count", "--db", catalog.url] for s in sel))):
+        assert r.returncode == 0, r.stderr
+        assert int(r.stdout) == expected, s
+    top = json.loads(ok("select", "--sort", "-paths_in", "--limit", "1", "--json", "--db", catalog.url))[0]
+    assert into[top["id"]] == max(into.values())
+
+
+# --------------------------------------------------------------------------- older databases
+
+
+def test_upgrade_from_0001_backfills_the_facts(db_url):
+    from alembic import command
+
+    from service.db import alembic_config, open_database
+
+    engine = open_database(db_url, create=True)
+    ids = store_clusters(engine, [cuboctahedron(), pentagonal_bipyramid()])
+    cfg = alembic_config(engine)
+    with engine.begin() as conn:  # back to the schema before the facts
+        cfg.attributes["connection"] = conn
+        command.downgrade(cfg, "0001")
+    engine.dispose()
+    one_line_error(run("stats", "--db", db_url), "packings db upgrade")
+    out = ok("db", "upgrade", "--db", db_url)
+    assert "0002" in out and "computed the facts of 2 clusters" in out
+    engine = open_database(db_url)
+    with engine.connect() as c:
+        got = dict(c.execute(text("SELECT id, lattice FROM clusters")).all())
+    assert got == {ids[0]: "fcc", ids[1]: "none"}
+    with engine.begin() as c:
+        c.execute(text("UPDATE clusters SET lattice = NULL WHERE id = :i"), {"i": ids[1]})
+    out = ok("stats", "--db", db_url)
+    assert "1 clusters are not classified yet" in out
+    assert ok("db", "backfill", "--db", db_url).strip() == "computed the facts of 1 cluster"
+    assert ok("db", "backfill", "--db", db_url).strip() == ""  # nothing left to do
+    assert ok("db", "backfill", "--all", "--db", db_url).strip() == "computed the facts of 2 clusters"
+    with engine.connect() as c:
+        assert dict(c.execute(text("SELECT id, lattice FROM clusters")).all()) == got
+    engine.dispose()
