@@ -27,6 +27,8 @@ from service.tasks import DatabasePlugin, expand_task
 from workers.params import Params
 
 HEARTBEAT_SECONDS = 10.0
+CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
+PROGRESS_SECONDS = 0.25  #: how often progress is read from the database and shown
 
 
 @dataclass
@@ -84,6 +86,22 @@ class _Heartbeat(threading.Thread):
         self.join()
 
 
+class _Every:
+    """``f()``'s value, recomputed at most every ``seconds`` (or when forced): the coordinator
+    asks for the worker threads and shows progress after every result, and neither needs to be
+    fresher than this."""
+
+    def __init__(self, seconds: float, f: Callable):
+        self.seconds, self.f = seconds, f
+        self.at, self.value = -float("inf"), None
+
+    def __call__(self, force: bool = False):
+        now = time.monotonic()
+        if force or now - self.at >= self.seconds:
+            self.at, self.value = now, self.f()
+        return self.value
+
+
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
         f = store.frontier(s, run_id)
@@ -115,13 +133,17 @@ def run_enumeration(
     ac = as_completed()
     in_flight = 0
 
-    def capacity() -> int:
-        threads = sum(client.nthreads().values()) or 1
-        return per_worker * threads
+    threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
+    shown = _Every(PROGRESS_SECONDS, lambda: on_progress(_progress(Reader, info.id)) if on_progress else None)
 
-    def fill() -> None:
+    def fill(force: bool = False) -> None:
+        """Claim up to ``per_worker`` tasks per worker thread, once at most half of them are left in flight
+        (one claim transaction per few results rather than per result)."""
         nonlocal in_flight
-        for eid, token in store.claim(Session_, info.id, owner, capacity() - in_flight):
+        capacity = per_worker * threads()
+        if not force and in_flight > capacity // 2:
+            return
+        for eid, token in store.claim(Session_, info.id, owner, capacity - in_flight):
             fut = client.submit(expand_task, eid, token, plugin.name, key=f"expand-{eid}-{token}", pure=False)
             fut.expansion = (eid, token)  # type: ignore[attr-defined]
             ac.add(fut)
@@ -129,9 +151,8 @@ def run_enumeration(
 
     beat = _Heartbeat(Session_, info.id, owner)
     try:
-        fill()
-        if on_progress:
-            on_progress(_progress(Reader, info.id))
+        fill(force=True)
+        shown(force=True)
         while in_flight:
             for fut in ac:
                 in_flight -= 1
@@ -143,9 +164,9 @@ def run_enumeration(
                     store.release(Session_, eid, token, "task cancelled", max_attempts)
                 fut.release()
                 fill()
-                if on_progress:
-                    on_progress(_progress(Reader, info.id))
-            fill()
+                shown()
+            fill(force=True)
+        shown(force=True)
     except BaseException:
         beat.stop()
         store.abandon(Session_, info.id, owner, time.perf_counter() - start)

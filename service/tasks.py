@@ -36,8 +36,11 @@ class DatabasePlugin(WorkerPlugin):
     def setup(self, worker) -> None:
         self.engine = make_engine(self.url)
         self.sessions = sessions(self.engine)
-        # Pay the imports and first-call costs once per worker, not per task.
+        # Pay the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
         import workers.expand  # noqa: F401
+        from workers.kernels import warm_up
+
+        self.warm_up_seconds = warm_up()
 
     def teardown(self, worker) -> None:
         if self.engine is not None:

@@ -74,7 +74,7 @@ def solution_dimension(
 def _probe(x, v, step, edges, free, params: Params) -> np.ndarray | None:
     """Displacement x' - x to the solution set from x + step v, or None if it is rejected."""
     x0 = x + step * v
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
     orthogonal = (v[free][None, :], np.array([v[free] @ x0[free]]))
     for extra in (orthogonal, None):
         pr = kernels.project(x0, edges, free, extra=extra, **kw)

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 from itertools import combinations
+from typing import Iterator
 
 import numpy as np
 
@@ -90,6 +91,56 @@ def cluster_rank(cluster: Cluster, params: Params) -> int:
     return 3 * cluster.n - 6 - rigidity(cluster.coords, cluster.contacts, params).flexes
 
 
+@dataclass(frozen=True)
+class PathStart:
+    """One path to follow: the arguments of :func:`workers.paths.follow_path` and what they came from."""
+
+    broken_contacts: tuple[tuple[int, int], ...]  #: the broken subset B
+    direction: int  #: +1 or -1 relative to the tangent basis vector
+    x: np.ndarray  #: the cluster in the frame of the pinned triangle (flat)
+    keep: np.ndarray  #: contacts kept (m - |B| x 2)
+    broken: np.ndarray  #: contacts broken (|B| x 2)
+    tangent: np.ndarray  #: the signed tangent direction
+    free: np.ndarray  #: free coordinates
+
+    def follow(self, params: Params) -> PathEnd:
+        return follow_path(self.x, self.keep, self.broken, self.tangent, self.free, params)
+
+
+def _attempts(cluster: Cluster, params: Params) -> Iterator[Endpoint | PathStart]:
+    """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart."""
+    n, m = cluster.n, cluster.m
+    all_edges = cluster.edges()
+    for k in break_sizes(m, cluster_rank(cluster, params), params):
+        for idx in combinations(range(m), k):
+            broken = all_edges[list(idx)]
+            keep = np.delete(all_edges, list(idx), axis=0)
+            bt = tuple((int(i), int(j)) for i, j in broken)
+            tri = contact_triangle(keep)
+            if tri is None:
+                yield Endpoint(bt, 0, NO_TRIANGLE)
+                continue
+            x = kernels.to_frame(cluster.coords, tri).ravel()
+            free = kernels.free_coordinates(n, tri)
+            dim = solution_dimension(x, keep, free, params)
+            if dim.dim != 1:
+                yield Endpoint(bt, 0, NOT_1D, dim.dim)
+                continue
+            v = dim.tangents[:, 0]
+            g = np.array([_lengthening(x, v, i, j) for i, j in broken])
+            signs = [s for s in (1, -1) if np.all(s * g > -params.tol_n)]
+            if not signs:
+                yield Endpoint(bt, 0, NO_DIRECTION, 1)
+                continue
+            for s in signs:
+                yield PathStart(bt, s, x, keep, broken, s * v, free)
+
+
+def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
+    """The paths :func:`expand` follows from ``cluster``, in its order, without following them."""
+    return [a for a in _attempts(cluster, params) if isinstance(a, PathStart)]
+
+
 def expand(cluster: Cluster, params: Params) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
@@ -98,34 +149,13 @@ def expand(cluster: Cluster, params: Params) -> Expansion:
     lengthens all broken contacts (to first order; both if some are unchanged to
     first order) is followed to its endpoint.
     """
-    n, m = cluster.n, cluster.m
-    all_edges = cluster.edges()
     cert = certificate(cluster)
     out: list[Endpoint] = []
-    for k in break_sizes(m, cluster_rank(cluster, params), params):
-        for idx in combinations(range(m), k):
-            broken = all_edges[list(idx)]
-            keep = np.delete(all_edges, list(idx), axis=0)
-            bt = tuple((int(i), int(j)) for i, j in broken)
-            tri = contact_triangle(keep)
-            if tri is None:
-                out.append(Endpoint(bt, 0, NO_TRIANGLE))
-                continue
-            x = kernels.to_frame(cluster.coords, tri).ravel()
-            free = kernels.free_coordinates(n, tri)
-            dim = solution_dimension(x, keep, free, params)
-            if dim.dim != 1:
-                out.append(Endpoint(bt, 0, NOT_1D, dim.dim))
-                continue
-            v = dim.tangents[:, 0]
-            g = np.array([_lengthening(x, v, i, j) for i, j in broken])
-            signs = [s for s in (1, -1) if np.all(s * g > -params.tol_n)]
-            if not signs:
-                out.append(Endpoint(bt, 0, NO_DIRECTION, 1))
-                continue
-            for s in signs:
-                end = follow_path(x, keep, broken, s * v, free, params)
-                out.append(_classify(cluster, cert, bt, s, end, params))
+    for a in _attempts(cluster, params):
+        if isinstance(a, Endpoint):
+            out.append(a)
+        else:
+            out.append(_classify(cluster, cert, a.broken_contacts, a.direction, a.follow(params), params))
     return Expansion(cluster, tuple(out))
 
 

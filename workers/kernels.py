@@ -17,13 +17,100 @@ Conventions
   pinned matrix is the null space of the reduced one (zeros in the pinned
   coordinates), and the left null spaces (self-stresses) coincide because a
   self-stress exerts no net force or torque.
+
+Backends
+--------
+Two implementations of the hot loop run behind this interface:
+
+* ``"numba"`` (the default): compiled kernels in :mod:`workers._compiled`.  Newton
+  steps solve the normal equations by Cholesky, and the whole stepping loop of
+  :func:`workers.paths.follow_path` runs compiled.  It returns to Python at the
+  endpoint, and at any point where a rank guard cannot prove that the pinned
+  rigidity matrix has full row rank with every singular value at least
+  ``GUARD_FACTOR * tol_n``: such steps (and the dimension test after a first
+  step there) use the SVD of :func:`null_spaces`, exactly as the reference.
+* ``"numpy"``: the plain numpy reference (least squares by SVD at every step,
+  one Python iteration per step).
+
+Select with :func:`set_backend` (process-wide), temporarily with the context
+manager :func:`backend`, or for a whole process with the environment variable
+``PACKINGS_KERNELS=numpy`` (read at import).  If numba cannot be imported the
+numpy backend is used.  :func:`null_spaces` is the SVD in both backends.  Call
+:func:`warm_up` once per process to compile (or load from numba's cache) every
+kernel before the first path.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
+import time
 from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
+
+from workers.params import DEFAULT
+
+BACKENDS = ("numba", "numpy")
+
+#: The compiled path trusts the normal equations only where the smallest eigenvalue
+#: of R_f R_f^T is provably at least (GUARD_FACTOR * tol_n)^2, i.e. every singular value
+#: of R_f is at least GUARD_FACTOR * tol_n: far from the SVD's zero threshold tol_n.
+GUARD_FACTOR = 100.0
+
+try:  # numba is a dependency; without it (or with a broken install) the reference still runs
+    from workers import _compiled
+except ImportError:  # pragma: no cover
+    _compiled = None
+
+
+def _initial_backend() -> str:
+    name = os.environ.get("PACKINGS_KERNELS", "").strip().lower() or "numba"
+    if name not in BACKENDS:
+        raise ValueError(f"PACKINGS_KERNELS must be one of {BACKENDS}, got {name!r}")
+    if name == "numba" and _compiled is None:  # pragma: no cover
+        return "numpy"
+    return name
+
+
+_backend = _initial_backend()
+
+
+def get_backend() -> str:
+    """The backend in use: ``"numba"`` or ``"numpy"``."""
+    return _backend
+
+
+def set_backend(name: str) -> str:
+    """Select the backend (``"numba"`` or ``"numpy"``) for this process; returns the previous one."""
+    global _backend
+    if name not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")
+    if name == "numba" and _compiled is None:
+        raise RuntimeError("numba is not available")
+    previous, _backend = _backend, name
+    return previous
+
+
+@contextlib.contextmanager
+def backend(name: str) -> Iterator[str]:
+    """``with kernels.backend("numpy"): ...`` runs the block with that backend, then restores the previous one."""
+    previous = set_backend(name)
+    try:
+        yield name
+    finally:
+        set_backend(previous)
+
+
+def compiled() -> bool:
+    """True when the compiled (numba) backend is selected."""
+    return _backend == "numba"
+
+
+def guard_threshold(tol_n: float) -> float:
+    """Smallest eigenvalue of R_f R_f^T below which the compiled path defers to the SVD."""
+    return (GUARD_FACTOR * tol_n) ** 2
 
 
 def pinned_coordinates(tri: tuple[int, int, int]) -> np.ndarray:
@@ -62,9 +149,36 @@ def to_frame(x: np.ndarray, tri: tuple[int, int, int]) -> np.ndarray:
 
 def residual(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """f_ij(x) = |x_i - x_j|^2 - 1 for every contact (i, j)."""
+    if _backend == "numba":
+        return _compiled.residual(_f64(x), _i64(edges))
+    return residual_numpy(x, edges)
+
+
+def residual_numpy(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The numpy reference of :func:`residual`."""
     p = x.reshape(-1, 3)
     d = p[edges[:, 0]] - p[edges[:, 1]]
     return np.einsum("ij,ij->i", d, d) - 1.0
+
+
+def as_kernel_array(a, dtype, shape: tuple[int, ...]) -> np.ndarray:
+    """``a`` as a C-contiguous, writeable array of ``dtype`` and ``shape`` (a view when it already is one).
+
+    Compiled kernels are specialised on these properties: passing read-only or
+    strided arrays would compile (and cache) further variants of every kernel.
+    """
+    out = np.ascontiguousarray(a, dtype=dtype).reshape(shape)
+    if not out.flags.writeable:
+        out = out.copy()
+    return out
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    return as_kernel_array(a, np.float64, (-1,))
+
+
+def _i64(a: np.ndarray) -> np.ndarray:
+    return as_kernel_array(a, np.int64, (-1, 2))
 
 
 def rigidity_matrix(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -72,6 +186,13 @@ def rigidity_matrix(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
     It is half the Jacobian of the residuals, and (R(p) y)_k = (p_i - p_j).(y_i - y_j).
     """
+    if _backend == "numba":
+        return _compiled.rigidity_matrix(_f64(x), _i64(edges))
+    return rigidity_matrix_numpy(x, edges)
+
+
+def rigidity_matrix_numpy(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The numpy reference of :func:`rigidity_matrix`."""
     p = x.reshape(-1, 3)
     m = edges.shape[0]
     r = np.zeros((m, p.shape[0], 3))
@@ -79,7 +200,7 @@ def rigidity_matrix(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
     rows = np.arange(m)
     r[rows, edges[:, 0]] = d
     r[rows, edges[:, 1]] = -d
-    return r.reshape(m, -1)
+    return r.reshape(m, 3 * p.shape[0])
 
 
 @dataclass(frozen=True)
@@ -102,6 +223,7 @@ def project(
     max_iter: int,
     extra: tuple[np.ndarray, np.ndarray] | None = None,
     polish: bool = False,
+    tol_n: float | None = None,
 ) -> Projection:
     """Newton's method for f(x) = 0 with the pinned coordinates held fixed.
 
@@ -116,13 +238,75 @@ def project(
     coordinates are as accurate as float64 and the conditioning allow: at a
     regular point Newton then reaches round-off; near a singular point, where it
     converges only linearly, the coordinates end accurate to about sqrt(|f|).
+
+    With the numba backend the same iteration runs compiled; each step solves the
+    normal equations (J J^T) y = -f, dx = J^T y by Cholesky, which is the same
+    minimum-norm step while J has full row rank, and falls back to the least-squares
+    solve where the rank guard (:func:`guard_threshold` of ``tol_n``, by default
+    the paper's 1e-6) fails.  The numpy backend ignores ``tol_n``.
     """
+    if _backend == "numba":
+        return project_compiled(
+            x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish, tol_n=tol_n
+        )
+    return project_numpy(x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish)
+
+
+def free_mask(n3: int, free: np.ndarray) -> np.ndarray:
+    """1.0 on the free coordinates, 0.0 on the pinned ones (length 3n)."""
+    mask = np.zeros(n3)
+    mask[free] = 1.0
+    return mask
+
+
+def project_compiled(
+    x0: np.ndarray,
+    edges: np.ndarray,
+    free: np.ndarray,
+    *,
+    tol: float,
+    dx_max: float,
+    max_iter: int,
+    extra: tuple[np.ndarray, np.ndarray] | None = None,
+    polish: bool = False,
+    tol_n: float | None = None,
+) -> Projection:
+    """:func:`project` by the compiled kernel (normal equations, least squares where the guard fails)."""
+    x = _f64(x0)
+    free = as_kernel_array(free, np.int64, (-1,))
+    if extra is None:
+        a = np.zeros((0, x.size))
+        b = np.zeros(0)
+    else:
+        ea = np.atleast_2d(np.asarray(extra[0], dtype=np.float64))
+        a = np.zeros((ea.shape[0], x.size))
+        a[:, free] = ea
+        b = as_kernel_array(extra[1], np.float64, (-1,))
+    g = guard_threshold(DEFAULT.tol_n if tol_n is None else tol_n)
+    xn, status, it, fsq, _, _ = _compiled.newton(
+        x, _i64(edges), free, free_mask(x.size, free), a, b, float(tol), float(dx_max), int(max_iter), bool(polish), float(g)
+    )
+    return Projection(xn, status == _compiled.NEWTON_OK, int(it), float(fsq))
+
+
+def project_numpy(
+    x0: np.ndarray,
+    edges: np.ndarray,
+    free: np.ndarray,
+    *,
+    tol: float,
+    dx_max: float,
+    max_iter: int,
+    extra: tuple[np.ndarray, np.ndarray] | None = None,
+    polish: bool = False,
+) -> Projection:
+    """The numpy reference of :func:`project`: a least-squares (SVD) solve at every step."""
     x = np.array(x0, dtype=np.float64, copy=True)
     fsq = np.inf
     converged = False
     best_x, best_fsq = x.copy(), np.inf
     for it in range(max_iter + 1):
-        f = residual(x, edges)
+        f = residual_numpy(x, edges)
         if extra is not None:
             f = np.concatenate([f, extra[0] @ x[free] - extra[1]])
         fsq = float(f @ f)
@@ -132,6 +316,8 @@ def project(
             if fsq > 0.5 * best_fsq:
                 return Projection(best_x, True, it, best_fsq)
             best_x, best_fsq = x.copy(), fsq
+            if fsq == 0.0:  # exact: every further step is zero
+                return Projection(best_x, True, it, fsq)
         elif fsq < tol:
             if not polish or fsq == 0.0:
                 return Projection(x, True, it, fsq)
@@ -139,7 +325,7 @@ def project(
             best_x, best_fsq = x.copy(), fsq
         if it == max_iter:
             break
-        j = 2.0 * rigidity_matrix(x, edges)[:, free]
+        j = 2.0 * rigidity_matrix_numpy(x, edges)[:, free]
         if extra is not None:
             j = np.vstack([j, extra[0]])
         dx = np.linalg.lstsq(j, -f, rcond=None)[0]
@@ -150,6 +336,24 @@ def project(
     if converged:
         return Projection(best_x, True, max_iter, best_fsq)
     return Projection(x, False, max_iter, fsq)
+
+
+def regular_flexes(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float) -> int | None:
+    """dim V when a cheap test certifies that R[:, free] has full row rank, else None.
+
+    Certified (compiled backend only) means the Cholesky factor of R_f R_f^T
+    proves its smallest eigenvalue is at least :func:`guard_threshold` (tol_n):
+    then :func:`null_spaces` would find rank m, no self-stress (W empty) and
+    dim V = len(free) - m, so callers that need only those sizes may skip the
+    SVD.  Returns None whenever that is not certified, and always with the
+    numpy backend (the reference takes the SVD).
+    """
+    if _backend != "numba":
+        return None
+    x = _f64(x)
+    free = as_kernel_array(free, np.int64, (-1,))
+    a = _compiled.regular_flexes(x, _i64(edges), free, free_mask(x.size, free), guard_threshold(tol_n))
+    return None if a < 0 else int(a)
 
 
 @dataclass(frozen=True)
@@ -167,7 +371,7 @@ class NullSpaces:
 
 def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float) -> NullSpaces:
     """V and W of the pinned rigidity matrix, by SVD, singular values < tol_n counted as zero."""
-    r = rigidity_matrix(x, edges)[:, free]
+    r = rigidity_matrix_numpy(x, edges)[:, free]
     m, k = r.shape
     if m == 0:
         v = np.zeros((x.size, k))
@@ -183,6 +387,46 @@ def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
 
 def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """|x_i - x_j| for each (i, j) in ``pairs``."""
+    if _backend == "numba":
+        return _compiled.pair_distances_flat(_f64(x), _i64(pairs))
     p = x.reshape(-1, 3)
     d = p[pairs[:, 0]] - p[pairs[:, 1]]
     return np.sqrt(np.einsum("ij,ij->i", d, d))
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's on-disk cache) every compiled kernel; returns the seconds taken.
+
+    Runs each kernel once on a small cluster (a path of the 6-sphere
+    polytetrahedron with one contact broken, a projection with an extra linear
+    row, the rank certificate), so that the first real path does not pay for
+    compilation.  Call it once per process (e.g. per Dask worker).  Does nothing
+    (returns 0.0) when the numpy backend is selected.
+    """
+    if _backend != "numba":
+        return 0.0
+    from workers.dimension import solution_dimension
+    from workers.paths import follow_path
+    from workers.rigidity import contact_triangle
+    from workers.seeds import seed_cluster
+
+    start = time.perf_counter()
+    params = DEFAULT
+    c = seed_cluster(6, params)
+    edges = c.edges()
+    keep, broken = edges[:-1], edges[-1:]
+    tri = contact_triangle(keep)
+    x = to_frame(c.coords, tri).ravel()
+    free = free_coordinates(c.n, tri)
+    residual(x, edges)
+    rigidity_matrix(x, edges)
+    pair_distances_flat(x, edges)
+    dim = solution_dimension(x, keep, free, params)
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
+    v = dim.tangents[:, 0]
+    project(x + params.ds * v, keep, free, extra=(v[free][None, :], np.array([v[free] @ x[free]])), **kw)
+    project(x, edges, free, polish=True, **kw)
+    regular_flexes(x, edges, free, params.tol_n)
+    for s in (1.0, -1.0):
+        follow_path(x, keep, broken, s * v, free, params)
+    return time.perf_counter() - start

@@ -8,10 +8,11 @@ from itertools import combinations
 import numpy as np
 
 from workers import kernels
+from workers.kernels import _compiled
 from workers.cluster import contacts_from_coords, pair_distances
 from workers.dimension import solution_dimension
 from workers.params import Params
-from workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces
+from workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces, rigidity_without_stress
 
 # Outcomes of one path.
 RIGID = "rigid"  #: ended at a rigid cluster
@@ -77,11 +78,52 @@ def follow_path(
     end of a singular path which a finite first step leaves (a thin set of
     dimension 2 surrounds such a path).
     """
-    n = x.size // 3
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
+    if kernels.compiled():
+        return _follow_compiled(x, keep, broken, tangent, free, params)
+    return _follow_numpy(x, keep, broken, tangent, free, params)
+
+
+def _broken_pairs(n: int, keep: np.ndarray, broken: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The non-contact pairs of ``keep`` and the indices among them of the broken contacts."""
     pairs = non_contact_pairs(n, keep)
-    broken_set = {tuple(b) for b in broken.tolist()}
-    broken_idx = np.array([k for k, p in enumerate(pairs.tolist()) if tuple(p) in broken_set], dtype=np.int64)
+    broken = np.asarray(broken, dtype=np.int64).reshape(-1, 2)
+    is_broken = np.zeros((n, n), dtype=bool)
+    is_broken[broken[:, 0], broken[:, 1]] = True
+    broken_idx = np.nonzero(is_broken[pairs[:, 0], pairs[:, 1]])[0].astype(np.int64)
+    return pairs, broken_idx
+
+
+def _svd_tangent(xn, keep, free, t, params: Params, first: bool) -> tuple[np.ndarray | None, int | None]:
+    """The next tangent at xn by the SVD: ``t`` projected onto the null space V of R(xn).
+
+    On the first step the dimension is re-checked (solution_dimension) and, when
+    it is 1, V is its tangent basis.  Returns (new tangent or None if the path
+    must stop with DIMENSION_CHANGED, the first-step dimension or None).
+    """
+    ns = kernels.null_spaces(xn, keep, free, params.tol_n)
+    V = ns.V
+    first_dim = None
+    if first:
+        dim = solution_dimension(xn, keep, free, params, ns)
+        first_dim = dim.dim
+        if dim.dim == 0 or (dim.dim > 1 and params.stop_on_dimension_change):
+            return None, first_dim
+        if dim.dim == 1:
+            V = dim.tangents
+    if V.shape[1] == 0:
+        return None, first_dim
+    tn = V @ (V.T @ t)
+    norm = np.linalg.norm(tn)
+    if norm < 1e-8:
+        return None, first_dim
+    return tn / norm, first_dim
+
+
+def _follow_numpy(x, keep, broken, tangent, free, params: Params) -> PathEnd:
+    """The reference loop of :func:`follow_path`: one Python iteration per step, an SVD at every step."""
+    n = x.size // 3
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
+    pairs, broken_idx = _broken_pairs(n, keep, broken)
     d_prev = kernels.pair_distances_flat(x, pairs)
     t = tangent / np.linalg.norm(tangent)
     h_max = params.ds0
@@ -116,31 +158,80 @@ def follow_path(
                     return end(PROJECTION_FAILED, steps)
                 continue
             return replace(_endpoint(xn, keep, pairs[hit], free, params, steps + 1), first_step_dim=first_dim)
-        ns = kernels.null_spaces(xn, keep, free, params.tol_n)
-        V = ns.V
+        tn, dim = _svd_tangent(xn, keep, free, t, params, first_dim is None)
         if first_dim is None:
-            dim = solution_dimension(xn, keep, free, params, ns)
-            first_dim = dim.dim
-            if dim.dim == 0 or (dim.dim > 1 and params.stop_on_dimension_change):
-                return end(DIMENSION_CHANGED, steps + 1)
-            if dim.dim == 1:
-                V = dim.tangents
-        if V.shape[1] == 0:
+            first_dim = dim
+        if tn is None:
             return end(DIMENSION_CHANGED, steps + 1)
-        tn = V @ (V.T @ t)
-        norm = np.linalg.norm(tn)
-        if norm < 1e-8:
-            return end(DIMENSION_CHANGED, steps + 1)
-        t = tn / norm
+        t = tn
         x, d_prev = xn, d
         steps += 1
         h = min(2 * h, h_max)
     return end(TOO_LONG, steps)
 
 
+#: Path outcomes by the status codes of the compiled loop.
+_COMPILED_OUTCOMES = {
+    _compiled.ST_PROJECTION_FAILED: PROJECTION_FAILED,
+    _compiled.ST_SHORTENS: SHORTENS,
+    _compiled.ST_DIMENSION_CHANGED: DIMENSION_CHANGED,
+    _compiled.ST_TOO_LONG: TOO_LONG,
+} if _compiled is not None else {}
+
+
+def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
+    """:func:`follow_path` with the stepping loop compiled (workers._compiled.follow_steps).
+
+    The compiled loop runs the same steps as :func:`_follow_numpy` and returns
+    here only to end the path or when its rank guard cannot certify that R(xn)
+    has full row rank (so that the null space is the complement of the row
+    space, and after the first step the dimension is the reference's "regular"
+    |V|).  Those steps take their tangent, and on the first step the dimension,
+    from the SVD (:func:`_svd_tangent`) exactly as the reference does, and the
+    compiled loop then resumes.
+    """
+    n = x.size // 3
+    x = kernels.as_kernel_array(x, np.float64, (-1,))
+    keep = kernels.as_kernel_array(keep, np.int64, (-1, 2))
+    free = kernels.as_kernel_array(free, np.int64, (-1,))
+    pairs, broken_idx = _broken_pairs(n, keep, broken)
+    mask = kernels.free_mask(x.size, free)
+    d_prev = kernels.pair_distances_flat(x, pairs)
+    t = kernels.as_kernel_array(tangent / np.linalg.norm(tangent), np.float64, (-1,))
+    h_max = float(params.ds0)
+    h = min(params.ds, h_max)
+    h_min = params.ds / 1024
+    guard = kernels.guard_threshold(params.tol_n)
+    first_dim: int | None = None
+    steps = 0
+    while True:
+        status, x, t, d_prev, h, h_max, steps, dim, xn, d, hit, _ = _compiled.follow_steps(
+            x, t, d_prev, h, h_max, steps, first_dim is None, keep, free, mask, pairs, broken_idx,
+            params.ds, h_min, params.tol, params.dx_max, params.newton_max_iter, params.tol_a0,
+            params.max_path_steps, guard, params.stop_on_dimension_change,
+        )  # fmt: skip
+        if dim >= 0:
+            first_dim = int(dim)
+        if status == _compiled.ST_HIT:
+            return replace(_endpoint(xn, keep, pairs[hit], free, params, steps + 1), first_step_dim=first_dim)
+        if status != _compiled.ST_NEED_SVD:
+            return PathEnd(_COMPILED_OUTCOMES[status], steps, first_step_dim=first_dim)
+        tn, dim = _svd_tangent(xn, keep, free, t, params, first_dim is None)
+        if first_dim is None:
+            first_dim = dim
+        if tn is None:
+            return PathEnd(DIMENSION_CHANGED, steps + 1, first_step_dim=first_dim)
+        t = kernels.as_kernel_array(tn, np.float64, (-1,))
+        x, d_prev = xn, d
+        steps += 1
+        h = min(2 * h, h_max)
+        if steps >= params.max_path_steps:
+            return PathEnd(TOO_LONG, steps, first_step_dim=first_dim)
+
+
 def _endpoint(x, keep, new, free, params: Params, steps: int) -> PathEnd:
     """Add the new contacts, project, and classify the endpoint."""
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter)
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
     new_t = tuple((int(i), int(j)) for i, j in new)
     pr = None
     for r in range(0, len(new)):
@@ -156,9 +247,15 @@ def _endpoint(x, keep, new, free, params: Params, steps: int) -> PathEnd:
         return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
     coords = pr.x.reshape(-1, 3)
     contacts = contacts_from_coords(coords, params.tol_a)
-    if pair_distances(coords)[np.triu_indices(coords.shape[0], 1)].min() < 1.0 - params.tol_a:
+    dist = pair_distances(coords)
+    np.fill_diagonal(dist, np.inf)
+    if dist.min() < 1.0 - params.tol_a:
         return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=new_t)
     edges = np.array(contacts, dtype=np.int64)
-    rig = rigidity_from_null_spaces(kernels.null_spaces(pr.x, edges, free, params.tol_n), edges, params)
+    flexes = kernels.regular_flexes(pr.x, edges, free, params.tol_n)
+    if flexes is not None:  # certified full row rank: what the SVD would find, without it
+        rig = rigidity_without_stress(flexes)
+    else:
+        rig = rigidity_from_null_spaces(kernels.null_spaces(pr.x, edges, free, params.tol_n), edges, params)
     outcome = RIGID if rig.rigid else (UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
     return PathEnd(outcome, steps, coords, contacts, rig, new_t)

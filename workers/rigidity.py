@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -50,14 +51,39 @@ def stress_forms(V: np.ndarray, W: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.einsum("ek,iex,jex->kij", W, dv, dv)
 
 
-def _svec(m: np.ndarray) -> np.ndarray:
-    """Clarabel's scaled vectorisation: upper triangle by columns, off-diagonals times sqrt 2."""
-    a = m.shape[0]
-    out = []
+@lru_cache(maxsize=None)
+def _svec_layout(a: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row and column indices of Clarabel's svec order for a x a matrices, and the weights (1 or sqrt 2)."""
+    rows, cols = [], []
     for j in range(a):
         for i in range(j + 1):
-            out.append(m[i, j] if i == j else np.sqrt(2.0) * m[i, j])
-    return np.array(out)
+            rows.append(i)
+            cols.append(j)
+    r, c = np.array(rows, dtype=np.int64), np.array(cols, dtype=np.int64)
+    w = np.where(r == c, 1.0, np.sqrt(2.0))
+    for arr in (r, c, w):
+        arr.setflags(write=False)
+    return r, c, w
+
+
+def _svec(m: np.ndarray) -> np.ndarray:
+    """Clarabel's scaled vectorisation: upper triangle by columns, off-diagonals times sqrt 2."""
+    r, c, w = _svec_layout(m.shape[0])
+    return m[r, c] * w
+
+
+@lru_cache(maxsize=None)
+def _sdp_constants(b: int, a: int):
+    """The parts of the SDP that depend only on (b, a): box rows, svec(I), right-hand side, cost, cones."""
+    svec_len = a * (a + 1) // 2
+    a_box = np.hstack([np.vstack([np.eye(b), -np.eye(b)]), np.zeros((2 * b, 1))])
+    svec_eye = _svec(np.eye(a))
+    rhs = np.concatenate([np.ones(2 * b), np.zeros(svec_len)])
+    q = np.zeros(b + 1)
+    q[b] = -1.0
+    for arr in (a_box, svec_eye, rhs, q):
+        arr.setflags(write=False)
+    return a_box, svec_eye, rhs, q
 
 
 def sdp_margin(Q: np.ndarray) -> float | None:
@@ -69,20 +95,16 @@ def sdp_margin(Q: np.ndarray) -> float | None:
 
     b, a, _ = Q.shape
     nz = b + 1  # variables c_1..c_b, t
-    svec_len = a * (a + 1) // 2
-    a_box = np.hstack([np.vstack([np.eye(b), -np.eye(b)]), np.zeros((2 * b, 1))])
-    a_psd = np.zeros((svec_len, nz))
-    for k in range(b):
-        a_psd[:, k] = -_svec(Q[k])
-    a_psd[:, b] = _svec(np.eye(a))
+    a_box, svec_eye, rhs, q = _sdp_constants(b, a)
+    r, c, w = _svec_layout(a)
+    a_psd = np.empty((r.size, nz))
+    a_psd[:, :b] = -(Q[:, r, c] * w).T
+    a_psd[:, b] = svec_eye
     A = sp.csc_matrix(np.vstack([a_box, a_psd]))
-    rhs = np.concatenate([np.ones(2 * b), np.zeros(svec_len)])
-    q = np.zeros(nz)
-    q[b] = -1.0
     P = sp.csc_matrix((nz, nz))
     settings = clarabel.DefaultSettings()
     settings.verbose = False
-    solver = clarabel.DefaultSolver(P, q, A, rhs, [clarabel.NonnegativeConeT(2 * b), clarabel.PSDTriangleConeT(a)], settings)
+    solver = clarabel.DefaultSolver(P, q.copy(), A, rhs.copy(), [clarabel.NonnegativeConeT(2 * b), clarabel.PSDTriangleConeT(a)], settings)
     sol = solver.solve()
     if str(sol.status) not in ("Solved", "AlmostSolved"):
         return None
@@ -112,13 +134,20 @@ def prestress_test(Q: np.ndarray, tol_psd: float) -> tuple[bool, str, float | No
     return bool(t > tol_psd), "sdp", t
 
 
+def rigidity_without_stress(flexes: int) -> Rigidity:
+    """The rigidity test's verdict when W is empty and dim V = ``flexes``: rigid iff there is no flex."""
+    if flexes == 0:
+        return Rigidity(True, FIRST_ORDER, 0, 0, "first-order")
+    return Rigidity(False, FLOPPY, flexes, 0, "no-stress")
+
+
 def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params: Params) -> Rigidity:
     """The rigidity test of METHOD.md given V and W."""
     a, b = ns.V.shape[1], ns.W.shape[1]
+    if b == 0:
+        return rigidity_without_stress(a)
     if a == 0:
         return Rigidity(True, FIRST_ORDER, 0, b, "first-order")
-    if b == 0:
-        return Rigidity(False, FLOPPY, a, 0, "no-stress")
     Q = stress_forms(ns.V, ns.W, edges)
     rigid, method, margin = prestress_test(Q, params.tol_psd)
     return Rigidity(rigid, PRESTRESS if rigid else UNDECIDED, a, b, method, margin)

@@ -99,7 +99,8 @@ def test_enumerate_9_with_a_local_cluster(db_url, reference9, paper_counts):
     assert_same_clusters(db_url, 9, reference9)
     # and stats reads the same counts
     r3 = packings("stats", "--json", "--db", db_url)
-    assert json.loads(r3.stdout) == [{"n": 9, "total": 52, "by_contacts": {"21": 52}}]
+    (stats,) = json.loads(r3.stdout)
+    assert (stats["n"], stats["total"], stats["by_contacts"], stats["unclassified"]) == (9, 52, {"21": 52}, 0)
 
 
 def test_enumerate_prints_the_table_the_dashboard_and_progress(sqlite_url):
@@ -262,3 +263,27 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
     r = CliRunner().invoke(service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
+
+
+def test_each_worker_compiles_the_kernels_when_it_joins(engine):
+    """The plugin warms the compiled kernels up in every worker process when it is registered,
+    before any task runs, so no task pays for compilation."""
+    from distributed import Client, LocalCluster
+
+    from service.tasks import DatabasePlugin
+
+    url = engine.url.render_as_string(hide_password=False)
+    plugin = DatabasePlugin(url)
+
+    def compiled(dask_worker):
+        import workers._compiled as c
+
+        return dask_worker.plugins[plugin.name].warm_up_seconds, len(c.newton.signatures), len(c.residual.signatures)
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        client.register_plugin(plugin)
+        seen = client.run(compiled)
+    assert len(seen) == 2
+    for seconds, newton, residual in seen.values():
+        assert seconds > 0.0 and newton >= 1 and residual >= 1

@@ -1,0 +1,658 @@
+"""Compiled (numba) implementations of the hot loop of :mod:`workers.kernels` and :mod:`workers.paths`.
+
+Nothing outside :mod:`workers.kernels` and :mod:`workers.paths` should import this
+module: :mod:`workers.kernels` is the interface, and selects between these
+functions and the plain numpy reference (``workers.kernels.set_backend``).
+
+Numerics (METHOD.md, "Projection onto the constraint set" and "Following a
+one-dimensional path"), exactly as in the numpy reference up to round-off:
+
+* Coordinates are full 3n vectors; ``mask`` is 1.0 on the free coordinates and
+  0.0 on the six pinned ones, so R_f (the pinned rigidity matrix) acts as
+  R(x) diag(mask).
+* A Newton step is the minimum-norm solution of J dx = -f with J = [2 R_f; A]
+  (A: optional extra linear rows).  When J has full row rank that is
+  dx = J^T y with (J J^T) y = -f, solved by Cholesky.  The Gram matrix
+  R_f R_f^T is assembled from the contact graph (two rows overlap only when
+  their contacts share a sphere).
+* Rank guard (rigorous): with L the Cholesky factor of G = R_f R_f^T, the
+  smallest eigenvalue of G is at most every pivot^2, and at least
+  1 / (||M^{-1}||_1 ||M^{-1}||_inf) for the comparison matrix M of L (two
+  O(m^2) triangular solves) and at least 1 / ||L^{-1}||_F^2 (O(m^3), tried
+  only when the first bound is too weak).  The guard is (100 tol_n)^2
+  (``workers.kernels.guard_threshold``).
+* Newton steps use the normal equations only where the guard certifies
+  J J^T, and otherwise the same LAPACK least-squares solve as the reference.
+  Convergence is always judged on the residual itself, and a projection that
+  fails after using the normal equations is redone by least squares
+  throughout, so that failures (which shorten the step) are the reference's.
+* At every point a path reaches the tangent is computed here only when the
+  guard certifies R_f R_f^T there; on the first step the dimension is then the
+  reference's "regular" |V| = k - m.  Otherwise (Cholesky fails, or more
+  contacts than free coordinates) the loop hands the step back to Python,
+  which uses the SVD (``kernels.null_spaces``, and on the first step the
+  dimension test) exactly as the reference does.
+* The tangent is carried by projecting the previous one onto the null space of
+  R_f: t - R_f^T (R_f R_f^T)^{-1} R_f t, with one step of iterative refinement.
+  Where the guard passes, every singular value of R_f is at least
+  sqrt(guard) >> tol_n, so the SVD's null space (singular values < tol_n) is
+  exactly the orthogonal complement of the row space and this is the same
+  projector as V V^T.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+# Status codes returned by follow_steps (mirrored in workers.paths).
+ST_HIT = 0  #: an approaching pair is within 1 + tol_a0: xn and the hit mask are the endpoint's input
+ST_NEED_SVD = 1  #: xn is projected and checked; the guard failed there, so its tangent (and first-step dimension) needs the SVD
+ST_PROJECTION_FAILED = 2
+ST_SHORTENS = 3
+ST_DIMENSION_CHANGED = 4  #: the projected tangent vanished (returned steps already counts this step)
+ST_TOO_LONG = 5
+
+# Status codes of newton (mirrored in workers.kernels).
+NEWTON_OK = 0
+NEWTON_FAILED = 1
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@numba.njit(**_JIT)
+def residual(x, edges):
+    """f_k = |x_i - x_j|^2 - 1 for each contact k = (i, j)."""
+    m = edges.shape[0]
+    f = np.empty(m)
+    for k in range(m):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        s = 0.0
+        for c in range(3):
+            d = x[3 * i + c] - x[3 * j + c]
+            s += d * d
+        f[k] = s - 1.0
+    return f
+
+
+@numba.njit(**_JIT)
+def rigidity_matrix(x, edges):
+    """Dense R(x) (m x 3n): row k = (i, j) has x_i - x_j in i's columns and x_j - x_i in j's."""
+    m = edges.shape[0]
+    r = np.zeros((m, x.size))
+    for k in range(m):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        for c in range(3):
+            d = x[3 * i + c] - x[3 * j + c]
+            r[k, 3 * i + c] = d
+            r[k, 3 * j + c] = -d
+    return r
+
+
+@numba.njit(**_JIT)
+def pair_distances_flat(x, pairs):
+    """|x_i - x_j| for each (i, j) in ``pairs``."""
+    k = pairs.shape[0]
+    out = np.empty(k)
+    for p in range(k):
+        i = pairs[p, 0]
+        j = pairs[p, 1]
+        s = 0.0
+        for c in range(3):
+            d = x[3 * i + c] - x[3 * j + c]
+            s += d * d
+        out[p] = np.sqrt(s)
+    return out
+
+
+# ----------------------------------------------------------------------------- linear algebra
+
+
+@numba.njit(**_JIT)
+def _incidence(edges, n):
+    """CSR lists of the contacts at each sphere: ptr (n + 1), contact index and sign (+1 for i, -1 for j)."""
+    m = edges.shape[0]
+    deg = np.zeros(n + 1, dtype=np.int64)
+    for k in range(m):
+        deg[edges[k, 0] + 1] += 1
+        deg[edges[k, 1] + 1] += 1
+    for s in range(n):
+        deg[s + 1] += deg[s]
+    ptr = deg.copy()
+    fill = deg[:n].copy()
+    idx = np.empty(2 * m, dtype=np.int64)
+    sign = np.empty(2 * m)
+    for k in range(m):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        idx[fill[i]] = k
+        sign[fill[i]] = 1.0
+        fill[i] += 1
+        idx[fill[j]] = k
+        sign[fill[j]] = -1.0
+        fill[j] += 1
+    return ptr, idx, sign
+
+
+@numba.njit(**_JIT)
+def _differences(x, edges, D):
+    """D[k] = x_i - x_j for contact k = (i, j)."""
+    for k in range(edges.shape[0]):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        for c in range(3):
+            D[k, c] = x[3 * i + c] - x[3 * j + c]
+
+
+@numba.njit(**_JIT)
+def _gram(D, mask, ptr, idx, sign, scale, G):
+    """G[:m, :m] = scale * R_f R_f^T, from the contacts meeting at each sphere."""
+    m = D.shape[0]
+    n = ptr.size - 1
+    for a in range(m):
+        for b in range(m):
+            G[a, b] = 0.0
+    for s in range(n):
+        m0 = mask[3 * s]
+        m1 = mask[3 * s + 1]
+        m2 = mask[3 * s + 2]
+        for p in range(ptr[s], ptr[s + 1]):
+            k = idx[p]
+            for q in range(p, ptr[s + 1]):
+                l = idx[q]
+                v = sign[p] * sign[q] * scale * (m0 * D[k, 0] * D[l, 0] + m1 * D[k, 1] * D[l, 1] + m2 * D[k, 2] * D[l, 2])
+                G[k, l] += v
+                if l != k:
+                    G[l, k] += v
+
+
+@numba.njit(**_JIT)
+def _rmul(D, edges, mask, v, out):
+    """out[:m] = R_f v (v a full 3n vector)."""
+    for k in range(edges.shape[0]):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        s = 0.0
+        for c in range(3):
+            s += D[k, c] * (mask[3 * i + c] * v[3 * i + c] - mask[3 * j + c] * v[3 * j + c])
+        out[k] = s
+
+
+@numba.njit(**_JIT)
+def _rtmul_add(D, edges, mask, y, scale, out):
+    """out += scale * R_f^T y[:m] (a full 3n vector, zero in the pinned coordinates)."""
+    for k in range(edges.shape[0]):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        yk = scale * y[k]
+        for c in range(3):
+            out[3 * i + c] += mask[3 * i + c] * D[k, c] * yk
+            out[3 * j + c] -= mask[3 * j + c] * D[k, c] * yk
+
+
+@numba.njit(**_JIT)
+def _cholesky(G, L, size):
+    """L L^T = G[:size, :size] (lower triangle of L written).  False if a pivot is not positive."""
+    for j in range(size):
+        s = G[j, j]
+        for p in range(j):
+            s -= L[j, p] * L[j, p]
+        if not s > 0.0:  # also catches nan
+            return False
+        ljj = np.sqrt(s)
+        L[j, j] = ljj
+        for i in range(j + 1, size):
+            t = G[i, j]
+            for p in range(j):
+                t -= L[i, p] * L[j, p]
+            L[i, j] = t / ljj
+    return True
+
+
+@numba.njit(**_JIT)
+def _eig_lower_bound(L, size, work):
+    """1 / ||L^{-1}||_F^2: a lower bound on the smallest eigenvalue of L L^T."""
+    total = 0.0
+    for j in range(size):  # column j of L^{-1}: solve L u = e_j (u[:j] = 0)
+        for i in range(j, size):
+            s = 1.0 if i == j else 0.0
+            for p in range(j, i):
+                s -= L[i, p] * work[p]
+            u = s / L[i, i]
+            work[i] = u
+            total += u * u
+    if not total > 0.0 or not np.isfinite(total):
+        return 0.0
+    return 1.0 / total
+
+
+@numba.njit(**_JIT)
+def _chol_solve(L, size, b, out):
+    """out = (L L^T)^{-1} b[:size]."""
+    for i in range(size):
+        s = b[i]
+        for p in range(i):
+            s -= L[i, p] * out[p]
+        out[i] = s / L[i, i]
+    for i in range(size - 1, -1, -1):
+        s = out[i]
+        for p in range(i + 1, size):
+            s -= L[p, i] * out[p]
+        out[i] = s / L[i, i]
+
+
+@numba.njit(**_JIT)
+def _lstsq_step(x, edges, free, A, f, dx_full):
+    """The reference's Newton step: minimum-norm least squares by LAPACK (as numpy.linalg.lstsq)."""
+    m = edges.shape[0]
+    e = A.shape[0]
+    k = free.size
+    n3 = x.size
+    pos = np.full(n3, -1, dtype=np.int64)
+    for c in range(k):
+        pos[free[c]] = c
+    J = np.zeros((m + e, k))
+    for r in range(m):
+        i = edges[r, 0]
+        j = edges[r, 1]
+        for c in range(3):
+            d = 2.0 * (x[3 * i + c] - x[3 * j + c])
+            if pos[3 * i + c] >= 0:
+                J[r, pos[3 * i + c]] = d
+            if pos[3 * j + c] >= 0:
+                J[r, pos[3 * j + c]] = -d
+    for r in range(e):
+        for c in range(k):
+            J[m + r, c] = A[r, free[c]]
+    rhs = np.empty(m + e)
+    for r in range(m + e):
+        rhs[r] = -f[r]
+    rcond = np.finfo(np.float64).eps * max(m + e, k)
+    sol = np.linalg.lstsq(J, rhs, rcond)[0]
+    for c in range(n3):
+        dx_full[c] = 0.0
+    for c in range(k):
+        dx_full[free[c]] = sol[c]
+
+
+@numba.njit(**_JIT)
+def _full_residual(x, edges, A, b, f):
+    """f[:m] = contact residuals, f[m:] = A x - b; returns sum f^2."""
+    m = edges.shape[0]
+    fsq = 0.0
+    for k in range(m):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        s = 0.0
+        for c in range(3):
+            d = x[3 * i + c] - x[3 * j + c]
+            s += d * d
+        f[k] = s - 1.0
+        fsq += f[k] * f[k]
+    for r in range(A.shape[0]):
+        s = 0.0
+        for c in range(x.size):
+            s += A[r, c] * x[c]
+        f[m + r] = s - b[r]
+        fsq += f[m + r] * f[m + r]
+    return fsq
+
+
+@numba.njit(**_JIT)
+def _workspace(n3, edges, e):
+    """Work arrays for Newton and the tangent: (ptr, idx, sign, D, G, L, f, y, work, dx)."""
+    m = edges.shape[0]
+    size = m + e
+    ptr, idx, sign = _incidence(edges, n3 // 3)
+    return (
+        ptr,
+        idx,
+        sign,
+        np.empty((m, 3)),
+        np.empty((size, size)),
+        np.zeros((size, size)),
+        np.empty(size),
+        np.empty(size),
+        np.empty(max(size, n3)),
+        np.empty(n3),
+    )
+
+
+@numba.njit(**_JIT)
+def _comparison_lower_bound(L, size, work):
+    """1 / (||M^{-1}||_1 ||M^{-1}||_inf), M = M(L) the comparison matrix of L: a lower bound on lambda_min(L L^T).
+
+    M has |L_ii| on the diagonal and -|L_ij| off it; |L^{-1}| <= M^{-1} entrywise
+    (Higham, Accuracy and Stability of Numerical Algorithms, Thm 8.12), so
+    ||L^{-1}||_2^2 <= ||L^{-1}||_1 ||L^{-1}||_inf <= ||M^{-1}||_1 ||M^{-1}||_inf, and
+    lambda_min(L L^T) = 1 / ||L^{-1}||_2^2.  M^{-1} >= 0, so its norms are
+    max(M^{-1} e) and max(M^{-T} e): two triangular solves with no cancellation.
+    """
+    row = 0.0
+    for i in range(size):  # M z = e
+        s = 1.0
+        for p in range(i):
+            s += abs(L[i, p]) * work[p]
+        work[i] = s / L[i, i]
+        row = max(row, work[i])
+    col = 0.0
+    for i in range(size - 1, -1, -1):  # M^T z = e
+        s = 1.0
+        for p in range(i + 1, size):
+            s += abs(L[p, i]) * work[p]
+        work[i] = s / L[i, i]
+        col = max(col, work[i])
+    prod = row * col
+    if not prod > 0.0 or not np.isfinite(prod):
+        return 0.0
+    return 1.0 / prod
+
+
+@numba.njit(**_JIT)
+def _certify(L, size, threshold, work):
+    """Is lambda_min(L L^T) >= threshold?  Rigorous (up to rounding far below the thresholds used).
+
+    A small pivot refutes (lambda_min <= every pivot^2).  Then two lower bounds
+    are tried, the O(size^2) comparison-matrix bound first, the O(size^3)
+    1 / ||L^{-1}||_F^2 only if that one is too weak.
+    """
+    for r in range(size):
+        if L[r, r] * L[r, r] < threshold:
+            return False
+    if _comparison_lower_bound(L, size, work) >= threshold:
+        return True
+    return _eig_lower_bound(L, size, work) >= threshold
+
+
+@numba.njit(**_JIT)
+def _newton_step(x, edges, free, mask, A, f, guard, ws):
+    """dx = minimum-norm solution of J dx = -f (full 3n vector, in ws[9]).
+
+    By the normal equations (J J^T) y = -f, dx = J^T y when the smallest
+    eigenvalue of J J^T is certified to be at least 4 guard (J J^T = 4 R_f R_f^T
+    on the contacts); otherwise by LAPACK least squares, as the reference.
+    Returns True if the normal equations were used.
+    """
+    ptr, idx, sign, D, G, L, _, y, work, dx = ws
+    m = edges.shape[0]
+    e = A.shape[0]
+    size = m + e
+    _differences(x, edges, D)
+    if e == 0:
+        # (4 R_f R_f^T) y = -f, dx = 2 R_f^T y, solved as (R_f R_f^T) z = -f / 2, dx = R_f^T z
+        # (the same numbers: the factors are powers of two)
+        _gram(D, mask, ptr, idx, sign, 1.0, G)
+        ok = size > 0 and _cholesky(G, L, size) and _certify(L, size, guard, work)
+        scale = 0.5
+    else:
+        _gram(D, mask, ptr, idx, sign, 4.0, G)
+        for r in range(e):  # extra rows: G[m + r, :m] = 2 A_r R_f^T, G[m + r, m + s] = A_r A_s^T (A zero when pinned)
+            _rmul(D, edges, mask, A[r], work)
+            for k in range(m):
+                G[m + r, k] = 2.0 * work[k]
+                G[k, m + r] = 2.0 * work[k]
+            for s2 in range(e):
+                t = 0.0
+                for c in range(x.size):
+                    t += A[r, c] * A[s2, c]
+                G[m + r, m + s2] = t
+        ok = _cholesky(G, L, size) and _certify(L, size, 4.0 * guard, work)
+        scale = 1.0
+    if not ok:
+        _lstsq_step(x, edges, free, A, f, dx)
+        return False
+    for r in range(size):
+        work[r] = -scale * f[r]
+    _chol_solve(L, size, work, y)
+    for c in range(x.size):
+        dx[c] = 0.0
+    _rtmul_add(D, edges, mask, y, 2.0 * scale, dx)
+    for r in range(e):
+        for c in range(x.size):
+            dx[c] += A[r, c] * y[m + r]
+    return True
+
+
+@numba.njit(**_JIT)
+def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws):
+    """The iteration of workers.kernels.project_numpy; returns (x, status, iterations, sum f^2, normal steps)."""
+    f = ws[6]
+    dx = ws[9]
+    x = x0.copy()
+    best_x = x.copy()
+    best_fsq = np.inf
+    fsq = np.inf
+    converged = False
+    n_normal = 0
+    for it in range(max_iter + 1):
+        fsq = _full_residual(x, edges, A, b, f)
+        if not np.isfinite(fsq):
+            break
+        if converged:
+            if fsq > 0.5 * best_fsq:
+                return best_x, NEWTON_OK, it, best_fsq, n_normal
+            best_x[:] = x
+            best_fsq = fsq
+            if fsq == 0.0:  # exact: every further step is zero
+                return best_x, NEWTON_OK, it, fsq, n_normal
+        elif fsq < tol:
+            if not polish or fsq == 0.0:
+                return x, NEWTON_OK, it, fsq, n_normal
+            converged = True
+            best_x[:] = x
+            best_fsq = fsq
+        if it == max_iter:
+            break
+        if _newton_step(x, edges, free, mask, A, f, guard, ws):
+            n_normal += 1
+        step = 0.0
+        for c in range(x.size):
+            step += dx[c] * dx[c]
+        step = np.sqrt(step)
+        if step > dx_max:
+            r = dx_max / step
+            for c in range(x.size):
+                dx[c] *= r
+        for c in range(free.size):
+            x[free[c]] += dx[free[c]]
+    if converged:
+        return best_x, NEWTON_OK, max_iter, best_fsq, n_normal
+    return x, NEWTON_FAILED, max_iter, fsq, n_normal
+
+
+@numba.njit(**_JIT)
+def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws):
+    """Newton by the normal equations; a failure is re-checked with least squares throughout.
+
+    A projection that fails after using the normal equations is redone from x0
+    with every step by least squares (the reference's iteration), so that a
+    reported failure is the reference's failure.  Returns (x, status,
+    iterations, sum f^2, normal-equation steps, retried).
+    """
+    x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws)
+    if st == NEWTON_OK or nn == 0:
+        return x, st, it, fsq, nn, False
+    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, np.inf, ws)
+    return x, st, it, fsq, nn + nn2, True
+
+
+@numba.njit(**_JIT)
+def newton(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard):
+    """Newton projection, the same iteration as workers.kernels.project (see there).
+
+    ``A`` (e x 3n, zero in pinned columns) and ``b`` are the extra linear rows
+    (e = 0 for none).  Returns (x, status, iterations, sum f^2, normal-equation
+    steps, whether a failure was retried by least squares).
+    """
+    ws = _workspace(x0.size, edges, A.shape[0])
+    return _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws)
+
+
+@numba.njit(**_JIT)
+def _full_row_rank(x, edges, mask, guard, ws):
+    """Cholesky of R_f R_f^T at x into ws[5]; True if it certifies lambda_min >= guard (full row rank)."""
+    ptr, idx, sign, D, G, L, _, _, work, _ = ws
+    m = edges.shape[0]
+    if m == 0:
+        return True
+    _differences(x, edges, D)
+    _gram(D, mask, ptr, idx, sign, 1.0, G)
+    if not _cholesky(G, L, m):
+        return False
+    return _certify(L, m, guard, work)
+
+
+@numba.njit(**_JIT)
+def regular_flexes(x, edges, free, mask, guard):
+    """k - m (k = free coordinates) if the guard certifies that R_f has full row rank m <= k, else -1.
+
+    Certified means every singular value of R_f is at least sqrt(guard): then the
+    SVD with threshold tol_n << sqrt(guard) has rank m, no left null space and a
+    right null space of dimension k - m.
+    """
+    m = edges.shape[0]
+    if m > free.size:
+        return -1
+    ws = _workspace(x.size, edges, 0)
+    if _full_row_rank(x, edges, mask, guard, ws):
+        return free.size - m
+    return -1
+
+
+@numba.njit(**_JIT)
+def _project_tangent(x, edges, mask, t, ws, tn):
+    """tn = t - R_f^T (R_f R_f^T)^{-1} R_f t at x, with the factor from _full_row_rank (one refinement pass)."""
+    _, _, _, D, _, L, r, z, _, _ = ws
+    m = edges.shape[0]
+    for c in range(x.size):
+        tn[c] = mask[c] * t[c]
+    if m == 0:
+        return
+    for _ in range(2):  # projection, then one refinement of the same projection
+        _rmul(D, edges, mask, tn, r)
+        _chol_solve(L, m, r, z)
+        _rtmul_add(D, edges, mask, z, -1.0, tn)
+
+
+@numba.njit(**_JIT)
+def follow_steps(
+    x,
+    t,
+    d_prev,
+    h,
+    h_max,
+    steps,
+    first_pending,
+    edges,
+    free,
+    mask,
+    pairs,
+    broken_idx,
+    ds,
+    h_min,
+    tol,
+    dx_max,
+    max_iter,
+    tol_a0,
+    max_steps,
+    guard,
+    stop_on_dimension_change,
+):
+    """The stepping loop of workers.paths.follow_path, until Python is needed.
+
+    Mirrors the reference loop step for step.  At each projected point the rank
+    guard either certifies that R_f has full row rank, and the tangent is the
+    projection of the previous one onto the null space (on the first step the
+    dimension is then k - m, the reference's "regular" branch), or the loop
+    returns ST_NEED_SVD and Python takes the step's tangent from the SVD.
+
+    Returns (status, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats)
+    where x, t, d_prev, h, h_max, steps are the loop state (for resuming),
+    first_dim the dimension after the first step (-1: not known here), xn / d
+    the last projected point and its pair distances (for ST_HIT and
+    ST_NEED_SVD), ``hit`` the mask of pairs that ended the path (ST_HIT) and
+    stats = [steps taken here, Newton projections, normal-equation Newton steps,
+    projections retried by least squares, steps handed to the SVD].
+    """
+    n3 = x.size
+    m = edges.shape[0]
+    k = free.size
+    npairs = pairs.shape[0]
+    ws = _workspace(n3, edges, 0)
+    tn = np.empty(n3)
+    noA = np.zeros((0, n3))
+    nob = np.zeros(0)
+    x = x.copy()
+    t = t.copy()
+    d_prev = d_prev.copy()
+    xp = np.empty(n3)
+    hit = np.zeros(npairs, dtype=np.bool_)
+    xn = x.copy()
+    d = d_prev.copy()
+    first_dim = -1
+    stats = np.zeros(5, dtype=np.int64)
+    while steps < max_steps:
+        for c in range(n3):
+            xp[c] = x[c] + h * t[c]
+        xn, st, _, _, nn, retried = _newton_ws(xp, edges, free, mask, noA, nob, tol, dx_max, max_iter, False, guard, ws)
+        stats[1] += 1
+        stats[2] += nn
+        if retried:
+            stats[3] += 1
+        forward = 0.0
+        for c in range(n3):
+            forward += (xn[c] - x[c]) * t[c]
+        if st != NEWTON_OK or forward <= 0.0:
+            h /= 2
+            if h < h_min:
+                return ST_PROJECTION_FAILED, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+            continue
+        d = pair_distances_flat(xn, pairs)
+        if first_pending:
+            for q in range(broken_idx.size):
+                if d[broken_idx[q]] <= d_prev[broken_idx[q]]:
+                    return ST_SHORTENS, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+        any_hit = False
+        overlap = False
+        for p in range(npairs):
+            hit[p] = d[p] < d_prev[p] and d[p] < 1.0 + tol_a0
+            if hit[p]:
+                any_hit = True
+                if d[p] < 1.0 - tol_a0:
+                    overlap = True
+        if any_hit:
+            if h_max > ds:  # back up and approach with the small step
+                h_max = ds
+                h = min(h, h_max)
+                continue
+            if overlap:
+                h /= 2
+                if h < h_min:
+                    return ST_PROJECTION_FAILED, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+                continue
+            return ST_HIT, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+        if m > k or not _full_row_rank(xn, edges, mask, guard, ws):
+            stats[4] += 1
+            return ST_NEED_SVD, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+        if first_pending:  # the reference's solution_dimension, "regular" branch: D = |V| = k - m
+            first_pending = False
+            first_dim = k - m
+            if first_dim == 0 or (first_dim > 1 and stop_on_dimension_change):
+                return ST_DIMENSION_CHANGED, x, t, d_prev, h, h_max, steps + 1, first_dim, xn, d, hit, stats
+        _project_tangent(xn, edges, mask, t, ws, tn)
+        norm = 0.0
+        for c in range(n3):
+            norm += tn[c] * tn[c]
+        norm = np.sqrt(norm)
+        if norm < 1e-8:
+            return ST_DIMENSION_CHANGED, x, t, d_prev, h, h_max, steps + 1, first_dim, xn, d, hit, stats
+        for c in range(n3):
+            t[c] = tn[c] / norm
+        x[:] = xn
+        d_prev[:] = d
+        steps += 1
+        stats[0] += 1
+        h = min(2 * h, h_max)
+    return ST_TOO_LONG, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
