@@ -20,6 +20,7 @@ Conventions:
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import json
 
 import numpy as np
@@ -115,8 +116,17 @@ class Cluster(Base):
     )
 
     def to_core(self) -> CoreCluster:
-        x = np.frombuffer(self.coords, dtype="<f8").reshape(self.n, 3).astype(np.float64)
-        return CoreCluster(x, tuple(tuple(c) for c in json.loads(self.contact_list)))
+        return _core(self.n, self.coords, self.contact_list)
+
+
+@functools.lru_cache(maxsize=8192)
+def _core(n: int, coords: bytes, contact_list: str) -> CoreCluster:
+    """The (immutable) core cluster of a row's values, shared by every row with the same values, so
+    that what is computed from it once (its canonical form, workers.identity) is kept: a worker
+    compares each new endpoint with the same stored rows again and again.  Keyed by the values, not
+    the id, which SQLite may give again after a rollback."""
+    x = np.frombuffer(coords, dtype="<f8").reshape(n, 3).astype(np.float64)
+    return CoreCluster(x, tuple(tuple(c) for c in json.loads(contact_list)))
 
 
 class Expansion(Base):

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from importlib import metadata
 
 import numpy as np
-from sqlalchemy import func, select, text, update
+from sqlalchemy import func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import advisory_key, is_postgresql
@@ -50,7 +50,7 @@ from service.models import (
 from workers.classify import lattice_type
 from workers.cluster import Cluster as CoreCluster
 from workers.expand import CIRCULAR, Expansion as CoreExpansion
-from workers.identity import certificate_key, find_match
+from workers.identity import ClusterIndex, certificate_key, find_match
 from workers.params import Params
 from workers.paths import RIGID
 from workers.rigidity import Rigidity, rigidity
@@ -95,10 +95,12 @@ def lattice_value(c: CoreCluster) -> str:
 
 
 def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
-    """Column values of a cluster row (all but id, embedding and the run).
+    """Column values of a cluster row (all but id, embedding, the run and the lattice).
 
-    Every fact of a cluster is computed here, once, when it is stored (see
-    :func:`backfill` for rows stored by an older version).
+    Every fact of a cluster is computed here or, the lattice, by
+    :func:`insert_or_match` when the row is inserted (most endpoints are
+    clusters stored already), once (see :func:`backfill` for rows stored by an
+    older version).
     """
     gap = c.min_gap()
     return {
@@ -115,7 +117,6 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
         "stresses": rig.stresses,
         "singular": rig.singular,
         "min_gap": gap if np.isfinite(gap) else None,
-        "lattice": lattice_value(c),
     }
 
 
@@ -127,33 +128,50 @@ def lock_certificates(session: Session, keys) -> None:
         session.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key("cluster", n, cert)})
 
 
-def insert_or_match(session: Session, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float) -> tuple[int, bool]:
+def stored_with(session: Session, n: int, certificates) -> dict[str, list[Cluster]]:
+    """The stored clusters of n with these certificates, by certificate, in embedding order (one query)."""
+    out: dict[str, list[Cluster]] = {cert: [] for cert in certificates}
+    if out:
+        for row in session.execute(select(Cluster).where(Cluster.n == n, Cluster.certificate.in_(sorted(out)))
+                                   .order_by(Cluster.certificate, Cluster.embedding)).scalars():
+            out[row.certificate].append(row)
+    return out
+
+
+def insert_or_match(session: Session, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
+                    values: dict | None = None, rows: list[Cluster] | None = None) -> tuple[int, bool]:
     """The id of the stored cluster equal to ``c`` (same certificate, same
     geometry within ``tol_d``), inserting it if there is none.  The caller
-    holds the certificate's lock (:func:`lock_certificates`)."""
-    values = cluster_values(c, rig)
-    rows = session.execute(
-        select(Cluster).where(Cluster.n == c.n, Cluster.certificate == values["certificate"]).order_by(Cluster.embedding)
-    ).scalars().all()
+    holds the certificate's lock (:func:`lock_certificates`).  ``values`` are
+    ``cluster_values(c, rig)`` and ``rows`` the stored clusters with its
+    certificate (:func:`stored_with`; a row inserted here is appended to it)
+    if the caller has them already."""
+    values = values or cluster_values(c, rig)
+    if rows is None:
+        rows = stored_with(session, c.n, [values["certificate"]])[values["certificate"]]
     if rows:
         k = find_match(c, [r.to_core() for r in rows], tol_d)
         if k is not None:
             return rows[k].id, False
-    row = Cluster(**values, embedding=(rows[-1].embedding + 1) if rows else 0, found_in_run=run_id)
+    row = Cluster(**values, lattice=lattice_value(c), embedding=(rows[-1].embedding + 1) if rows else 0,
+                  found_in_run=run_id)
     session.add(row)
     session.flush()
+    rows.append(row)
     return row.id, True
 
 
-def ensure_expansion(session: Session, run_id: int, cluster_id: int) -> bool:
-    """Add a pending expansion of ``cluster_id`` to the run unless it has one."""
-    exists = session.execute(
-        select(Expansion.id).where(Expansion.run_id == run_id, Expansion.cluster_id == cluster_id)
-    ).first()
-    if exists:
-        return False
-    session.add(Expansion(run_id=run_id, cluster_id=cluster_id, status=PENDING))
-    return True
+def ensure_expansions(session: Session, run_id: int, cluster_ids) -> int:
+    """Add a pending expansion to the run for each of ``cluster_ids`` that has none; returns how many."""
+    wanted = set(cluster_ids)
+    if not wanted:
+        return 0
+    have = set(session.execute(select(Expansion.cluster_id).where(
+        Expansion.run_id == run_id, Expansion.cluster_id.in_(sorted(wanted)))).scalars())
+    missing = sorted(wanted - have)
+    if missing:
+        session.execute(insert(Expansion), [{"run_id": run_id, "cluster_id": c, "status": PENDING} for c in missing])
+    return len(missing)
 
 
 # --------------------------------------------------------------------------- runs
@@ -203,7 +221,7 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
             rig = rigidity(seed.coords, seed.contacts, params)
             lock_certificates(s, [(n, certificate_key(seed))])
             cid, _ = insert_or_match(s, seed, rig, run.id, params.tol_d)
-            ensure_expansion(s, run.id, cid)
+            ensure_expansions(s, run.id, [cid])
         elif run.coordinator and run.coordinator != owner and _coordinator_alive(run.coordinator, run.heartbeat_at):
             raise RunBusy(f"run {run.id} (n = {n}) is being driven by coordinator {run.coordinator}; "
                           "wait for it to finish or stop it first")
@@ -340,6 +358,25 @@ def load_task(Session_: sessionmaker, expansion_id: int, token: str) -> Task | N
         return Task(e.id, r.id, c.id, c.to_core(), Params.from_dict(json.loads(r.params)))
 
 
+def distinct_endpoints(ex: CoreExpansion, tol_d: float) -> tuple[list[tuple[CoreCluster, Rigidity, dict]], dict[int, int]]:
+    """The distinct rigid endpoints of an expansion, each once (endpoints equal within ``tol_d`` are
+    one), with their row values, and for each rigid endpoint's index which of them it is.
+
+    Many paths from one cluster end at the same cluster; doing this before the write-back's
+    transaction keeps the certificates, the facts and the in-expansion comparisons out of the
+    database's lock (SQLite's is one for all workers)."""
+    index = ClusterIndex()
+    distinct: list[tuple[CoreCluster, Rigidity, dict]] = []
+    which: dict[int, int] = {}
+    for i, e in enumerate(ex.endpoints):
+        if e.outcome == RIGID:
+            k, is_new = index.add(e.cluster, tol_d)
+            if is_new:
+                distinct.append((e.cluster, e.rigidity, cluster_values(e.cluster, e.rigidity)))
+            which[i] = k
+    return distinct, which
+
+
 def record_expansion(
     Session_: sessionmaker, task: Task, token: str, ex: CoreExpansion, seconds: float, worker: str
 ) -> dict | None:
@@ -349,35 +386,30 @@ def record_expansion(
     ``token``'s: the task ran twice, or its lease was given to another.
     """
     params = task.params
-    rigid = [e for e in ex.endpoints if e.outcome == RIGID]
+    distinct, which = distinct_endpoints(ex, params.tol_d)
     with Session_.begin() as s:
         row = s.execute(select(Expansion).where(Expansion.id == task.expansion_id).with_for_update()).scalar_one_or_none()
         if row is None or row.status != LEASED or row.lease_token != token:
             return None
-        lock_certificates(s, [(task.cluster.n, certificate_key(e.cluster)) for e in rigid])
+        n = task.cluster.n
+        lock_certificates(s, [(n, values["certificate"]) for _, _, values in distinct])
+        stored = stored_with(s, n, {values["certificate"] for _, _, values in distinct})
         new_clusters = 0
-        targets: dict[int, int] = {}
-        for i, e in enumerate(ex.endpoints):
-            if e.outcome == RIGID:
-                cid, is_new = insert_or_match(s, e.cluster, e.rigidity, task.run_id, params.tol_d)
-                new_clusters += is_new
-                ensure_expansion(s, task.run_id, cid)
-                targets[i] = cid
-            elif e.outcome == CIRCULAR:
-                targets[i] = task.cluster_id
-        s.add_all(
-            Transition(
-                run_id=task.run_id,
-                source_id=task.cluster_id,
-                broken=contacts_json(e.broken),
-                direction=e.direction,
-                outcome=e.outcome,
-                target_id=targets.get(i),
-                steps=e.steps,
-                new_contacts=contacts_json(e.new_contacts),
-            )
-            for i, e in enumerate(ex.endpoints)
-        )
+        ids = []
+        for c, rig, values in distinct:
+            cid, is_new = insert_or_match(s, c, rig, task.run_id, params.tol_d, values, stored[values["certificate"]])
+            new_clusters += is_new
+            ids.append(cid)
+        ensure_expansions(s, task.run_id, ids)
+        targets = {i: ids[k] for i, k in which.items()}
+        targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
+        if ex.endpoints:
+            s.execute(insert(Transition), [
+                {"run_id": task.run_id, "source_id": task.cluster_id, "broken": contacts_json(e.broken),
+                 "direction": e.direction, "outcome": e.outcome, "target_id": targets.get(i), "steps": e.steps,
+                 "new_contacts": contacts_json(e.new_contacts)}
+                for i, e in enumerate(ex.endpoints)
+            ])
         outcomes = dict(sorted(ex.outcomes().items()))
         outcomes["widened_paths"] = ex.widened_paths
         row.status = DONE

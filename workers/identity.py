@@ -24,6 +24,8 @@ pynauty conventions (checked empirically with pynauty 2.8.8.1, see the tests):
 
 from __future__ import annotations
 
+import weakref
+
 from dataclasses import dataclass
 from typing import Iterable, Iterator
 
@@ -81,7 +83,7 @@ def certificate_key(cluster: Cluster) -> str:
     certificate it does not depend on the machine's word size or byte order,
     so it is what the database stores.
     """
-    a = _canonical_adjacency(cluster, canonical_labelling(cluster))
+    a = _canonical(cluster).adjacency
     return np.packbits(a[np.triu_indices(cluster.n, 1)]).tobytes().hex()
 
 
@@ -159,8 +161,20 @@ class _Canonical:
     sorted_dist: np.ndarray  #: sorted upper-triangle pair distances
 
 
+#: _canonical's results, kept as long as their (immutable) cluster lives: a cluster compared several
+#: times (deduplicated within an expansion, then matched against the database) is labelled once
+_CANONICAL: "weakref.WeakKeyDictionary[Cluster, _Canonical]" = weakref.WeakKeyDictionary()
+
+
 def _canonical(cluster: Cluster) -> _Canonical:
-    """Certificate, canonical adjacency and canonically ordered, centred geometry."""
+    """Certificate, canonical adjacency and canonically ordered, centred geometry (cached per cluster)."""
+    c = _CANONICAL.get(cluster)
+    if c is None:
+        c = _CANONICAL[cluster] = _compute_canonical(cluster)
+    return c
+
+
+def _compute_canonical(cluster: Cluster) -> _Canonical:
     g = _nauty_graph(cluster)
     p = np.asarray(pynauty.canon_label(g), dtype=np.int64)
     x = cluster.coords[p]

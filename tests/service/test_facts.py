@@ -118,28 +118,27 @@ def test_facts_are_stored_selected_and_exported(engine, tmp_path):
 
 
 def test_two_geometries_of_one_contact_graph_are_counted(engine):
-    """Two rows sharing a certificate (embedding 0 and 1) count as one adjacency matrix with 2 geometries."""
-    from service import store
-    from service.db import sessions
+    """The one n = 11 contact graph with two rigid geometries (found by ``packings enumerate 11``):
+    the same certificate, different clusters, each first-order rigid; stored, they are one adjacency
+    matrix with 2 geometries."""
+    from pathlib import Path
 
-    c = pentagonal_bipyramid()
-    # a second geometry with the same contact graph, as the store keeps it (different coordinates, same
-    # certificate): the ring squeezed along one axis by more than tol_d
-    x = c.coords.copy()
-    x[:, 0] *= 1.001
-    other = CoreCluster(x, c.contacts)
+    from workers.identity import certificate_key, same_geometry
     from workers.rigidity import rigidity
 
-    Session_ = sessions(engine)
-    with Session_.begin() as s:
-        a, new_a = store.insert_or_match(s, c, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d)
-        b, new_b = store.insert_or_match(s, other, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d)
-    assert new_a and new_b and a != b
-    store_clusters(engine, [octahedron()])
+    data = json.loads((Path(__file__).parents[1] / "data" / "n11_two_geometries.json").read_text())
+    a, b = (CoreCluster(np.array(c["coords"]), tuple(map(tuple, c["contacts"]))) for c in data["clusters"])
+    assert a.n == b.n == 11 and a.m == b.m == 27
+    assert certificate_key(a) == certificate_key(b) and not same_geometry(a, b, DEFAULT.tol_d)
+    for c in (a, b):
+        assert min(c.min_distance(), 1.0) > 1 - DEFAULT.tol_a
+        assert rigidity(c.coords, c.contacts, DEFAULT).rigid
+    ids = store_clusters(engine, [a, b, octahedron()])
     u = url(engine)
-    assert int(ok("select", "geometries=2", "--count", "--db", u)) == 2
-    (n7,) = json.loads(ok("stats", "--n", "7", "--json", "--db", u))
-    assert n7["multi_embedding"] == {"2": 1} and n7["total"] == 2
+    assert sorted(o["id"] for o in json.loads(ok("select", "geometries=2", "--json", "--db", u))) == sorted(ids[:2])
+    (n11,) = json.loads(ok("stats", "--n", "11", "--json", "--db", u))
+    assert n11["multi_embedding"] == {"2": 1} and n11["total"] == 2
+    assert "geometries  adjacency matrices\n         2                   1" in ok("stats", "--n", "11", "--db", u)
     (n6,) = json.loads(ok("stats", "--n", "6", "--json", "--db", u))
     assert n6["multi_embedding"] == {} and n6["lattice"] == {"both": 1}
 

@@ -91,20 +91,20 @@ def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
     S, info = run8
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
     before = snapshot(engine)
-    real = store.insert_or_match
-    calls = []
+    real = store.ensure_expansions
+    inserted = []
 
-    def dying(*a, **k):
-        calls.append(1)
-        if len(calls) == 3:
-            raise RuntimeError("worker died mid-write")
-        return real(*a, **k)
+    def dying(session, run_id, cluster_ids):
+        inserted.extend(cluster_ids)
+        session.flush()
+        raise RuntimeError("worker died mid-write")
 
-    monkeypatch.setattr(store, "insert_or_match", dying)
+    monkeypatch.setattr(store, "ensure_expansions", dying)
     with pytest.raises(RuntimeError):
         run_expansion(S, eid, token)
-    assert snapshot(engine) == before  # nothing of the two clusters inserted before the failure
-    monkeypatch.setattr(store, "insert_or_match", real)
+    assert len(inserted) >= 2  # the clusters were written (flushed) before the failure ...
+    assert snapshot(engine) == before  # ... and none of them is left
+    monkeypatch.setattr(store, "ensure_expansions", real)
     assert not run_expansion(S, eid, token).get("stale")
 
 
