@@ -247,6 +247,24 @@ def _endpoint(x, keep, new, free, params: Params, steps: int) -> PathEnd:
         return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
     coords = pr.x.reshape(-1, 3)
     contacts = contacts_from_coords(coords, params.tol_a)
+    constrained = {(int(i), int(j)) for i, j in edges}
+    for _ in range(3):
+        if set(contacts) <= constrained:
+            break
+        # A pair within tol_a of touching that was not a constraint: a contact of the endpoint must hold
+        # to the Newton tolerance like every other, so project again with all of them.  Where no such
+        # point exists (the pair passes within tol_a of touching and the path goes on) the endpoint is
+        # not a cluster: without this, each such near miss was stored as a "rigid" cluster, a new copy
+        # for each path that passed by (n = 12: one contact graph with 74 such geometries).
+        edges = np.array(contacts, dtype=np.int64)
+        pr = kernels.project(pr.x, edges, free, polish=True, **kw)
+        if not pr.ok:
+            return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+        constrained = set(contacts)
+        coords = pr.x.reshape(-1, 3)
+        contacts = contacts_from_coords(coords, params.tol_a)
+    else:
+        return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
     dist = pair_distances(coords)
     np.fill_diagonal(dist, np.inf)
     if dist.min() < 1.0 - params.tol_a:

@@ -124,3 +124,41 @@ def test_paths_that_widen_after_the_first_step_stop_only_when_asked():
     # every cluster kept either way is rigid: going on cannot add a false cluster
     for e in lenient.rigid_endpoints():
         assert e.rigidity.rigid
+
+
+def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
+    """Two path endpoints of one n = 12 contact graph, each with a pair within tol_a of touching that
+    was not projected onto (stored before as two of 74 distinct "rigid" clusters): the endpoint is
+    projected with every contact, so both hold all of them to the Newton tolerance and are one cluster.
+    (It fails without the re-projection in workers.paths._endpoint.)"""
+    import json
+    from pathlib import Path
+
+    from workers import kernels
+    from workers.cluster import Cluster
+    from workers.identity import same_geometry
+    from workers.params import DEFAULT
+    from workers.paths import RIGID, _endpoint
+    from workers.rigidity import contact_triangle
+
+    data = json.loads((Path(__file__).parents[1] / "data" / "n12_near_miss.json").read_text())
+    ends = []
+    for m in data["endpoints"]:
+        c = Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))
+        edges = c.edges()
+        near = np.array([m["near_pair"]], dtype=np.int64)
+        keep = np.array([e for e in edges.tolist() if e != m["near_pair"]], dtype=np.int64)
+        assert len(keep) == len(edges) - 1 == 30
+        assert abs(kernels.residual(c.coords.ravel(), near)[0]) ** 2 > DEFAULT.tol  # as stored: not a contact to tol
+        tri = contact_triangle(keep)
+        end = _endpoint(kernels.to_frame(c.coords, tri).ravel(), keep, near, kernels.free_coordinates(c.n, tri),
+                        DEFAULT, 1)
+        # projected onto every contact, the point moves onto the cluster the path passed by, which may
+        # bring further pairs into contact: those are projected onto too
+        assert end.outcome == RIGID and set(map(tuple, m["contacts"])) <= set(end.contacts)
+        f = kernels.residual(end.coords.ravel(), np.array(end.contacts, dtype=np.int64))
+        assert float(f @ f) < DEFAULT.tol
+        ends.append(Cluster(end.coords, end.contacts))
+    assert not same_geometry(*(Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))
+                               for m in data["endpoints"]), DEFAULT.tol_d)  # stored: two clusters
+    assert same_geometry(ends[0], ends[1], DEFAULT.tol_d)  # now: one
