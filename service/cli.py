@@ -16,7 +16,7 @@ from pathlib import Path
 import click
 from sqlalchemy.exc import SQLAlchemyError
 
-from service.db import DatabaseError, default_url, display_url, parse_url
+from service.db import DatabaseError, default_url, display_url, first_line, parse_url
 from workers.params import Params
 
 MAX_N = 24  #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
@@ -266,7 +266,7 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
         click.echo("no runs yet: `packings enumerate N` starts one")
         return
     cols = ["run", "n", "status", "clusters", "pending", "leased", "done", "failed", "max_break", "seconds", "started"]
-    click.echo(_table(cols, [[r[c] for c in cols] for r in rows]))
+    click.echo(_export.table(cols, [[r[c] for c in cols] for r in rows]))
 
 
 @cli.command("stats")
@@ -286,8 +286,8 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
     engine = open_db(db_url)
     with sessions(engine, readonly=True)() as s:
-        rows = stats(s, n)
-        fit = fit_all(counts_by_n(s))
+        every = counts_by_n(s)
+        rows, fit = stats(s, n, every), fit_all(every)
     engine.dispose()
     if as_json:
         click.echo(json.dumps(rows))
@@ -297,13 +297,6 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
         return
     click.echo("\n\n".join(format_stats(r) for r in rows) + "\n\n" + format_fit(fit))
 
-
-def _table(cols: list[str], rows: list[list]) -> str:
-    cells = [[("" if v is None else str(v)) for v in r] for r in rows]
-    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(cols)]
-    out = ["  ".join(c.rjust(w) for c, w in zip(cols, widths))]
-    out += ["  ".join(v.rjust(w) for v, w in zip(r, widths)) for r in cells]
-    return "\n".join(out)
 
 
 # --------------------------------------------------------------------------- queries: select, show, export
@@ -385,7 +378,7 @@ def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, 
             _echo_chunks(_export.to_csv(_export.facts(c) for c in rows))
         else:
             table = [_table_row(_export.facts(c)) for c in rows]
-            click.echo(_table(_TABLE_COLUMNS, table) + f"\n{len(table)} clusters" if table else "no clusters match")
+            click.echo(_export.table(_TABLE_COLUMNS, table) + f"\n{len(table)} clusters" if table else "no clusters match")
 
 
 @cli.command("show")
@@ -409,7 +402,7 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     out += [f"  {k:<13} {'' if rec[k] is None else repr(rec[k]) if isinstance(rec[k], float) else rec[k]}"
             for k in _export.FACTS]
     out += ["coordinates (unit: sphere diameter):",
-            _table(["i", "x", "y", "z"], [[i, *map(repr, x)] for i, x in enumerate(rec["coords"])])]
+            _export.table(["i", "x", "y", "z"], [[i, *map(repr, x)] for i, x in enumerate(rec["coords"])])]
     pairs = [f"{i}-{j}" for i, j in rec["contact_list"]]
     out += [f"contacts ({len(pairs)}):"] + ["  " + " ".join(pairs[k:k + 12]) for k in range(0, len(pairs), 12)]
     by = ", ".join(f"{o} {c}" for o, c in info["leaving_by_outcome"].items())
@@ -471,8 +464,7 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"packings: error: {e}", err=True)
         sys.exit(1)
     except SQLAlchemyError as e:  # e.g. the server went away mid-command; transactions roll back
-        first = (str(getattr(e, "orig", None) or e).strip().splitlines() or [type(e).__name__])[0]
-        click.echo(f"packings: error: database: {first}", err=True)
+        click.echo(f"packings: error: database: {first_line(e)}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
         click.echo("packings: interrupted; rerun the same command to resume", err=True)

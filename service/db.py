@@ -172,10 +172,14 @@ def upgrade(engine: Engine) -> None:
         command.upgrade(cfg, "head")
 
 
+def first_line(e: BaseException) -> str:
+    """The first line of a database error's message (the driver's own, when there is one)."""
+    msg = str(getattr(e, "orig", None) or e).strip().splitlines()
+    return msg[0] if msg else type(e).__name__
+
+
 def connect_error(engine: Engine, e: Exception) -> DatabaseError:
-    msg = str(getattr(e, "orig", e)).strip().splitlines()
-    first = msg[0] if msg else type(e).__name__
-    return DatabaseError(f"cannot connect to {display_url(engine.url)}: {first}")
+    return DatabaseError(f"cannot connect to {display_url(engine.url)}: {first_line(e)}")
 
 
 def check_schema(engine: Engine, create: bool, allow_empty: bool = False, migrate: bool = False) -> str | None:

@@ -80,6 +80,15 @@ def to_csv(records: Iterable[dict], columns=FACTS) -> Iterator[str]:
     yield buf.getvalue()
 
 
+def table(cols: list[str], rows: list[list]) -> str:
+    """A text table: a header line and one line per row, columns right-aligned, None as empty."""
+    cells = [[("" if v is None else str(v)) for v in r] for r in rows]
+    widths = [max([len(c), *(len(r[i]) for r in cells)]) for i, c in enumerate(cols)]
+    out = ["  ".join(c.rjust(w) for c, w in zip(cols, widths))]
+    out += ["  ".join(v.rjust(w) for v, w in zip(r, widths)) for r in cells]
+    return "\n".join(out)
+
+
 def _xyz_value(v) -> str:
     if isinstance(v, bool):
         return "T" if v else "F"

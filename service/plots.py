@@ -427,7 +427,7 @@ def _reading(db_url: str | None):
     from sqlalchemy.exc import SQLAlchemyError
 
     from service.cli import _reading as reading
-    from service.db import DatabaseError
+    from service.db import DatabaseError, first_line
 
     try:
         with reading(db_url) as s:
@@ -435,8 +435,7 @@ def _reading(db_url: str | None):
     except DatabaseError as e:
         raise click.ClickException(str(e)) from None
     except SQLAlchemyError as e:
-        first = (str(getattr(e, "orig", None) or e).strip().splitlines() or [type(e).__name__])[0]
-        raise click.ClickException(f"database: {first}") from None
+        raise click.ClickException(f"database: {first_line(e)}") from None
 
 
 def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:

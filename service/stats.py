@@ -13,6 +13,7 @@ import math
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased
 
+from service.export import table
 from service.fit import fit_factorial
 from service.models import Cluster, Transition
 from service.store import NOT_CLOSE_PACKED, counts_by_n
@@ -62,13 +63,14 @@ def _gaps(s: Session, n: int) -> list[dict]:
     return [{"id": i, "contacts": m, "min_gap": g} for i, m, g in s.execute(q)]
 
 
-def stats(s: Session, n: int | None = None) -> list[dict]:
+def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | None = None) -> list[dict]:
     """One dict per n (ascending), with the keys documented in the README.
 
     ``fit`` is the fit of the totals of every n in the database (not only
-    ``n``) to b·(n−5)!, and what it predicts for this n.
+    ``n``) to b·(n−5)!, and what it predicts for this n.  ``every`` is
+    ``counts_by_n(s)`` if the caller has it.
     """
-    every = counts_by_n(s)
+    every = counts_by_n(s) if every is None else every
     fit = fit_all(every)
     out = []
     for nn, by_contacts in every.items():
@@ -81,6 +83,7 @@ def stats(s: Session, n: int | None = None) -> list[dict]:
         lattices.pop(NOT_CLOSE_PACKED, None)
         gaps = _gaps(s, nn)
         paths = _paths(s, nn)
+        singular = _by(s, nn, Cluster.singular.is_(True))
         out.append({
             "n": nn,
             "total": total,
@@ -88,8 +91,8 @@ def stats(s: Session, n: int | None = None) -> list[dict]:
             "hypostatic": sum(c for m, c in by_contacts.items() if m < iso),
             "isostatic": by_contacts.get(iso, 0),
             "hyperstatic": sum(c for m, c in by_contacts.items() if m > iso),
-            "singular": sum(_by(s, nn, Cluster.singular.is_(True)).values()),
-            "singular_by_contacts": {str(m): c for m, c in _by(s, nn, Cluster.singular.is_(True)).items()},
+            "singular": sum(singular.values()),
+            "singular_by_contacts": {str(m): c for m, c in singular.items()},
             "close_packed": sum(lattices.values()),
             "close_packed_by_contacts": {str(m): c for m, c in _by(
                 s, nn, Cluster.lattice.is_not(None), Cluster.lattice != NOT_CLOSE_PACKED).items()},
@@ -107,11 +110,8 @@ def stats(s: Session, n: int | None = None) -> list[dict]:
     return out
 
 
-def _row_table(title: str, cols: list[str], rows: list[list]) -> str:
-    widths = [max(len(str(c)), *(len(str(r[i])) for r in rows)) if rows else len(str(c)) for i, c in enumerate(cols)]
-    lines = [title, "  ".join(f"{c:>{w}}" for c, w in zip(cols, widths))]
-    lines += ["  ".join(f"{v!s:>{w}}" for v, w in zip(r, widths)) for r in rows]
-    return "\n".join(lines)
+def _titled(title: str, cols: list[str], rows: list[list]) -> str:
+    return f"{title}\n{table(cols, rows)}"
 
 
 def format_stats(d: dict) -> str:
@@ -126,22 +126,22 @@ def format_stats(d: dict) -> str:
     rows = [[m, f"{m - iso:+d}", d["by_contacts"][str(m)], d["singular_by_contacts"].get(str(m), 0),
              d["close_packed_by_contacts"].get(str(m), 0)] for m in contacts]
     rows.append(["total", "", d["total"], d["singular"], d["close_packed"]])
-    parts = [head, _row_table("clusters, singular clusters and close-packed fragments by number of contacts:", cols, rows)]
+    parts = [head, _titled("clusters, singular clusters and close-packed fragments by number of contacts:", cols, rows)]
     if d["close_packed"]:
-        parts.append(_row_table("close-packed fragments by lattice:", ["lattice", "clusters"],
+        parts.append(_titled("close-packed fragments by lattice:", ["lattice", "clusters"],
                                 [[k, v] for k, v in d["lattice"].items()]))
     else:
         parts.append("close-packed fragments: none")
     if d["unclassified"]:
         parts.append(f"{d['unclassified']} clusters are not classified yet: run `packings db backfill`")
     if d["multi_embedding"]:
-        parts.append(_row_table("adjacency matrices with more than one geometry:", ["geometries", "adjacency matrices"],
+        parts.append(_titled("adjacency matrices with more than one geometry:", ["geometries", "adjacency matrices"],
                                 [[k, v] for k, v in d["multi_embedding"].items()]))
     else:
         parts.append("adjacency matrices with more than one geometry: none")
     if d["smallest_gaps"]:
         parts.append(f"smallest gap: {d['min_gap']:.6g}")
-        parts.append(_row_table(f"the {len(d['smallest_gaps'])} smallest gaps:", ["cluster", "contacts", "gap"],
+        parts.append(_titled(f"the {len(d['smallest_gaps'])} smallest gaps:", ["cluster", "contacts", "gap"],
                                 [[g["id"], g["contacts"], f"{g['min_gap']:.6g}"] for g in d["smallest_gaps"]]))
     unreached = d["unreached"]
     shown = ", ".join(map(str, unreached[:10])) + (", ..." if len(unreached) > 10 else "")

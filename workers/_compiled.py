@@ -61,18 +61,22 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @numba.njit(**_JIT)
+def _dist2(x, i, j):
+    """|x_i - x_j|^2 (flat coordinates)."""
+    s = 0.0
+    for c in range(3):
+        d = x[3 * i + c] - x[3 * j + c]
+        s += d * d
+    return s
+
+
+@numba.njit(**_JIT)
 def residual(x, edges):
     """f_k = |x_i - x_j|^2 - 1 for each contact k = (i, j)."""
     m = edges.shape[0]
     f = np.empty(m)
     for k in range(m):
-        i = edges[k, 0]
-        j = edges[k, 1]
-        s = 0.0
-        for c in range(3):
-            d = x[3 * i + c] - x[3 * j + c]
-            s += d * d
-        f[k] = s - 1.0
+        f[k] = _dist2(x, edges[k, 0], edges[k, 1]) - 1.0
     return f
 
 
@@ -97,13 +101,7 @@ def pair_distances_flat(x, pairs):
     k = pairs.shape[0]
     out = np.empty(k)
     for p in range(k):
-        i = pairs[p, 0]
-        j = pairs[p, 1]
-        s = 0.0
-        for c in range(3):
-            d = x[3 * i + c] - x[3 * j + c]
-            s += d * d
-        out[p] = np.sqrt(s)
+        out[p] = np.sqrt(_dist2(x, pairs[p, 0], pairs[p, 1]))
     return out
 
 
@@ -283,13 +281,7 @@ def _full_residual(x, edges, A, b, f):
     m = edges.shape[0]
     fsq = 0.0
     for k in range(m):
-        i = edges[k, 0]
-        j = edges[k, 1]
-        s = 0.0
-        for c in range(3):
-            d = x[3 * i + c] - x[3 * j + c]
-            s += d * d
-        f[k] = s - 1.0
+        f[k] = _dist2(x, edges[k, 0], edges[k, 1]) - 1.0
         fsq += f[k] * f[k]
     for r in range(A.shape[0]):
         s = 0.0
