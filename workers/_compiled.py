@@ -408,8 +408,12 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
 
 
 @numba.njit(**_JIT)
-def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws):
-    """The iteration of workers.kernels.project_numpy; returns (x, status, iterations, sum f^2, normal steps)."""
+def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall):
+    """The iteration of workers.kernels.project_numpy; returns (x, status, iterations, sum f^2, normal steps).
+
+    ``stall`` > 0: fail once sum f^2 has not gone below its smallest value so far for
+    that many consecutive iterations (before convergence); 0: never.
+    """
     f = ws[6]
     dx = ws[9]
     x = x0.copy()
@@ -418,6 +422,8 @@ def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, gua
     fsq = np.inf
     converged = False
     n_normal = 0
+    low = np.inf
+    since = 0
     for it in range(max_iter + 1):
         fsq = _full_residual(x, edges, A, b, f)
         if not np.isfinite(fsq):
@@ -435,6 +441,14 @@ def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, gua
             converged = True
             best_x[:] = x
             best_fsq = fsq
+        elif stall > 0:
+            if fsq < low:
+                low = fsq
+                since = 0
+            else:
+                since += 1
+                if since >= stall:
+                    return x, NEWTON_FAILED, it, fsq, n_normal
         if it == max_iter:
             break
         if _newton_step(x, edges, free, mask, A, f, guard, ws):
@@ -455,7 +469,7 @@ def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, gua
 
 
 @numba.njit(**_JIT)
-def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws):
+def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall=0):
     """Newton by the normal equations; a failure is re-checked with least squares throughout.
 
     A projection that fails after using the normal equations is redone from x0
@@ -463,23 +477,24 @@ def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard
     reported failure is the reference's failure.  Returns (x, status,
     iterations, sum f^2, normal-equation steps, retried).
     """
-    x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws)
+    x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall)
     if st == NEWTON_OK or nn == 0:
         return x, st, it, fsq, nn, False
-    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, np.inf, ws)
+    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, np.inf, ws, stall)
     return x, st, it, fsq, nn + nn2, True
 
 
 @numba.njit(**_JIT)
-def newton(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard):
+def newton(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, stall=0):
     """Newton projection, the same iteration as workers.kernels.project (see there).
 
     ``A`` (e x 3n, zero in pinned columns) and ``b`` are the extra linear rows
-    (e = 0 for none).  Returns (x, status, iterations, sum f^2, normal-equation
-    steps, whether a failure was retried by least squares).
+    (e = 0 for none); ``stall`` as in _newton_core.  Returns (x, status,
+    iterations, sum f^2, normal-equation steps, whether a failure was retried by
+    least squares).
     """
     ws = _workspace(x0.size, edges, A.shape[0])
-    return _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws)
+    return _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall)
 
 
 @numba.njit(**_JIT)

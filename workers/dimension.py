@@ -17,13 +17,16 @@ class Dimension:
 
     ``method`` is ``regular`` (R has full row rank: D = |V|), ``rigid`` (the
     rigidity test says the point is isolated) or ``numerical`` (tangent-space
-    estimate).
+    estimate).  A numerical estimate asked to stop above a ``limit`` reports
+    ``dim = limit + 1`` when it found more than ``limit`` directions: then D is
+    at least that (``at_least`` is True).
     """
 
     dim: int
     tangents: np.ndarray
     method: str
     rigidity: Rigidity | None = None
+    at_least: bool = False
 
 
 def solution_dimension(
@@ -32,6 +35,7 @@ def solution_dimension(
     free: np.ndarray,
     params: Params,
     ns: kernels.NullSpaces | None = None,
+    limit: int | None = None,
 ) -> Dimension:
     """Dimension of {f = 0} near x, with the pinned coordinates fixed.
 
@@ -47,6 +51,12 @@ def solution_dimension(
     longer than the probe step, and a new direction needs an orthogonal part of
     a fifth of it: the curvature of a path (about ds0^2 kappa / 2) stays well
     below that, a second genuine direction well above it.
+
+    With ``limit``, the probes stop as soon as more than ``limit`` directions are
+    found: the method only asks whether D is 0, 1 or more (``limit=1``), and the
+    directions found first, hence D up to the limit and the tangent basis, are
+    the same as without it.  Probes that do not converge are the dearest part of
+    an expansion, and a set of dimension 2 or more needs none of the rest.
     """
     if ns is None:
         ns = kernels.null_spaces(x, edges, free, params.tol_n)
@@ -67,6 +77,8 @@ def solution_dimension(
             r = np.linalg.norm(vt)
             if r > params.v_tol:
                 basis.append(vt / r)
+                if limit is not None and len(basis) > limit:
+                    return Dimension(len(basis), np.stack(basis, axis=1), "numerical", rig, at_least=True)
     t = np.stack(basis, axis=1) if basis else V[:, :0]
     return Dimension(len(basis), t, "numerical", rig)
 
@@ -76,8 +88,8 @@ def _probe(x, v, step, edges, free, params: Params) -> np.ndarray | None:
     x0 = x + step * v
     kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
     orthogonal = (v[free][None, :], np.array([v[free] @ x0[free]]))
-    for extra in (orthogonal, None):
-        pr = kernels.project(x0, edges, free, extra=extra, **kw)
+    for extra, stall in ((orthogonal, params.probe_stall), (None, 0)):
+        pr = kernels.project(x0, edges, free, extra=extra, stall=stall, **kw)
         if pr.ok and params.x_tol_min <= np.linalg.norm(pr.x - x) <= params.x_tol_max:
             return pr.x - x
     return None

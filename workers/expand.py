@@ -111,6 +111,7 @@ def _attempts(cluster: Cluster, params: Params) -> Iterator[Endpoint | PathStart
     """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart."""
     n, m = cluster.n, cluster.m
     all_edges = cluster.edges()
+    frames: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # the cluster in each pinned frame
     for k in break_sizes(m, cluster_rank(cluster, params), params):
         for idx in combinations(range(m), k):
             broken = all_edges[list(idx)]
@@ -120,9 +121,10 @@ def _attempts(cluster: Cluster, params: Params) -> Iterator[Endpoint | PathStart
             if tri is None:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
                 continue
-            x = kernels.to_frame(cluster.coords, tri).ravel()
-            free = kernels.free_coordinates(n, tri)
-            dim = solution_dimension(x, keep, free, params)
+            if tri not in frames:
+                frames[tri] = (kernels.to_frame(cluster.coords, tri).ravel(), kernels.free_coordinates(n, tri))
+            x, free = frames[tri]
+            dim = solution_dimension(x, keep, free, params, limit=1)
             if dim.dim != 1:
                 yield Endpoint(bt, 0, NOT_1D, dim.dim)
                 continue

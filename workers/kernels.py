@@ -139,7 +139,7 @@ def to_frame(x: np.ndarray, tri: tuple[int, int, int]) -> np.ndarray:
     u = p[c] - p[a]
     e2 = u - (u @ e1) * e1
     e2 /= np.linalg.norm(e2)
-    e3 = np.cross(e1, e2)
+    e3 = np.array([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]])  # e1 x e2
     q = (p - p[a]) @ np.stack([e1, e2, e3], axis=1)
     q[a] = 0.0
     q[b, 1:] = 0.0
@@ -223,6 +223,7 @@ def project(
     max_iter: int,
     extra: tuple[np.ndarray, np.ndarray] | None = None,
     polish: bool = False,
+    stall: int = 0,
     tol_n: float | None = None,
 ) -> Projection:
     """Newton's method for f(x) = 0 with the pinned coordinates held fixed.
@@ -231,7 +232,10 @@ def project(
     the free columns), scaled down to length ``dx_max`` if longer.  Converged
     when sum f^2 < tol.  ``extra = (A, b)`` appends the linear equations
     A x[free] = b (used by the dimension test).  Never returns ok=True for a
-    point that does not satisfy the tolerance.
+    point that does not satisfy the tolerance.  With ``stall`` > 0 the iteration
+    gives up (ok=False) as soon as sum f^2 has not gone below its smallest value
+    so far for ``stall`` consecutive iterations (used by the dimension test's
+    probes, :func:`workers.dimension.solution_dimension`); 0 never gives up early.
 
     With ``polish`` (used for clusters that are kept), iteration goes on after
     convergence for as long as each step at least halves sum f^2, so that the
@@ -247,9 +251,12 @@ def project(
     """
     if _backend == "numba":
         return project_compiled(
-            x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish, tol_n=tol_n
+            x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish, stall=stall,
+            tol_n=tol_n,
         )
-    return project_numpy(x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish)
+    return project_numpy(
+        x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish, stall=stall
+    )
 
 
 def free_mask(n3: int, free: np.ndarray) -> np.ndarray:
@@ -269,6 +276,7 @@ def project_compiled(
     max_iter: int,
     extra: tuple[np.ndarray, np.ndarray] | None = None,
     polish: bool = False,
+    stall: int = 0,
     tol_n: float | None = None,
 ) -> Projection:
     """:func:`project` by the compiled kernel (normal equations, least squares where the guard fails)."""
@@ -284,7 +292,8 @@ def project_compiled(
         b = as_kernel_array(extra[1], np.float64, (-1,))
     g = guard_threshold(DEFAULT.tol_n if tol_n is None else tol_n)
     xn, status, it, fsq, _, _ = _compiled.newton(
-        x, _i64(edges), free, free_mask(x.size, free), a, b, float(tol), float(dx_max), int(max_iter), bool(polish), float(g)
+        x, _i64(edges), free, free_mask(x.size, free), a, b, float(tol), float(dx_max), int(max_iter), bool(polish), float(g),
+        int(stall),
     )
     return Projection(xn, status == _compiled.NEWTON_OK, int(it), float(fsq))
 
@@ -299,12 +308,14 @@ def project_numpy(
     max_iter: int,
     extra: tuple[np.ndarray, np.ndarray] | None = None,
     polish: bool = False,
+    stall: int = 0,
 ) -> Projection:
     """The numpy reference of :func:`project`: a least-squares (SVD) solve at every step."""
     x = np.array(x0, dtype=np.float64, copy=True)
     fsq = np.inf
     converged = False
     best_x, best_fsq = x.copy(), np.inf
+    low, since = np.inf, 0
     for it in range(max_iter + 1):
         f = residual_numpy(x, edges)
         if extra is not None:
@@ -323,6 +334,13 @@ def project_numpy(
                 return Projection(x, True, it, fsq)
             converged = True
             best_x, best_fsq = x.copy(), fsq
+        elif stall > 0:
+            if fsq < low:
+                low, since = fsq, 0
+            else:
+                since += 1
+                if since >= stall:
+                    return Projection(x, False, it, fsq)
         if it == max_iter:
             break
         j = 2.0 * rigidity_matrix_numpy(x, edges)[:, free]

@@ -27,6 +27,10 @@ class Params:
     v_tol: float = field(default=None)  # type: ignore[assignment]
     tol_psd: float = 1e-5  #: smallest eigenvalue that counts as positive in the pre-stress test
     newton_max_iter: int = 200  #: Newton iterations before a projection is reported as failed
+    #: the dimension test's probe first projects with its correction orthogonal to the probe
+    #: direction; that projection is given up once its residual has not improved for this many
+    #: iterations (0: it runs the full newton_max_iter), see workers.dimension.solution_dimension
+    probe_stall: int = 10
     max_path_steps: int = 3000  #: steps along one path before it is abandoned
     max_break: int = 3  #: largest number of contacts broken at once
     #: stop a path whose set is more than one-dimensional after its first step (METHOD.md's rule);

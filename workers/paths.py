@@ -104,7 +104,7 @@ def _svd_tangent(xn, keep, free, t, params: Params, first: bool) -> tuple[np.nda
     V = ns.V
     first_dim = None
     if first:
-        dim = solution_dimension(xn, keep, free, params, ns)
+        dim = solution_dimension(xn, keep, free, params, ns, limit=1)
         first_dim = dim.dim
         if dim.dim == 0 or (dim.dim > 1 and params.stop_on_dimension_change):
             return None, first_dim

@@ -55,3 +55,48 @@ def test_numerical_branch_on_a_singular_cluster():
     tri = contact_triangle(keep)
     V = kernels.null_spaces(x, keep, kernels.free_coordinates(c.n, tri), P.tol_n).V
     assert np.linalg.norm(V.T @ t) > 0.99
+
+
+def _numerical_cases(c: Cluster, size: int, params: Params):
+    """(idx, x, keep, free) for every ``size``-subset of contacts of ``c`` whose dimension needs the numerical estimate."""
+    e = c.edges()
+    for idx in combinations(range(c.m), size):
+        keep = np.delete(e, list(idx), axis=0)
+        tri = contact_triangle(keep)
+        x = kernels.to_frame(c.coords, tri).ravel()
+        free = kernels.free_coordinates(c.n, tri)
+        ns = kernels.null_spaces(x, keep, free, params.tol_n)
+        if ns.W.shape[1] and ns.V.shape[1]:
+            yield idx, x, keep, free
+
+
+def test_giving_up_stalled_probe_projections_changes_no_dimension():
+    """The probes' orthogonal projections stop once their residual stalls (probe_stall): on every
+    two-contact break of the singular n = 10 cluster that needs the numerical estimate, the
+    dimension and the tangent basis are those of probes that run all newton_max_iter iterations."""
+    c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    full = P.with_(probe_stall=0)
+    assert P.probe_stall > 0
+    dims = set()
+    for idx, x, keep, free in _numerical_cases(c, 2, P):
+        a = solution_dimension(x, keep, free, P)
+        b = solution_dimension(x, keep, free, full)
+        assert (a.dim, a.method) == (b.dim, b.method), idx
+        assert np.allclose(a.tangents, b.tangents, atol=1e-9), idx
+        dims.add(a.dim)
+    assert {1, 2} <= dims
+
+
+def test_a_limit_stops_probing_above_it_and_keeps_the_first_directions():
+    c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    seen = set()
+    for idx, x, keep, free in _numerical_cases(c, 2, P):
+        full = solution_dimension(x, keep, free, P)
+        lim = solution_dimension(x, keep, free, P, limit=1)
+        assert lim.dim == min(full.dim, 2), idx
+        assert lim.at_least == (full.dim > 1)
+        assert not full.at_least
+        k = min(full.dim, 2)
+        assert np.array_equal(lim.tangents, full.tangents[:, :k]), idx
+        seen.add(full.dim)
+    assert {1, 2} <= seen

@@ -1,11 +1,13 @@
 """Kernels: residuals, the rigidity matrix, Newton projection, null spaces."""
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from workers import kernels
 from workers.params import Params
+from workers.rigidity import contact_triangle
 from workers.seeds import seed_cluster
 
 P = Params()
@@ -69,6 +71,33 @@ def test_projection_reports_failure_for_impossible_contacts():
     pr = kernels.project(x, edges, kernels.free_coordinates(5, (0, 1, 2)), tol=P.tol, dx_max=P.dx_max, max_iter=50)
     assert not pr.ok
     assert pr.residual > P.tol
+
+
+@pytest.mark.parametrize("name", kernels.BACKENDS)
+def test_a_stalled_projection_gives_up_early(name):
+    """stall=k: Newton stops, failed, once sum f^2 has not improved for k iterations; a
+    projection that converges is unaffected."""
+    c = seed_cluster(5)
+    edges = np.array([(i, j) for i in range(5) for j in range(i + 1, 5)])  # impossible in 3D
+    x = kernels.to_frame(c.coords, (0, 1, 2)).ravel()
+    free = kernels.free_coordinates(5, (0, 1, 2))
+    kw = dict(tol=P.tol, dx_max=P.dx_max, max_iter=200)
+    with kernels.backend(name):
+        full = kernels.project(x, edges, free, **kw)
+        early = kernels.project(x, edges, free, stall=5, **kw)
+        assert not full.ok and full.iterations == 200
+        assert not early.ok and early.iterations < 200
+        assert early.residual > P.tol
+        good = seed_cluster(9)
+        e9 = good.edges()[1:]
+        tri = contact_triangle(e9)
+        x9 = kernels.to_frame(good.coords, tri).ravel()
+        f9 = kernels.free_coordinates(9, tri)
+        x9p = x9.copy()
+        x9p[f9] += 1e-3 * np.random.default_rng(1).standard_normal(f9.size)
+        a = kernels.project(x9p, e9, f9, **kw)
+        b = kernels.project(x9p, e9, f9, stall=2, **kw)
+        assert a.ok and b.ok and np.array_equal(a.x, b.x) and a.iterations == b.iterations
 
 
 def test_polish_reaches_round_off():
