@@ -119,7 +119,7 @@ class Cluster(Base):
         return _core(self.n, self.coords, self.contact_list)
 
 
-@functools.lru_cache(maxsize=8192)
+@functools.lru_cache(maxsize=32768)
 def _core(n: int, coords: bytes, contact_list: str) -> CoreCluster:
     """The (immutable) core cluster of a row's values, shared by every row with the same values, so
     that what is computed from it once (its canonical form, workers.identity) is kept: a worker

@@ -139,22 +139,23 @@ def stored_with(session: Session, n: int, certificates) -> dict[str, list[Cluste
 
 
 def insert_or_match(session: Session, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
-                    values: dict | None = None, rows: list[Cluster] | None = None) -> tuple[int, bool]:
+                    rows: list[Cluster] | None = None) -> tuple[int, bool]:
     """The id of the stored cluster equal to ``c`` (same certificate, same
     geometry within ``tol_d``), inserting it if there is none.  The caller
-    holds the certificate's lock (:func:`lock_certificates`).  ``values`` are
-    ``cluster_values(c, rig)`` and ``rows`` the stored clusters with its
-    certificate (:func:`stored_with`; a row inserted here is appended to it)
-    if the caller has them already."""
-    values = values or cluster_values(c, rig)
+    holds the certificate's lock (:func:`lock_certificates`).  ``rows`` are the
+    stored clusters with its certificate (:func:`stored_with`; a row inserted
+    here is appended to it) if the caller has them already.  The row's values
+    (:func:`cluster_values`, the lattice) are computed only if it is inserted:
+    most endpoints are clusters stored already."""
     if rows is None:
-        rows = stored_with(session, c.n, [values["certificate"]])[values["certificate"]]
+        cert = certificate_key(c)
+        rows = stored_with(session, c.n, [cert])[cert]
     if rows:
         k = find_match(c, [r.to_core() for r in rows], tol_d)
         if k is not None:
             return rows[k].id, False
-    row = Cluster(**values, lattice=lattice_value(c), embedding=(rows[-1].embedding + 1) if rows else 0,
-                  found_in_run=run_id)
+    row = Cluster(**cluster_values(c, rig), lattice=lattice_value(c),
+                  embedding=(rows[-1].embedding + 1) if rows else 0, found_in_run=run_id)
     session.add(row)
     session.flush()
     rows.append(row)
@@ -358,21 +359,21 @@ def load_task(Session_: sessionmaker, expansion_id: int, token: str) -> Task | N
         return Task(e.id, r.id, c.id, c.to_core(), Params.from_dict(json.loads(r.params)))
 
 
-def distinct_endpoints(ex: CoreExpansion, tol_d: float) -> tuple[list[tuple[CoreCluster, Rigidity, dict]], dict[int, int]]:
+def distinct_endpoints(ex: CoreExpansion, tol_d: float) -> tuple[list[tuple[CoreCluster, Rigidity, str]], dict[int, int]]:
     """The distinct rigid endpoints of an expansion, each once (endpoints equal within ``tol_d`` are
-    one), with their row values, and for each rigid endpoint's index which of them it is.
+    one), with their certificates, and for each rigid endpoint's index which of them it is.
 
     Many paths from one cluster end at the same cluster; doing this before the write-back's
-    transaction keeps the certificates, the facts and the in-expansion comparisons out of the
-    database's lock (SQLite's is one for all workers)."""
+    transaction keeps the certificates and the in-expansion comparisons out of the database's
+    lock (SQLite's is one for all workers)."""
     index = ClusterIndex()
-    distinct: list[tuple[CoreCluster, Rigidity, dict]] = []
+    distinct: list[tuple[CoreCluster, Rigidity, str]] = []
     which: dict[int, int] = {}
     for i, e in enumerate(ex.endpoints):
         if e.outcome == RIGID:
             k, is_new = index.add(e.cluster, tol_d)
             if is_new:
-                distinct.append((e.cluster, e.rigidity, cluster_values(e.cluster, e.rigidity)))
+                distinct.append((e.cluster, e.rigidity, certificate_key(e.cluster)))
             which[i] = k
     return distinct, which
 
@@ -392,12 +393,12 @@ def record_expansion(
         if row is None or row.status != LEASED or row.lease_token != token:
             return None
         n = task.cluster.n
-        lock_certificates(s, [(n, values["certificate"]) for _, _, values in distinct])
-        stored = stored_with(s, n, {values["certificate"] for _, _, values in distinct})
+        lock_certificates(s, [(n, cert) for _, _, cert in distinct])
+        stored = stored_with(s, n, {cert for _, _, cert in distinct})
         new_clusters = 0
         ids = []
-        for c, rig, values in distinct:
-            cid, is_new = insert_or_match(s, c, rig, task.run_id, params.tol_d, values, stored[values["certificate"]])
+        for c, rig, cert in distinct:
+            cid, is_new = insert_or_match(s, c, rig, task.run_id, params.tol_d, stored[cert])
             new_clusters += is_new
             ids.append(cid)
         ensure_expansions(s, task.run_id, ids)
