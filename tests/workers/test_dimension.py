@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workers import kernels
+from workers import dimension, kernels
 from workers.cluster import Cluster
 from workers.dimension import solution_dimension
 from workers.params import Params
@@ -70,10 +70,12 @@ def _numerical_cases(c: Cluster, size: int, params: Params):
             yield idx, x, keep, free
 
 
-def test_giving_up_stalled_probe_projections_changes_no_dimension():
+def test_giving_up_stalled_probe_projections_changes_no_dimension(monkeypatch):
     """The probes' orthogonal projections stop once their residual stalls (probe_stall): on every
     two-contact break of the singular n = 10 cluster that needs the numerical estimate, the
-    dimension and the tangent basis are those of probes that run all newton_max_iter iterations."""
+    dimension and the tangent basis are those of probes that run all newton_max_iter iterations.
+    (Every orthogonal projection is run here, even those the exact bound excludes.)"""
+    monkeypatch.setattr(dimension, "orthogonal_may_be_accepted", lambda *a: True)
     c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     full = P.with_(probe_stall=0)
     assert P.probe_stall > 0
@@ -100,3 +102,32 @@ def test_a_limit_stops_probing_above_it_and_keeps_the_first_directions():
         assert np.array_equal(lim.tangents, full.tangents[:, :k]), idx
         seen.add(full.dim)
     assert {1, 2} <= seen
+
+
+def test_orthogonal_projections_are_skipped_only_where_they_could_not_be_accepted():
+    """orthogonal_may_be_accepted is a proof, not a heuristic: wherever it says no, the orthogonal
+    projection, run to the end, converges to nothing the probe accepts."""
+    c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    kw = dict(tol=P.tol, dx_max=P.dx_max, max_iter=P.newton_max_iter, tol_n=P.tol_n)
+    skipped = converged = 0
+    for idx, x, keep, free in _numerical_cases(c, 2, P):
+        V = kernels.null_spaces(x, keep, free, P.tol_n).V
+        for j in range(V.shape[1]):
+            for step in (P.ds0, -P.ds0):
+                v = V[:, j]
+                x0 = x + step * v
+                if dimension.orthogonal_may_be_accepted(x0, keep, step, float(np.linalg.norm(v[free])), P):
+                    continue
+                skipped += 1
+                pr = kernels.project(x0, keep, free, extra=(v[free][None, :], np.array([v[free] @ x0[free]])), **kw)
+                if pr.ok:
+                    converged += 1
+                    assert np.linalg.norm(pr.x - x) > P.x_tol_max, idx
+    assert skipped > 50 and converged > 20
+    # a looser x_tol_max leaves room for an orthogonal correction: then it is always run
+    loose = P.with_(x_tol_max=2 * P.ds0)
+    idx, x, keep, free = next(_numerical_cases(c, 2, P))
+    v = kernels.null_spaces(x, keep, free, P.tol_n).V[:, 0]
+    assert dimension.orthogonal_may_be_accepted(x + P.ds0 * v, keep, P.ds0, 1.0, loose)
+    # and a stricter one than the probe step never accepts it
+    assert not dimension.orthogonal_may_be_accepted(x + P.ds0 * v, keep, P.ds0, 1.0, P.with_(x_tol_max=0.9 * P.ds0))
