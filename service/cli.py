@@ -120,6 +120,10 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
                                    "failed (see `packings status`); rerun the same command to retry them")
 
 
+#: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
+PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
+
+
 class _dask_client:
     """A Client on a new LocalCluster, or on an existing scheduler; errors become one line."""
 
@@ -128,6 +132,7 @@ class _dask_client:
         self.cluster = self.client = None
 
     def __enter__(self):
+        import dask
         from distributed import Client, LocalCluster
 
         for name in ("distributed", "bokeh", "tornado"):
@@ -140,6 +145,10 @@ class _dask_client:
                                            f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
         else:
             k = self.n_workers or os.cpu_count() or 1
+            if PROFILE_ENV not in os.environ:
+                # Dask's statistical profiler samples each worker's stack every 10 ms: 8 % of a run's time
+                # at n = 11 (the dashboard's Profile page is empty without it; the variable turns it back on)
+                dask.config.set({"distributed.worker.profile.enabled": False})
             self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
                                         dashboard_address="127.0.0.1:8787", silence_logs=logging.ERROR)
             self.client = Client(self.cluster)
