@@ -100,7 +100,8 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
                        f"({engine.url.database}); use PostgreSQL for many machines", err=True)
         bar = _progress_bar(quiet)
         try:
-            result = run_enumeration(engine, url, n, params, client, on_progress=bar, max_attempts=max_attempts)
+            result = run_enumeration(engine, url, n, params, client, on_progress=None if quiet else bar,
+                                     max_attempts=max_attempts)  # quiet: progress is not even read
         finally:
             bar.close()
     engine.dispose()
