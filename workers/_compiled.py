@@ -663,3 +663,35 @@ def follow_steps(
         stats[0] += 1
         h = min(2 * h, h_max)
     return ST_TOO_LONG, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+
+
+@numba.njit(**_JIT)
+def aligned_max_error(x, y):
+    """max |x R - y| over coordinates for the orthogonal R (det = +-1) minimising ||x R - y|| (Procrustes)."""
+    u, _, vt = np.linalg.svd(x.T @ y)
+    return np.max(np.abs(x @ (u @ vt) - y))
+
+
+@numba.njit(**_JIT)
+def some_automorphism_aligns(ax, bx, adist, bdist, autos, bound, tol_d):
+    """Whether, for some automorphism s (a row of ``autos``, in order), every |adist - bdist[s][:, s]|
+    is at most ``bound`` and ``bx[s]`` aligns with ``ax`` within ``tol_d``."""
+    k, n = autos.shape
+    y = np.empty_like(bx)
+    for g in range(k):
+        s = autos[g]
+        ok = True
+        for i in range(n):
+            for j in range(n):
+                if abs(bdist[s[i], s[j]] - adist[i, j]) > bound:
+                    ok = False
+                    break
+            if not ok:
+                break
+        if not ok:
+            continue
+        for i in range(n):
+            y[i] = bx[s[i]]
+        if aligned_max_error(ax, y) <= tol_d:
+            return True
+    return False

@@ -412,6 +412,30 @@ def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->i", d, d))
 
 
+def some_automorphism_aligns(ax: np.ndarray, bx: np.ndarray, adist: np.ndarray, bdist: np.ndarray,
+                             autos: np.ndarray, bound: float, tol_d: float) -> bool:
+    """Whether two clusters in canonical order are the same geometry under some automorphism.
+
+    ``ax``, ``bx``: centred coordinates (n x 3); ``adist``, ``bdist``: their pair-distance matrices;
+    ``autos``: the automorphism group of their (common) canonical contact graph, one permutation a
+    row.  True iff for some ``s`` (tried in order) every |adist - bdist[s][:, s]| is at most
+    ``bound`` and ``bx[s]`` is within ``tol_d`` of ``ax`` in every coordinate after the optimal
+    orthogonal alignment (:func:`aligned_max_error`).
+    """
+    if _backend == "numba":
+        return bool(_compiled.some_automorphism_aligns(ax, bx, adist, bdist, autos, bound, tol_d))
+    relabelled = bdist[autos[:, :, None], autos[:, None, :]]
+    passing = np.flatnonzero(np.abs(relabelled - adist).max(axis=(1, 2), initial=0.0) <= bound)
+    return any(aligned_max_error(ax, bx[autos[k]]) <= tol_d for k in passing)
+
+
+def aligned_max_error(x: np.ndarray, y: np.ndarray) -> float:
+    """max |x R - y| over coordinates for the orthogonal R (det = +-1) that minimises the Frobenius
+    norm ||x R - y|| (both already centred): the orthogonal Procrustes problem, by the SVD of x^T y."""
+    u, _, vt = np.linalg.svd(x.T @ y)
+    return float(np.max(np.abs(x @ (u @ vt) - y)))
+
+
 def warm_up() -> float:
     """Compile (or load from numba's on-disk cache) every compiled kernel; returns the seconds taken.
 
@@ -423,7 +447,9 @@ def warm_up() -> float:
     """
     if _backend != "numba":
         return 0.0
+    from workers.cluster import Cluster
     from workers.dimension import solution_dimension
+    from workers.identity import same_geometry
     from workers.paths import follow_path
     from workers.rigidity import contact_triangle
     from workers.seeds import seed_cluster
@@ -447,4 +473,5 @@ def warm_up() -> float:
     regular_flexes(x, edges, free, params.tol_n)
     for s in (1.0, -1.0):
         follow_path(x, keep, broken, s * v, free, params)
+    same_geometry(c, Cluster(c.coords[::-1] + 1.0, tuple((c.n - 1 - j, c.n - 1 - i) for i, j in c.contacts)), params.tol_d)
     return time.perf_counter() - start

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from workers import kernels
 from workers.cluster import Cluster
 from workers.identity import (
     ClusterIndex,
@@ -318,6 +319,37 @@ def test_perturbing_one_sphere_breaks_same_geometry(name, seed, reflect, data) -
     moved = Cluster(x, c.contacts)  # same graph by construction
     assert certificate(moved) == certificate(c)
     assert not same_geometry(c, transformed(moved, seed, reflect), TOL_D)
+
+
+def _both_backends(f):
+    """f() under each kernel backend: {backend: value}."""
+    out = {}
+    for name in kernels.BACKENDS:
+        with kernels.backend(name):
+            out[name] = f()
+    return out
+
+
+@SETTINGS
+@given(names, seeds, st.booleans(), st.floats(0.0, 4.0))
+def test_compiled_and_numpy_comparisons_agree(name, seed, reflect, scale) -> None:
+    """The comparison under every automorphism (kernels.some_automorphism_aligns) gives the same answer in
+    both backends, for copies moved by up to a few tol_d (within, near and beyond the tolerance)."""
+    c = CLUSTERS[name]
+    moved = transformed(c, seed, reflect, noise=scale * TOL_D)
+    answers = _both_backends(lambda: (same_geometry(c, moved, TOL_D), same_geometry(moved, c, TOL_D)))
+    assert answers["numba"] == answers["numpy"]
+
+
+@pytest.mark.parametrize("name", sorted(CLUSTERS))
+def test_both_backends_accept_copies_and_reject_moved_spheres(name) -> None:
+    c = CLUSTERS[name]
+    x = c.coords.copy()
+    x[0] += [3 * TOL_D, 0.0, 0.0]
+    moved = Cluster(x, c.contacts)
+    answers = _both_backends(lambda: (same_geometry(c, transformed(c, 1, True, noise=0.2 * TOL_D), TOL_D),
+                                      same_geometry(c, transformed(moved, 2, False), TOL_D)))
+    assert answers == {"numba": (True, False), "numpy": (True, False)}
 
 
 def test_same_graph_different_geometry() -> None:
