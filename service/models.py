@@ -116,11 +116,11 @@ class Cluster(Base):
     )
 
     def to_core(self) -> CoreCluster:
-        return _core(self.n, self.coords, self.contact_list)
+        return core_cluster(self.n, self.coords, self.contact_list)
 
 
 @functools.lru_cache(maxsize=32768)
-def _core(n: int, coords: bytes, contact_list: str) -> CoreCluster:
+def core_cluster(n: int, coords: bytes, contact_list: str) -> CoreCluster:
     """The (immutable) core cluster of a row's values, shared by every row with the same values, so
     that what is computed from it once (its canonical form, workers.identity) is kept: a worker
     compares each new endpoint with the same stored rows again and again.  Keyed by the values, not

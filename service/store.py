@@ -20,6 +20,7 @@ service safe under concurrency and failure:
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import socket
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 from importlib import metadata
 
 import numpy as np
-from sqlalchemy import func, insert, select, text, update
+from sqlalchemy import Connection, bindparam, func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.db import advisory_key, is_postgresql
@@ -45,6 +46,7 @@ from service.models import (
     Expansion,
     Run,
     Transition,
+    core_cluster,
     utcnow,
 )
 from workers.classify import lattice_type
@@ -79,11 +81,33 @@ def params_json(params: Params) -> str:
 
 
 def contacts_json(pairs) -> str:
-    return json.dumps([[int(i), int(j)] for i, j in pairs])
+    """``[[i, j], ...]`` exactly as ``json.dumps`` writes it (a write-back writes two per attempt)."""
+    return "[" + ", ".join(f"[{int(i)}, {int(j)}]" for i, j in pairs) + "]"
 
 
 def process_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
+
+
+# --------------------------------------------------------------------------- statements
+
+# The statements a task runs for every expansion, built once: building one costs about as much as
+# running it on SQLite.  Core statements on the tables, so that no ORM object is made per row.
+_E, _C, _R, _T = Expansion.__table__, Cluster.__table__, Run.__table__, Transition.__table__
+_TASK = (select(_E.c.status, _E.c.lease_token, _E.c.run_id, _E.c.cluster_id, _C.c.n, _C.c.coords,
+                _C.c.contact_list, _R.c.params)
+         .join_from(_E, _C, _C.c.id == _E.c.cluster_id).join(_R, _R.c.id == _E.c.run_id)
+         .where(_E.c.id == bindparam("eid")))
+_LEASE = select(_E.c.status, _E.c.lease_token).where(_E.c.id == bindparam("eid")).with_for_update()
+_STORED = (select(_C.c.id, _C.c.certificate, _C.c.embedding, _C.c.coords, _C.c.contact_list)
+           .where(_C.c.n == bindparam("n"), _C.c.certificate.in_(bindparam("certs", expanding=True)))
+           .order_by(_C.c.certificate, _C.c.embedding))
+_HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
+    _E.c.run_id == bindparam("run"), _E.c.cluster_id.in_(bindparam("ids", expanding=True)))
+_INSERT_CLUSTER = insert(_C)
+_INSERT_EXPANSION = insert(_E)
+_INSERT_TRANSITION = insert(_T)
+_DONE = update(_E).where(_E.c.id == bindparam("eid"))  # SET: the columns given when it runs
 
 
 # --------------------------------------------------------------------------- clusters
@@ -120,7 +144,7 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
     }
 
 
-def lock_certificates(session: Session, keys) -> None:
+def lock_certificates(session: Session | Connection, keys) -> None:
     """Take the certificate-level advisory locks (PostgreSQL), in sorted order."""
     if not is_postgresql(session):
         return
@@ -128,18 +152,27 @@ def lock_certificates(session: Session, keys) -> None:
         session.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key("cluster", n, cert)})
 
 
-def stored_with(session: Session, n: int, certificates) -> dict[str, list[Cluster]]:
-    """The stored clusters of n with these certificates, by certificate, in embedding order (one query)."""
-    out: dict[str, list[Cluster]] = {cert: [] for cert in certificates}
+@dataclass(frozen=True)
+class Stored:
+    """What the write-back needs of a stored cluster: its id, its embedding number and its core cluster."""
+
+    id: int
+    embedding: int
+    cluster: CoreCluster
+
+
+def stored_with(session: Session | Connection, n: int, certificates) -> dict[str, list[Stored]]:
+    """The stored clusters of n with these certificates, by certificate, in embedding order (one query,
+    of the columns the comparison needs only: the write-back runs it for every expansion)."""
+    out: dict[str, list[Stored]] = {cert: [] for cert in certificates}
     if out:
-        for row in session.execute(select(Cluster).where(Cluster.n == n, Cluster.certificate.in_(sorted(out)))
-                                   .order_by(Cluster.certificate, Cluster.embedding)).scalars():
-            out[row.certificate].append(row)
+        for id_, cert, embedding, coords, contact_list in session.execute(_STORED, {"n": n, "certs": sorted(out)}):
+            out[cert].append(Stored(id_, embedding, core_cluster(n, coords, contact_list)))
     return out
 
 
-def insert_or_match(session: Session, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
-                    rows: list[Cluster] | None = None) -> tuple[int, bool]:
+def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
+                    rows: list[Stored] | None = None) -> tuple[int, bool]:
     """The id of the stored cluster equal to ``c`` (same certificate, same
     geometry within ``tol_d``), inserting it if there is none.  The caller
     holds the certificate's lock (:func:`lock_certificates`).  ``rows`` are the
@@ -151,27 +184,27 @@ def insert_or_match(session: Session, c: CoreCluster, rig: Rigidity, run_id: int
         cert = certificate_key(c)
         rows = stored_with(session, c.n, [cert])[cert]
     if rows:
-        k = find_match(c, [r.to_core() for r in rows], tol_d)
+        k = find_match(c, [r.cluster for r in rows], tol_d)
         if k is not None:
             return rows[k].id, False
-    row = Cluster(**cluster_values(c, rig), lattice=lattice_value(c),
-                  embedding=(rows[-1].embedding + 1) if rows else 0, found_in_run=run_id)
-    session.add(row)
-    session.flush()
-    rows.append(row)
-    return row.id, True
+    embedding = (rows[-1].embedding + 1) if rows else 0
+    values = cluster_values(c, rig)
+    result = session.execute(_INSERT_CLUSTER, {
+        **values, "lattice": lattice_value(c), "embedding": embedding, "found_in_run": run_id})
+    cid = int(result.inserted_primary_key[0])
+    rows.append(Stored(cid, embedding, c))
+    return cid, True
 
 
-def ensure_expansions(session: Session, run_id: int, cluster_ids) -> int:
+def ensure_expansions(session: Session | Connection, run_id: int, cluster_ids) -> int:
     """Add a pending expansion to the run for each of ``cluster_ids`` that has none; returns how many."""
     wanted = set(cluster_ids)
     if not wanted:
         return 0
-    have = set(session.execute(select(Expansion.cluster_id).where(
-        Expansion.run_id == run_id, Expansion.cluster_id.in_(sorted(wanted)))).scalars())
+    have = set(session.execute(_HAVE_EXPANSIONS, {"run": run_id, "ids": sorted(wanted)}).scalars())
     missing = sorted(wanted - have)
     if missing:
-        session.execute(insert(Expansion), [{"run_id": run_id, "cluster_id": c, "status": PENDING} for c in missing])
+        session.execute(_INSERT_EXPANSION, [{"run_id": run_id, "cluster_id": c, "status": PENDING} for c in missing])
     return len(missing)
 
 
@@ -345,18 +378,17 @@ class Task:
 def load_task(Session_: sessionmaker, expansion_id: int, token: str) -> Task | None:
     """The task's inputs, or None if the expansion is no longer leased with ``token``."""
     with Session_() as s:
-        row = s.execute(
-            select(Expansion, Cluster, Run)
-            .join(Cluster, Cluster.id == Expansion.cluster_id)
-            .join(Run, Run.id == Expansion.run_id)
-            .where(Expansion.id == expansion_id)
-        ).first()
-        if row is None:
-            return None
-        e, c, r = row
-        if e.status != LEASED or e.lease_token != token:
-            return None
-        return Task(e.id, r.id, c.id, c.to_core(), Params.from_dict(json.loads(r.params)))
+        row = s.execute(_TASK, {"eid": expansion_id}).first()
+    if row is None or row.status != LEASED or row.lease_token != token:
+        return None
+    return Task(expansion_id, row.run_id, row.cluster_id, core_cluster(row.n, row.coords, row.contact_list),
+                _params(row.params))
+
+
+@functools.lru_cache(maxsize=64)
+def _params(params_text: str) -> Params:
+    """A run's parameters from their JSON (a worker reads the same run's again and again)."""
+    return Params.from_dict(json.loads(params_text))
 
 
 def distinct_endpoints(ex: CoreExpansion, tol_d: float) -> tuple[list[tuple[CoreCluster, Rigidity, str]], dict[int, int]]:
@@ -388,8 +420,9 @@ def record_expansion(
     """
     params = task.params
     distinct, which = distinct_endpoints(ex, params.tol_d)
-    with Session_.begin() as s:
-        row = s.execute(select(Expansion).where(Expansion.id == task.expansion_id).with_for_update()).scalar_one_or_none()
+    with Session_.begin() as session:
+        s = session.connection()  # Core statements only: the connection's execute costs less than the session's
+        row = s.execute(_LEASE, {"eid": task.expansion_id}).first()
         if row is None or row.status != LEASED or row.lease_token != token:
             return None
         n = task.cluster.n
@@ -405,7 +438,7 @@ def record_expansion(
         targets = {i: ids[k] for i, k in which.items()}
         targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
         if ex.endpoints:
-            s.execute(insert(Transition), [
+            s.execute(_INSERT_TRANSITION, [
                 {"run_id": task.run_id, "source_id": task.cluster_id, "broken": contacts_json(e.broken),
                  "direction": e.direction, "outcome": e.outcome, "target_id": targets.get(i), "steps": e.steps,
                  "new_contacts": contacts_json(e.new_contacts)}
@@ -413,14 +446,10 @@ def record_expansion(
             ])
         outcomes = dict(sorted(ex.outcomes().items()))
         outcomes["widened_paths"] = ex.widened_paths
-        row.status = DONE
-        row.finished_at = utcnow()
-        row.lease_owner = row.lease_token = None
-        row.outcomes = json.dumps(outcomes)
-        row.paths = ex.paths_followed
-        row.seconds = seconds
-        row.worker = worker
-        row.error = None
+        s.execute(_DONE, {
+            "eid": task.expansion_id, "status": DONE, "finished_at": utcnow(), "lease_owner": None,
+            "lease_token": None, "outcomes": json.dumps(outcomes), "paths": ex.paths_followed, "seconds": seconds,
+            "worker": worker, "error": None})
         return {"expansion": task.expansion_id, "new_clusters": new_clusters, "paths": ex.paths_followed,
                 "seconds": seconds}
 

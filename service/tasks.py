@@ -1,11 +1,12 @@
 """The Dask side: one task per expansion, and the plugin that gives each
 worker process its own database engine.
 
-The task receives only an expansion id, its lease token and the name of the
-plugin holding the engine; it reads the cluster and the run's parameters from
-the database, runs :func:`workers.expand.expand`, and writes the result back
-with :func:`service.store.record_expansion` (one transaction, guarded by the
-lease token).  Engines are never pickled into tasks.
+A task receives only a few (expansion id, lease token) pairs and the name of
+the plugin holding the engine; for each, it reads the cluster and the run's
+parameters from the database, runs :func:`workers.expand.expand`, and writes
+the result back with :func:`service.store.record_expansion` (one transaction
+per expansion, guarded by its lease token).  Engines are never pickled into
+tasks.
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ class DatabasePlugin(WorkerPlugin):
     def setup(self, worker) -> None:
         self.engine = make_engine(self.url)
         self.sessions = sessions(self.engine)
+        self.readers = sessions(self.engine, readonly=True)  # SQLite: reading a task takes no write lock
         # Pay the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
         import workers.expand  # noqa: F401
         from workers.kernels import warm_up
@@ -47,14 +49,15 @@ class DatabasePlugin(WorkerPlugin):
             self.engine.dispose()
 
 
-def run_expansion(Session_, expansion_id: int, token: str, worker: str = "") -> dict:
+def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Reader=None) -> dict:
     """Expand one leased cluster and write the result back; idempotent.
 
     Returns the write-back summary, or ``{"expansion": id, "stale": True}``
     when the lease is not (or no longer) ``token``'s, in which case nothing is
-    written.
+    written.  The task is read with ``Reader`` sessions if given (read-only
+    ones: the lease is checked again when the result is written).
     """
-    task = store.load_task(Session_, expansion_id, token)
+    task = store.load_task(Reader or Session_, expansion_id, token)
     if task is None:
         return {"expansion": expansion_id, "stale": True}
     t0 = time.perf_counter()
@@ -64,8 +67,34 @@ def run_expansion(Session_, expansion_id: int, token: str, worker: str = "") -> 
     return summary if summary is not None else {"expansion": expansion_id, "stale": True}
 
 
-def expand_task(expansion_id: int, token: str, plugin: str) -> dict:
-    """The Dask task: run :func:`run_expansion` with this worker's engine."""
+class ExpansionsFailed(Exception):
+    """Some expansions of a task failed: ``args[0]`` maps each one's id to its error's first line.
+    The task's other expansions were written back (or were stale)."""
+
+    @property
+    def errors(self) -> dict[int, str]:
+        return self.args[0]
+
+    def __str__(self) -> str:
+        return "; ".join(f"expansion {eid}: {err}" for eid, err in self.errors.items())
+
+
+def error_line(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".splitlines()[0]
+
+
+def expand_task(expansions: list[tuple[int, str]], plugin: str) -> list[dict]:
+    """The Dask task: :func:`run_expansion` for each (expansion id, lease token) in turn, with this
+    worker's engine; each is written back in its own transaction.  One that fails does not stop the
+    others; if any failed, the task raises :class:`ExpansionsFailed` at the end, naming them."""
     w = get_worker()
     p = w.plugins[plugin]
-    return run_expansion(p.sessions, expansion_id, token, worker=w.address)
+    out, errors = [], {}
+    for expansion_id, token in expansions:
+        try:
+            out.append(run_expansion(p.sessions, expansion_id, token, worker=w.address, Reader=p.readers))
+        except Exception as exc:  # noqa: BLE001 - reported to the coordinator, which retries or fails it
+            errors[expansion_id] = error_line(exc)
+    if errors:
+        raise ExpansionsFailed(errors)
+    return out

@@ -243,6 +243,62 @@ def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatc
         assert e.status == "failed" and e.attempts == 2 and e.lease_token is None
 
 
+def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkeypatch):
+    """A task expands several clusters.  One whose expansion fails is retried on its own and then
+    marked failed; the others of its task are written back, and the run reaches everything else."""
+    from distributed import Client, LocalCluster
+
+    import service.coordinator
+    import service.tasks
+    from service.coordinator import run_enumeration
+    from workers.explore import explore
+    from workers.identity import same_geometry
+
+    params = Params()
+    victim = explore(8).clusters[3]
+    real_expand, real_task = service.tasks.expand, service.coordinator.expand_task
+    batches: list[list[int]] = []
+    monkeypatch.setattr(service.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
+
+    def failing(cluster, p):
+        if same_geometry(cluster, victim, p.tol_d):
+            raise FloatingPointError("injected failure")
+        return real_expand(cluster, p)
+
+    def recording(expansions, plugin):
+        service.tasks.seen_batches.append([eid for eid, _ in expansions])
+        return real_task(expansions, plugin)
+
+    monkeypatch.setattr(service.tasks, "expand", failing)
+    monkeypatch.setattr(service.coordinator, "expand_task", recording)
+    url = engine.url.render_as_string(hide_password=False)
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        result = run_enumeration(engine, url, 8, params, client, max_attempts=2, per_worker=1, batch=4)
+    assert result.status == "incomplete"
+    with sessions(engine)() as s:
+        rows = s.execute(select(Expansion, Cluster).join(Cluster, Cluster.id == Expansion.cluster_id)).all()
+    failed = [(e, c) for e, c in rows if e.status == "failed"]
+    assert len(failed) == 1 and same_geometry(failed[0][1].to_core(), victim, params.tol_d)
+    e = failed[0][0]
+    assert any(len(b) > 1 and e.id in b for b in batches), batches  # it shared a task with others
+    assert e.attempts == 2 and e.lease_token is None
+    assert result.errors == [f"expansion {e.id}: FloatingPointError: injected failure"]
+    assert all(e.status == "done" for e, _ in rows if e is not failed[0][0])
+    assert len(rows) >= 2 and result.diagnostics["failed_tasks"] == 1
+
+
+def test_claimed_expansions_are_shared_out_evenly():
+    from service.coordinator import _shares
+
+    claimed = [(i, f"t{i}") for i in range(11)]
+    parts = _shares(claimed, 4)
+    assert [len(p) for p in parts] == [3, 3, 3, 2]
+    assert [x for p in parts for x in p] == claimed
+    assert [len(p) for p in _shares(claimed[:3], 8)] == [1, 1, 1]  # a small frontier: one each, no empty task
+    assert _shares([], 4) == [] and _shares(claimed, 0) == []
+
+
 def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch):
     from contextlib import nullcontext
 
@@ -254,7 +310,7 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
 
     seen = {}
 
-    def fake_run(engine, url, n, params, client, on_progress=None, max_attempts=3):
+    def fake_run(engine, url, n, params, client, on_progress=None, max_attempts=3, **kw):
         seen["max_attempts"] = max_attempts
         return RunResult(1, n, "complete", {}, {}, 0.0, False)
 

@@ -87,6 +87,28 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
     assert snapshot(engine) == after_once
 
 
+def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
+    """Workers read their task with read-only sessions: on SQLite those begin DEFERRED, so a task is
+    read while another worker holds the write lock (a write session would wait for it)."""
+    import service.db
+    from sqlalchemy.exc import OperationalError
+
+    monkeypatch.setattr(service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
+    engine = service.db.open_database(sqlite_url, create=True)
+    S = sessions(engine)
+    info = store.start_run(S, 8, Params(), OWNER)
+    [(eid, token)] = store.claim(S, info.id, OWNER, 1)
+    other = make_engine(sqlite_url)
+    with sessions(other).begin() as holder:  # BEGIN IMMEDIATE: the write lock, held by "another worker"
+        holder.execute(select(func.count()).select_from(Run))
+        task = store.load_task(sessions(engine, readonly=True), eid, token)
+        assert task is not None and task.expansion_id == eid and task.cluster.n == 8
+        with pytest.raises(OperationalError, match="locked"):
+            store.load_task(S, eid, token)
+    other.dispose()
+    engine.dispose()
+
+
 def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
     S, info = run8
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
@@ -95,8 +117,7 @@ def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
     inserted = []
 
     def dying(session, run_id, cluster_ids):
-        inserted.extend(cluster_ids)
-        session.flush()
+        inserted.extend(cluster_ids)  # the clusters' rows are inserted by now (Core statements, no flush)
         raise RuntimeError("worker died mid-write")
 
     monkeypatch.setattr(store, "ensure_expansions", dying)
