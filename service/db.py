@@ -6,7 +6,8 @@
   psycopg (3) driver.
 * SQLite: WAL journal, a busy timeout, foreign keys on, and every
   transaction begins ``IMMEDIATE`` (it takes the write lock at once, so two
-  writers never deadlock on a lock upgrade; they queue on the busy timeout).
+  writers never deadlock on a lock upgrade; they queue, polling the lock
+  every few milliseconds up to the busy timeout), except read-only ones.
 * The schema is Alembic's: a database with no tables is created at head when
   the caller may create (``packings enumerate``, ``packings db upgrade``); a
   database at another revision, or with tables that are not ours, is refused
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import time
 from pathlib import Path
 
 from sqlalchemy import Engine, create_engine, event, inspect, text
@@ -115,7 +117,37 @@ def _configure_sqlite(engine: Engine) -> None:
     @event.listens_for(engine, "begin")
     def _on_begin(conn):
         # Readers (sessions(engine, readonly=True)) take no lock: WAL gives them a snapshot.
-        conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get(READONLY) else "BEGIN IMMEDIATE")
+        if conn.get_execution_options().get(READONLY):
+            conn.exec_driver_sql("BEGIN")
+        else:
+            _begin_immediate(conn)
+
+
+def _begin_immediate(conn) -> None:
+    """BEGIN IMMEDIATE, waiting for the write lock by polling it every 0.2-2 ms.
+
+    SQLite's own busy handler sleeps 1, 2, 5, 10, 15, ... ms between tries, while a
+    write-back holds the lock for a few ms: with several workers writing, much of the waiting
+    was its oversleeping.  So the busy timeout is off while BEGIN IMMEDIATE is tried, and set
+    back at once (the transaction's other statements, and readers on this connection later,
+    keep it); after SQLITE_BUSY_TIMEOUT_MS the error is SQLite's "database is locked".
+    """
+    raw = conn.connection.driver_connection
+    raw.execute("PRAGMA busy_timeout=0")
+    try:
+        deadline = time.monotonic() + SQLITE_BUSY_TIMEOUT_MS / 1000
+        pause = 0.0002
+        while True:
+            try:
+                conn.exec_driver_sql("BEGIN IMMEDIATE")
+                return
+            except OperationalError as e:
+                if "locked" not in str(e.orig) or time.monotonic() >= deadline:
+                    raise
+            time.sleep(pause)
+            pause = min(2 * pause, 0.002)
+    finally:
+        raw.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")
 
 
 def is_postgresql(engine_or_session) -> bool:

@@ -10,8 +10,11 @@ service safe under concurrency and failure:
 * Write-back (:func:`record_expansion`): one transaction inserts the new
   clusters, their pending expansions and the transitions, and marks the
   expansion done, and only if the expansion is still leased with the token the
-  task was given; otherwise nothing is written.  A task run twice therefore
-  changes nothing the second time, and a task that dies writes nothing.
+  task was given (its first statement marks it done on that condition; if it
+  matches no row, nothing more is written); otherwise nothing is written.  A task run twice
+  therefore changes nothing the second time, and a task that dies writes
+  nothing.  It runs Core statements built once (:data:`_TASKS` ...), as a task
+  runs them for every expansion.
 * Deduplication: before comparing an endpoint with the stored clusters of its
   certificate, the transaction takes ``pg_advisory_xact_lock`` on (n,
   certificate) (PostgreSQL; locks taken in sorted order, so two tasks cannot
@@ -94,12 +97,11 @@ def process_name() -> str:
 # The statements a task runs for every expansion, built once: building one costs about as much as
 # running it on SQLite.  Core statements on the tables, so that no ORM object is made per row.
 _E, _C, _R, _T = Expansion.__table__, Cluster.__table__, Run.__table__, Transition.__table__
-_TASK = (select(_E.c.status, _E.c.lease_token, _E.c.run_id, _E.c.cluster_id, _C.c.n, _C.c.coords,
-                _C.c.contact_list, _R.c.params)
-         .join_from(_E, _C, _C.c.id == _E.c.cluster_id).join(_R, _R.c.id == _E.c.run_id)
-         .where(_E.c.id == bindparam("eid")))
-_LEASE = select(_E.c.status, _E.c.lease_token).where(_E.c.id == bindparam("eid")).with_for_update()
-_STORED = (select(_C.c.id, _C.c.certificate, _C.c.embedding, _C.c.coords, _C.c.contact_list)
+_TASKS = (select(_E.c.id, _E.c.status, _E.c.lease_token, _E.c.run_id, _E.c.cluster_id, _C.c.n, _C.c.coords,
+                 _C.c.contact_list, _R.c.params)
+          .join_from(_E, _C, _C.c.id == _E.c.cluster_id).join(_R, _R.c.id == _E.c.run_id)
+          .where(_E.c.id.in_(bindparam("eids", expanding=True))))
+_STORED = (select(_C.c.id, _C.c.certificate, _C.c.embedding, _C.c.coords, _C.c.contact_list, _C.c.found_in_run)
            .where(_C.c.n == bindparam("n"), _C.c.certificate.in_(bindparam("certs", expanding=True)))
            .order_by(_C.c.certificate, _C.c.embedding))
 _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
@@ -107,7 +109,8 @@ _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
 _INSERT_CLUSTER = insert(_C)
 _INSERT_EXPANSION = insert(_E)
 _INSERT_TRANSITION = insert(_T)
-_DONE = update(_E).where(_E.c.id == bindparam("eid"))  # SET: the columns given when it runs
+#: an expansion done, if still leased with the token (SET: the columns given when it runs)
+_DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
 
 # --------------------------------------------------------------------------- clusters
@@ -154,11 +157,13 @@ def lock_certificates(session: Session | Connection, keys) -> None:
 
 @dataclass(frozen=True)
 class Stored:
-    """What the write-back needs of a stored cluster: its id, its embedding number and its core cluster."""
+    """What the write-back needs of a stored cluster: its id, its embedding number, its core cluster and
+    the run that found it (which gave it its expansion in that run in the same transaction)."""
 
     id: int
     embedding: int
     cluster: CoreCluster
+    found_in_run: int | None = None
 
 
 def stored_with(session: Session | Connection, n: int, certificates) -> dict[str, list[Stored]]:
@@ -166,8 +171,8 @@ def stored_with(session: Session | Connection, n: int, certificates) -> dict[str
     of the columns the comparison needs only: the write-back runs it for every expansion)."""
     out: dict[str, list[Stored]] = {cert: [] for cert in certificates}
     if out:
-        for id_, cert, embedding, coords, contact_list in session.execute(_STORED, {"n": n, "certs": sorted(out)}):
-            out[cert].append(Stored(id_, embedding, core_cluster(n, coords, contact_list)))
+        for id_, cert, embedding, coords, contact_list, run in session.execute(_STORED, {"n": n, "certs": sorted(out)}):
+            out[cert].append(Stored(id_, embedding, core_cluster(n, coords, contact_list), run))
     return out
 
 
@@ -192,17 +197,17 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
     result = session.execute(_INSERT_CLUSTER, {
         **values, "lattice": lattice_value(c), "embedding": embedding, "found_in_run": run_id})
     cid = int(result.inserted_primary_key[0])
-    rows.append(Stored(cid, embedding, c))
+    rows.append(Stored(cid, embedding, c, run_id))
     return cid, True
 
 
-def ensure_expansions(session: Session | Connection, run_id: int, cluster_ids) -> int:
-    """Add a pending expansion to the run for each of ``cluster_ids`` that has none; returns how many."""
-    wanted = set(cluster_ids)
-    if not wanted:
-        return 0
-    have = set(session.execute(_HAVE_EXPANSIONS, {"run": run_id, "ids": sorted(wanted)}).scalars())
-    missing = sorted(wanted - have)
+def ensure_expansions(session: Session | Connection, run_id: int, cluster_ids, new=()) -> int:
+    """Add a pending expansion to the run for each of ``cluster_ids`` that has none, and for each of
+    ``new`` (clusters inserted in this transaction, which have none yet); returns how many."""
+    new = set(new)
+    wanted = set(cluster_ids) - new
+    have = set(session.execute(_HAVE_EXPANSIONS, {"run": run_id, "ids": sorted(wanted)}).scalars()) if wanted else set()
+    missing = sorted((wanted - have) | new)
     if missing:
         session.execute(_INSERT_EXPANSION, [{"run_id": run_id, "cluster_id": c, "status": PENDING} for c in missing])
     return len(missing)
@@ -377,12 +382,20 @@ class Task:
 
 def load_task(Session_: sessionmaker, expansion_id: int, token: str) -> Task | None:
     """The task's inputs, or None if the expansion is no longer leased with ``token``."""
+    return load_tasks(Session_, [(expansion_id, token)]).get(expansion_id)
+
+
+def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
+    """The inputs of the expansions in ``leases`` ((id, token) pairs), in one query: those still
+    leased with their token, by id (the others are left out)."""
+    tokens = dict(leases)
+    if not tokens:
+        return {}
     with Session_() as s:
-        row = s.execute(_TASK, {"eid": expansion_id}).first()
-    if row is None or row.status != LEASED or row.lease_token != token:
-        return None
-    return Task(expansion_id, row.run_id, row.cluster_id, core_cluster(row.n, row.coords, row.contact_list),
-                _params(row.params))
+        rows = s.execute(_TASKS, {"eids": sorted(tokens)}).all()
+    return {row.id: Task(row.id, row.run_id, row.cluster_id, core_cluster(row.n, row.coords, row.contact_list),
+                         _params(row.params))
+            for row in rows if row.status == LEASED and row.lease_token == tokens[row.id]}
 
 
 @functools.lru_cache(maxsize=64)
@@ -420,21 +433,33 @@ def record_expansion(
     """
     params = task.params
     distinct, which = distinct_endpoints(ex, params.tol_d)
-    with Session_.begin() as session:
-        s = session.connection()  # Core statements only: the connection's execute costs less than the session's
-        row = s.execute(_LEASE, {"eid": task.expansion_id}).first()
-        if row is None or row.status != LEASED or row.lease_token != token:
+    outcomes = dict(sorted(ex.outcomes().items()))
+    outcomes["widened_paths"] = ex.widened_paths
+    # Core statements only, on a connection of the sessions' engine: cheaper than a session, and the
+    # same transaction rules (SQLite: BEGIN IMMEDIATE).
+    with Session_.kw["bind"].begin() as s:
+        # First: done, if the lease is still this token's (PostgreSQL: this also locks the row).  Nothing
+        # of it is seen by others before the commit, and all of it is rolled back if anything below fails.
+        done = s.execute(_DONE, {
+            "eid": task.expansion_id, "token": token, "status": DONE, "finished_at": utcnow(),
+            "lease_owner": None, "lease_token": None, "outcomes": json.dumps(outcomes),
+            "paths": ex.paths_followed, "seconds": seconds, "worker": worker, "error": None})
+        if done.rowcount != 1:
             return None
         n = task.cluster.n
         lock_certificates(s, [(n, cert) for _, _, cert in distinct])
         stored = stored_with(s, n, {cert for _, _, cert in distinct})
-        new_clusters = 0
-        ids = []
+        ids, inserted, others = [], [], []
         for c, rig, cert in distinct:
             cid, is_new = insert_or_match(s, c, rig, task.run_id, params.tol_d, stored[cert])
-            new_clusters += is_new
             ids.append(cid)
-        ensure_expansions(s, task.run_id, ids)
+            if is_new:
+                inserted.append(cid)
+            elif next(r.found_in_run for r in stored[cert] if r.id == cid) != task.run_id:
+                others.append(cid)  # found by another run: it may have no expansion in this one yet
+        new_clusters = len(inserted)
+        # a cluster this run found got its expansion in this run when it was inserted
+        ensure_expansions(s, task.run_id, others, new=inserted)
         targets = {i: ids[k] for i, k in which.items()}
         targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
         if ex.endpoints:
@@ -444,14 +469,8 @@ def record_expansion(
                  "new_contacts": contacts_json(e.new_contacts)}
                 for i, e in enumerate(ex.endpoints)
             ])
-        outcomes = dict(sorted(ex.outcomes().items()))
-        outcomes["widened_paths"] = ex.widened_paths
-        s.execute(_DONE, {
-            "eid": task.expansion_id, "status": DONE, "finished_at": utcnow(), "lease_owner": None,
-            "lease_token": None, "outcomes": json.dumps(outcomes), "paths": ex.paths_followed, "seconds": seconds,
-            "worker": worker, "error": None})
-        return {"expansion": task.expansion_id, "new_clusters": new_clusters, "paths": ex.paths_followed,
-                "seconds": seconds}
+    return {"expansion": task.expansion_id, "new_clusters": new_clusters, "paths": ex.paths_followed,
+            "seconds": seconds}
 
 
 def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, on_batch=None) -> int:

@@ -1,12 +1,12 @@
-"""The Dask side: one task per expansion, and the plugin that gives each
+"""The Dask side: one task per few expansions, and the plugin that gives each
 worker process its own database engine.
 
 A task receives only a few (expansion id, lease token) pairs and the name of
-the plugin holding the engine; for each, it reads the cluster and the run's
-parameters from the database, runs :func:`workers.expand.expand`, and writes
-the result back with :func:`service.store.record_expansion` (one transaction
-per expansion, guarded by its lease token).  Engines are never pickled into
-tasks.
+the plugin holding the engine; it reads their clusters and the run's
+parameters from the database (one read-only query), and for each runs
+:func:`workers.expand.expand` and writes the result back with
+:func:`service.store.record_expansion` (one transaction per expansion, guarded
+by its lease token).  Engines are never pickled into tasks.
 """
 
 from __future__ import annotations
@@ -60,11 +60,16 @@ def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Rea
     task = store.load_task(Reader or Session_, expansion_id, token)
     if task is None:
         return {"expansion": expansion_id, "stale": True}
+    return run_loaded(Session_, task, token, worker)
+
+
+def run_loaded(Session_, task: store.Task, token: str, worker: str = "") -> dict:
+    """:func:`run_expansion` of a task already read (:func:`service.store.load_tasks`)."""
     t0 = time.perf_counter()
     ex = expand(task.cluster, task.params)
     seconds = time.perf_counter() - t0
     summary = store.record_expansion(Session_, task, token, ex, seconds, worker or store.process_name())
-    return summary if summary is not None else {"expansion": expansion_id, "stale": True}
+    return summary if summary is not None else {"expansion": task.expansion_id, "stale": True}
 
 
 class ExpansionsFailed(Exception):
@@ -89,10 +94,14 @@ def expand_task(expansions: list[tuple[int, str]], plugin: str) -> list[dict]:
     others; if any failed, the task raises :class:`ExpansionsFailed` at the end, naming them."""
     w = get_worker()
     p = w.plugins[plugin]
+    tasks = store.load_tasks(p.readers, expansions)  # one read for all (each lease is checked again on write)
     out, errors = [], {}
     for expansion_id, token in expansions:
+        if expansion_id not in tasks:
+            out.append({"expansion": expansion_id, "stale": True})
+            continue
         try:
-            out.append(run_expansion(p.sessions, expansion_id, token, worker=w.address, Reader=p.readers))
+            out.append(run_loaded(p.sessions, tasks[expansion_id], token, worker=w.address))
         except Exception as exc:  # noqa: BLE001 - reported to the coordinator, which retries or fails it
             errors[expansion_id] = error_line(exc)
     if errors:

@@ -165,3 +165,54 @@ def test_sqlite_readers_do_not_wait_for_a_writer(sqlite_url):
             raw.execute("BEGIN IMMEDIATE")
         raw.close()
     eng.dispose()
+
+
+def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url, monkeypatch):
+    """A writer waits (polling) for another's write lock and gets it once that one commits; if the
+    lock is not given back within the busy timeout, BEGIN fails with SQLite's "database is locked".
+    Either way the connection's busy timeout is the configured one afterwards."""
+    import threading
+
+    import service.db
+    from sqlalchemy.exc import OperationalError
+
+    from service.db import sessions
+
+    eng = open_database(sqlite_url, create=True)
+    holder = make_engine(sqlite_url)
+    S = sessions(eng)
+    taken, release, order = threading.Event(), threading.Event(), []
+
+    def hold():
+        with sessions(holder).begin() as h:
+            h.execute(text("SELECT 1"))  # BEGIN IMMEDIATE: the write lock
+            taken.set()
+            release.wait(30)
+            order.append("holder commits")
+
+    t = threading.Thread(target=hold)
+    t.start()
+    taken.wait(30)
+    threading.Timer(0.2, release.set).start()
+    with S.begin() as s:
+        s.execute(text("SELECT 1"))
+        order.append("writer begins")
+        assert s.execute(text("PRAGMA busy_timeout")).scalar() == service.db.SQLITE_BUSY_TIMEOUT_MS
+    t.join(30)
+    assert order == ["holder commits", "writer begins"]
+
+    monkeypatch.setattr(service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
+    taken.clear()
+    release.clear()
+    t = threading.Thread(target=hold)
+    t.start()
+    taken.wait(30)
+    with pytest.raises(OperationalError, match="locked"):
+        with S.begin() as s:
+            s.execute(text("SELECT 1"))
+    release.set()
+    t.join(30)
+    with eng.connect() as c:  # every pooled connection has its busy timeout back
+        assert c.exec_driver_sql("PRAGMA busy_timeout").scalar() == 200
+    holder.dispose()
+    eng.dispose()

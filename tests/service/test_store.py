@@ -79,11 +79,14 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
     second = run_expansion(S, eid, token)
     assert second == {"expansion": eid, "stale": True}
     assert snapshot(engine) == after_once
-    # also the write-back itself, given a result computed before the first write landed
-    task = store.Task(eid, info.id, 1, None, Params())  # cluster unused by record_expansion when stale
-    from workers.expand import Expansion as CoreExpansion
+    # also the write-back itself, given a result computed before the first write landed: its inserts
+    # are rolled back when the lease turns out to be gone
+    from workers.expand import expand
+    from workers.seeds import seed_cluster
 
-    assert store.record_expansion(S, task, token, CoreExpansion(None, ()), 0.0, "w") is None
+    seed = seed_cluster(8, Params())
+    task = store.Task(eid, info.id, 1, seed, Params())
+    assert store.record_expansion(S, task, token, expand(seed, Params()), 0.0, "w") is None
     assert snapshot(engine) == after_once
 
 
@@ -116,8 +119,8 @@ def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
     real = store.ensure_expansions
     inserted = []
 
-    def dying(session, run_id, cluster_ids):
-        inserted.extend(cluster_ids)  # the clusters' rows are inserted by now (Core statements, no flush)
+    def dying(session, run_id, cluster_ids, new=()):
+        inserted.extend([*cluster_ids, *new])  # the clusters' rows are inserted by now (Core statements, no flush)
         raise RuntimeError("worker died mid-write")
 
     monkeypatch.setattr(store, "ensure_expansions", dying)
@@ -246,3 +249,26 @@ def test_the_coordinator_heartbeat_runs_on_its_own(run8, monkeypatch):
     beat.stop()
     with S() as s:
         assert s.get(Run, info.id).heartbeat_at > first
+
+
+def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
+    """Runs of the same n share clusters: a run with other parameters finds every cluster stored
+    already, stores none again, and gives each its own expansion (those found by another run are
+    checked for one; those it inserts get one at once)."""
+    import dataclasses
+
+    from tests.service.conftest import fill_database
+
+    first = fill_database(engine, 8)
+    other = dataclasses.replace(Params(), probe_stall=Params().probe_stall + 1)  # changes no result
+    second = fill_database(engine, 8, params=other)
+    assert second != first
+    with sessions(engine)() as s:
+        assert s.execute(select(func.count()).select_from(Cluster)).scalar_one() == 13
+        for run in (first, second):
+            assert store.frontier(s, run) == {DONE: 13}
+            assert store.run_counts(s, run) == {18: 13}
+        found = dict(s.execute(select(Cluster.found_in_run, func.count()).group_by(Cluster.found_in_run)).all())
+        assert found == {first: 13}
+        assert s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == second)).scalar_one() \
+            == s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == first)).scalar_one()
