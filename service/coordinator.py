@@ -6,9 +6,9 @@ smaller than the workers' share of tasks), consumes results as they complete
 and claims more, until nothing is pending or leased.  Each expansion is
 written back in its own transaction; an expansion that fails is put back to
 pending and retried, at most ``max_attempts`` times in all, then marked
-failed with its error text.  Everything needed to resume is in the database: a coordinator
-that is killed leaves leases behind, and the next one (the same command) puts
-them back to pending when it starts.
+failed with its error text.  Everything needed to resume is in the database:
+a coordinator that is killed leaves leases behind, and the next one (the same
+command) puts them back to pending when it starts.
 """
 
 from __future__ import annotations

@@ -90,8 +90,9 @@ def error_line(exc: BaseException) -> str:
 
 def expand_task(expansions: list[tuple[int, str]], plugin: str) -> list[dict]:
     """The Dask task: :func:`run_expansion` for each (expansion id, lease token) in turn, with this
-    worker's engine; each is written back in its own transaction.  One that fails does not stop the
-    others; if any failed, the task raises :class:`ExpansionsFailed` at the end, naming them."""
+    worker's engine (all read in one query first); each is written back in its own transaction.  One
+    that fails does not stop the others; if any failed, the task raises :class:`ExpansionsFailed` at
+    the end, naming them."""
     w = get_worker()
     p = w.plugins[plugin]
     tasks = store.load_tasks(p.readers, expansions)  # one read for all (each lease is checked again on write)
