@@ -220,6 +220,22 @@ def _stacking(k: np.ndarray, label: np.ndarray) -> tuple[bool, bool, bool, bool]
     return (True, bool(fcc), hcp, layers.size == 1)
 
 
+def _off_lattice_distance(p: np.ndarray, tol: float) -> bool:
+    """Whether some pair distance is farther than 2 ``tol`` from every distance of a close-packed
+    lattice, which are the sqrt(k / 3) (k integer).  Then no frame can be accepted (every sphere
+    within ``tol`` of its site moves each distance by at most 2 ``tol``): a cheap rejection.
+
+    Sites in layers k1, k2 at union-lattice positions (i1, j1) / 3, (i2, j2) / 3 with i = j
+    (mod 3) are at squared distance (i^2 + i j + j^2 + 6 (k1 - k2)^2) / 9 for i = i1 - i2,
+    j = j1 - j2, and i^2 + i j + j^2 = 3 i^2 = 0 (mod 3): a multiple of 1 / 3.
+    """
+    d2 = np.einsum("ijk,ijk->ij", p[:, None, :] - p[None, :, :], p[:, None, :] - p[None, :, :])
+    d = np.sqrt(d2[np.triu_indices(p.shape[0], 1)])
+    k = np.floor(3.0 * d * d)
+    off = np.minimum(np.abs(d - np.sqrt(k / 3.0)), np.abs(np.sqrt((k + 1.0) / 3.0) - d))
+    return bool(np.any(off > 2.0 * tol + 1e-12))
+
+
 def lattice_type(coords: np.ndarray, contacts, tol: float = 1e-4) -> str | None:
     """"fcc", "hcp", "both", "random", "2d", or None if not a close-packed fragment.
 
@@ -235,6 +251,8 @@ def lattice_type(coords: np.ndarray, contacts, tol: float = 1e-4) -> str | None:
     if tri is None:
         if n == 1 or (n == 2 and abs(np.linalg.norm(p[1] - p[0]) - 1.0) <= 2.0 * tol):
             return "2d"
+        return None
+    if _off_lattice_distance(p, tol):
         return None
     fcc = hcp = stackable = False
     for index, (origin, basis) in enumerate(_frames(p, tri)):

@@ -432,3 +432,37 @@ def test_describe_rhombus_and_complete_cluster():
     d = describe(icosahedron(), contacts(icosahedron()))
     assert d["static"] == "hypostatic" and d["excess"] == 12 - 33 and not d["close_packed"]
     assert d["min_gap"] == pytest.approx(1 / np.sin(2 * np.pi / 5) - 1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from(list(KNOWN)), seed=st.integers(0, 2**32 - 1), scale=st.floats(0.0, 3.0))
+def test_the_distance_prefilter_rejects_only_what_the_frames_reject(name, seed, scale):
+    """The cheap rejection (a pair distance farther than 2 tol from every sqrt(k/3)) never changes the
+    answer: constructed clusters moved by up to 3 tol (so that some stay close-packed and some do not),
+    with and without it."""
+    import workers.classify as classify
+
+    build, _, n = KNOWN[name]
+    x = build()
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=x.shape)
+    y = x + scale * 1e-4 * u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(0, 1, size=(n, 1))
+    cs = contacts(x)
+    with_filter = lattice_type(y, cs)
+    real = classify._off_lattice_distance
+    classify._off_lattice_distance = lambda p, tol: False
+    try:
+        without = lattice_type(y, cs)
+    finally:
+        classify._off_lattice_distance = real
+    assert with_filter == without
+
+
+def test_the_distance_prefilter_passes_close_packed_and_catches_others():
+    import workers.classify as classify
+
+    for name, (build, expected, _) in KNOWN.items():
+        if expected is not None:
+            assert not classify._off_lattice_distance(build(), 1e-4), name
+    assert classify._off_lattice_distance(icosahedron(), 1e-4)
+    assert classify._off_lattice_distance(pentagonal_bipyramid(), 1e-4)
