@@ -42,6 +42,10 @@ is accepted when
   their sphere (Euclidean distance);
 * every occupied layer carries a single label.
 
+(Before any frame is tried, a cluster with a pair distance farther than
+``2 tol`` from every distance sqrt(k/3) of a close-packed lattice is
+rejected: no frame could be accepted.)
+
 The labels of the occupied layers are then tested:
 
 * *stackable*: occupied layers ``k < k'`` with ``k' = k + 1`` have different
