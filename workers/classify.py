@@ -103,7 +103,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.cluster import Cluster, normalise_contacts
+from workers.cluster import Cluster, cross3, normalise_contacts, pair_distances
 
 __all__ = ["STATIC", "LATTICES", "static_class", "lattice_type", "describe"]
 
@@ -138,11 +138,6 @@ def _first_triangle(n: int, contacts) -> tuple[int, int, int] | None:
     return None
 
 
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """u x v for 3-vectors (np.cross costs ten times as much on one pair)."""
-    return np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
-
-
 def _frames(p: np.ndarray, tri: tuple[int, int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
     """The seven candidate frames (origin, 3x3 basis with rows e1, e2, normal) for triangle ``tri``.
 
@@ -151,7 +146,7 @@ def _frames(p: np.ndarray, tri: tuple[int, int, int]) -> list[tuple[np.ndarray, 
     first axis towards y (x, y spheres of the triangle).
     """
     a, b, c = (p[i] for i in tri)
-    normal = _cross(b - a, c - a)
+    normal = cross3(b - a, c - a)
     normal /= np.linalg.norm(normal)
     centroid = (a + b + c) / 3.0
     r2 = np.mean([np.dot(v - centroid, v - centroid) for v in (a, b, c)])
@@ -160,9 +155,9 @@ def _frames(p: np.ndarray, tri: tuple[int, int, int]) -> list[tuple[np.ndarray, 
     def frame(x, y, z):
         e1 = y - x
         e1 = e1 / np.linalg.norm(e1)
-        nz = _cross(e1, z - x)
+        nz = cross3(e1, z - x)
         nz /= np.linalg.norm(nz)
-        return x, np.array([e1, _cross(nz, e1), nz])
+        return x, np.array([e1, cross3(nz, e1), nz])
 
     out = [frame(a, b, c)]
     for apex in (centroid + height * normal, centroid - height * normal):
@@ -233,8 +228,7 @@ def _off_lattice_distance(p: np.ndarray, tol: float) -> bool:
     (mod 3) are at squared distance (i^2 + i j + j^2 + 6 (k1 - k2)^2) / 9 for i = i1 - i2,
     j = j1 - j2, and i^2 + i j + j^2 = 3 i^2 = 0 (mod 3): a multiple of 1 / 3.
     """
-    d2 = np.einsum("ijk,ijk->ij", p[:, None, :] - p[None, :, :], p[:, None, :] - p[None, :, :])
-    d = np.sqrt(d2[np.triu_indices(p.shape[0], 1)])
+    d = pair_distances(p)[np.triu_indices(p.shape[0], 1)]
     k = np.floor(3.0 * d * d)
     off = np.minimum(np.abs(d - np.sqrt(k / 3.0)), np.abs(np.sqrt((k + 1.0) / 3.0) - d))
     return bool(np.any(off > 2.0 * tol + 1e-12))

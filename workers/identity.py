@@ -281,7 +281,6 @@ class ClusterIndex:
         self._canon: list[_Canonical] = []
         self._embedding: list[int] = []
         self._by_cert: dict[tuple[int, bytes], list[int]] = {}
-        self._autos: dict[tuple[int, bytes], np.ndarray] = {}
 
     def add(self, cluster: Cluster, tol_d: float) -> tuple[int, bool]:
         """Insert ``cluster`` unless an equal one is stored; return ``(id, is_new)``."""
@@ -289,12 +288,10 @@ class ClusterIndex:
         key = (c.n, c.cert)
         ids = self._by_cert.setdefault(key, [])
         if ids:
-            autos = self._autos[key]
+            autos = _group(c)
             for i in ids:
                 if _same_geometry_canonical(self._canon[i], c, autos, tol_d):
                     return i, False
-        else:
-            self._autos[key] = _group(c)
         new_id = len(self._clusters)
         self._clusters.append(cluster)
         self._canon.append(c)

@@ -50,6 +50,7 @@ from typing import Iterator
 
 import numpy as np
 
+from workers.cluster import cross3
 from workers.params import DEFAULT
 
 BACKENDS = ("numba", "numpy")
@@ -139,7 +140,7 @@ def to_frame(x: np.ndarray, tri: tuple[int, int, int]) -> np.ndarray:
     u = p[c] - p[a]
     e2 = u - (u @ e1) * e1
     e2 /= np.linalg.norm(e2)
-    e3 = np.array([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]])  # e1 x e2
+    e3 = cross3(e1, e2)
     q = (p - p[a]) @ np.stack([e1, e2, e3], axis=1)
     q[a] = 0.0
     q[b, 1:] = 0.0
