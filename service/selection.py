@@ -31,7 +31,7 @@ from sqlalchemy.orm import Session, aliased, with_expression
 
 from service.models import Cluster, Expansion, Run, Transition
 from workers.classify import LATTICES
-from workers.expand import CIRCULAR
+from workers.outcomes import CIRCULAR
 
 OPERATORS = ("=", "!=", "<", "<=", ">", ">=")
 EQUALITY = ("=", "!=")

@@ -17,7 +17,7 @@ from service.export import table
 from service.fit import fit_factorial
 from service.models import Cluster, Transition
 from service.store import NOT_CLOSE_PACKED, counts_by_n
-from workers.expand import CIRCULAR
+from workers.outcomes import CIRCULAR
 
 #: how many of the smallest gaps are listed
 SMALLEST = 10

@@ -13,16 +13,18 @@ from workers import kernels
 from workers.cluster import Cluster
 from workers.dimension import solution_dimension
 from workers.identity import certificate, same_geometry
+from workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
+    BELOW_MIN_CONTACTS,
+    CIRCULAR,
+    DIMENSION_CHANGED,
+    NO_DIRECTION,
+    NO_TRIANGLE,
+    NOT_1D,
+    RIGID,
+)
 from workers.params import Params
-from workers.paths import DIMENSION_CHANGED, RIGID, PathEnd, follow_path
+from workers.paths import PathEnd, follow_path
 from workers.rigidity import Rigidity, contact_triangle, rigidity
-
-# Outcomes of one (broken subset, direction) beyond those of a path (workers.paths).
-CIRCULAR = "circular"  #: the path came back to the cluster it left
-NOT_1D = "not-1d"  #: removing the subset leaves a solution set of dimension != 1 (no path)
-NO_DIRECTION = "no-direction"  #: no tangent direction lengthens every broken contact
-NO_TRIANGLE = "no-triangle"  #: the remaining contacts hold no triangle to pin
-BELOW_MIN_CONTACTS = "below-min-contacts"  #: rigid endpoint with fewer contacts than min_contacts
 
 
 @dataclass(frozen=True)

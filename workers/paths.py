@@ -11,18 +11,18 @@ from workers import kernels
 from workers.kernels import _compiled
 from workers.cluster import contacts_from_coords, pair_distances
 from workers.dimension import solution_dimension
+from workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
+    DIMENSION_CHANGED,
+    FLOPPY,
+    OVERLAP,
+    PROJECTION_FAILED,
+    RIGID,
+    SHORTENS,
+    TOO_LONG,
+    UNDECIDED_END,
+)
 from workers.params import Params
 from workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces, rigidity_without_stress
-
-# Outcomes of one path.
-RIGID = "rigid"  #: ended at a rigid cluster
-FLOPPY = "floppy"  #: ended where new contacts form but the cluster is not rigid
-UNDECIDED_END = "undecided"  #: ended at a cluster the pre-stress test could not decide
-PROJECTION_FAILED = "projection-failed"  #: no projection with any subset of the new contacts, or a step could not be projected
-DIMENSION_CHANGED = "dimension-changed"  #: the path could not go on: its set was no longer one-dimensional
-SHORTENS = "shortens"  #: the direction shortens a broken contact (the spheres would overlap)
-OVERLAP = "overlap"  #: the projected endpoint has overlapping spheres
-TOO_LONG = "too-long"  #: max_path_steps reached without a new contact
 
 
 @dataclass(frozen=True)
