@@ -25,7 +25,8 @@ from sqlalchemy import Engine, select
 from service import store
 from service.db import sessions
 from service.models import DONE, FAILED, LEASED, PENDING, Expansion
-from service.tasks import DatabasePlugin, ExpansionsFailed, error_line, expand_task
+from service.plugin import DatabasePlugin
+from service.tasks import ExpansionsFailed, error_line, expand_task
 from workers.params import Params
 
 HEARTBEAT_SECONDS = 10.0
@@ -141,7 +142,7 @@ def run_enumeration(
     """Create or resume the run for (n, params) and drive it to the end.
 
     ``url`` is the database URL the workers use (they open their own engine
-    through :class:`service.tasks.DatabasePlugin`).  ``per_worker`` tasks per
+    through :class:`service.plugin.DatabasePlugin`).  ``per_worker`` tasks per
     worker thread are kept in flight, of up to ``batch`` expansions each.
     """
     Session_ = sessions(engine)

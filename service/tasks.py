@@ -1,5 +1,5 @@
-"""The Dask side: one task per few expansions, and the plugin that gives each
-worker process its own database engine.
+"""The Dask side: one task per few expansions, run with the database engine that
+:class:`service.plugin.DatabasePlugin` gives each worker process.
 
 A task receives only a few (expansion id, lease token) pairs and the name of
 the plugin holding the engine; it reads their clusters and the run's
@@ -13,40 +13,10 @@ from __future__ import annotations
 
 import time
 
-from distributed import WorkerPlugin, get_worker
-from sqlalchemy import Engine
+from distributed import get_worker
 
 from service import store
-from service.db import advisory_key, display_url, make_engine, parse_url, sessions
 from workers.expand import expand
-
-
-def plugin_name(url: str) -> str:
-    """One plugin (and so one engine per worker process) per database."""
-    return f"packings-db-{advisory_key(display_url(parse_url(url))) & 0xFFFFFFFF:08x}"
-
-
-class DatabasePlugin(WorkerPlugin):
-    """Creates the database engine once per worker process."""
-
-    def __init__(self, url: str):
-        self.url = url
-        self.name = plugin_name(url)
-        self.engine: Engine | None = None
-
-    def setup(self, worker) -> None:
-        self.engine = make_engine(self.url)
-        self.sessions = sessions(self.engine)
-        self.readers = sessions(self.engine, readonly=True)  # SQLite: reading a task takes no write lock
-        # Pay the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
-        import workers.expand  # noqa: F401
-        from workers.kernels import warm_up
-
-        self.warm_up_seconds = warm_up()
-
-    def teardown(self, worker) -> None:
-        if self.engine is not None:
-            self.engine.dispose()
 
 
 def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Reader=None) -> dict:

@@ -301,6 +301,7 @@ def test_claimed_expansions_are_shared_out_evenly():
 
 def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch):
     from contextlib import nullcontext
+    from types import SimpleNamespace
 
     from click.testing import CliRunner
 
@@ -315,7 +316,7 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
         return RunResult(1, n, "complete", {}, {}, 0.0, False)
 
     monkeypatch.setattr(service.coordinator, "run_enumeration", fake_run)
-    monkeypatch.setattr(service.cli, "_dask_client", lambda *a: nullcontext(None))
+    monkeypatch.setattr(service.cli, "_dask_client", lambda *a, **kw: nullcontext(SimpleNamespace(client=None)))
     r = CliRunner().invoke(service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
@@ -326,7 +327,7 @@ def test_each_worker_compiles_the_kernels_when_it_joins(engine):
     before any task runs, so no task pays for compilation."""
     from distributed import Client, LocalCluster
 
-    from service.tasks import DatabasePlugin
+    from service.plugin import DatabasePlugin
 
     url = engine.url.render_as_string(hide_password=False)
     plugin = DatabasePlugin(url)
@@ -345,6 +346,37 @@ def test_each_worker_compiles_the_kernels_when_it_joins(engine):
         assert seconds > 0.0 and newton >= 1 and residual >= 1
 
 
+def test_a_local_cluster_sets_its_workers_up_as_they_start(engine):
+    """``packings enumerate`` gives its local cluster the plugin when it starts it (in the background,
+    while the database is opened): each worker has its engine, has warmed the kernels up and has
+    frozen what it loaded out of the garbage collector's way before it joins and any task runs."""
+    import gc
+
+    import service.cli
+    from service.plugin import DatabasePlugin
+
+    plugin = DatabasePlugin(engine.url.render_as_string(hide_password=False))
+
+    def state(dask_worker):
+        p = dask_worker.plugins.get(plugin.name)
+        return p is not None and p.engine is not None, getattr(p, "warm_up_seconds", 0.0), gc.get_freeze_count()
+
+    with service.cli._dask_client(None, 2, True, plugins=(plugin,)) as local:
+        seen = local.client.run(state)
+    assert len(seen) == 2
+    for has_engine, warm_up_seconds, frozen in seen.values():
+        assert has_engine and warm_up_seconds > 0.0 and frozen > 10_000
+
+
+def test_the_command_line_starts_the_workers_before_loading_the_kernels():
+    """What ``packings enumerate`` imports before it starts its local cluster (the command line and the
+    worker plugin) leaves out the numerical code: the workers start while it is loaded."""
+    code = ("import sys, service.cli, service.plugin; "
+            "print(sorted(m for m in ('numba', 'workers.expand', 'workers.kernels', 'service.store') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
 @pytest.mark.parametrize("env, expected", [(None, False), ("True", True)])
 def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
     """Dask's statistical profiler (a stack sample every 10 ms) costs a run about 8 %: the local
@@ -358,8 +390,8 @@ def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
         monkeypatch.setenv(service.cli.PROFILE_ENV, env)
     dask.config.refresh()  # read the environment as a new process would
     try:
-        with service.cli._dask_client(None, 1, True) as client:
-            seen = client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
+        with service.cli._dask_client(None, 1, True) as local:
+            seen = local.client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
     finally:
         monkeypatch.undo()
         dask.config.refresh()  # and leave no setting behind for other tests
