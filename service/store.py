@@ -7,13 +7,13 @@ service safe under concurrency and failure:
   (PostgreSQL: ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite: the transaction
   begins IMMEDIATE, so claims are serial, and SQLAlchemy's SQLite dialect
   leaves ``FOR UPDATE`` out of every statement here).
-* Write-back (:func:`record_expansion`): one transaction inserts the new
-  clusters, their pending expansions and the transitions, and marks the
-  expansion done, and only if the expansion is still leased with the token the
-  task was given (its first statement marks it done on that condition; if it
-  matches no row, nothing more is written); otherwise nothing is written.  A task run twice
-  therefore changes nothing the second time, and a task that dies writes
-  nothing.  It runs Core statements built once (:data:`_TASKS` ...), as a task
+* Write-back (:func:`record_expansions`): one transaction per task inserts
+  the new clusters of its expansions, their pending expansions and the
+  transitions, and marks the expansions done, each only if it is still leased
+  with the token the task was given (its first statement marks it done on that
+  condition; if it matches no row, nothing of it is written).  A task run
+  twice therefore changes nothing the second time, and a task that dies
+  writes nothing.  It runs Core statements built once (:data:`_TASKS` ...), as a task
   runs them for every expansion.
 * Deduplication: before comparing an endpoint with the stored clusters of its
   certificate, the transaction takes ``pg_advisory_xact_lock`` on (n,
@@ -423,54 +423,91 @@ def distinct_endpoints(ex: CoreExpansion, tol_d: float) -> tuple[list[tuple[Core
     return distinct, which
 
 
+@dataclass(frozen=True)
+class Finished:
+    """An expansion computed by a task, to be written back: the task, its lease token, the result and
+    the seconds :func:`workers.expand.expand` took."""
+
+    task: Task
+    token: str
+    expansion: CoreExpansion
+    seconds: float
+
+
 def record_expansion(
     Session_: sessionmaker, task: Task, token: str, ex: CoreExpansion, seconds: float, worker: str
 ) -> dict | None:
-    """Write a finished expansion back in ONE transaction (see the module doc).
+    """:func:`record_expansions` of one expansion: its summary, or None (nothing written) if the lease
+    is no longer ``token``'s."""
+    return record_expansions(Session_, [Finished(task, token, ex, seconds)], worker)[0]
 
-    Returns a summary, or None (and writes nothing) if the lease is no longer
-    ``token``'s: the task ran twice, or its lease was given to another.
+
+def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: str) -> list[dict | None]:
+    """Write a task's finished expansions back in ONE transaction (see the module doc).
+
+    Each expansion is written only if it is still leased with its token (a task run twice, or whose
+    lease was given to another, writes nothing for it); its summary is then None.  The others are
+    written together: all of them or, if anything fails, none.  One transaction for a task's few
+    expansions rather than one each: a write-back's fixed costs (BEGIN and COMMIT, on SQLite the one
+    write lock, the query of the stored clusters, the inserts of transitions and expansions) are paid
+    once per task.
     """
-    params = task.params
-    distinct, which = distinct_endpoints(ex, params.tol_d)
-    outcomes = dict(sorted(ex.outcomes().items()))
-    outcomes["widened_paths"] = ex.widened_paths
+    prepared = []
+    for f in finished:
+        distinct, which = distinct_endpoints(f.expansion, f.task.params.tol_d)
+        outcomes = dict(sorted(f.expansion.outcomes().items()))
+        outcomes["widened_paths"] = f.expansion.widened_paths
+        prepared.append((f, distinct, which, json.dumps(outcomes)))
+    summaries: list[dict | None] = [None] * len(finished)
     # Core statements only, on a connection of the sessions' engine: cheaper than a session, and the
     # same transaction rules (SQLite: BEGIN IMMEDIATE).
     with Session_.kw["bind"].begin() as s:
-        # First: done, if the lease is still this token's (PostgreSQL: this also locks the row).  Nothing
+        # First: each done, if its lease is still its token's (PostgreSQL: this also locks the row).  Nothing
         # of it is seen by others before the commit, and all of it is rolled back if anything below fails.
-        done = s.execute(_DONE, {
-            "eid": task.expansion_id, "token": token, "status": DONE, "finished_at": utcnow(),
-            "lease_owner": None, "lease_token": None, "outcomes": json.dumps(outcomes),
-            "paths": ex.paths_followed, "seconds": seconds, "worker": worker, "error": None})
-        if done.rowcount != 1:
-            return None
-        n = task.cluster.n
-        lock_certificates(s, [(n, cert) for _, _, cert in distinct])
-        stored = stored_with(s, n, {cert for _, _, cert in distinct})
-        ids, inserted, others = [], [], []
-        for c, rig, cert in distinct:
-            cid, is_new = insert_or_match(s, c, rig, task.run_id, params.tol_d, stored[cert])
-            ids.append(cid)
-            if is_new:
-                inserted.append(cid)
-            elif next(r.found_in_run for r in stored[cert] if r.id == cid) != task.run_id:
-                others.append(cid)  # found by another run: it may have no expansion in this one yet
-        new_clusters = len(inserted)
-        # a cluster this run found got its expansion in this run when it was inserted
-        ensure_expansions(s, task.run_id, others, new=inserted)
-        targets = {i: ids[k] for i, k in which.items()}
-        targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
-        if ex.endpoints:
-            s.execute(_INSERT_TRANSITION, [
+        live = []
+        for k, (f, distinct, which, outcomes) in enumerate(prepared):
+            done = s.execute(_DONE, {
+                "eid": f.task.expansion_id, "token": f.token, "status": DONE, "finished_at": utcnow(),
+                "lease_owner": None, "lease_token": None, "outcomes": outcomes,
+                "paths": f.expansion.paths_followed, "seconds": f.seconds, "worker": worker, "error": None})
+            if done.rowcount == 1:
+                live.append((k, f, distinct, which))
+        if not live:
+            return summaries
+        keys = {(f.task.cluster.n, cert) for _, f, distinct, _ in live for _, _, cert in distinct}
+        lock_certificates(s, keys)
+        stored: dict[tuple[int, str], list[Stored]] = {}
+        for n in sorted({n for n, _ in keys}):
+            stored.update(((n, cert), rows) for cert, rows in stored_with(s, n, {c for m, c in keys if m == n}).items())
+        inserted: dict[int, list[int]] = {}  # by run: clusters inserted now, which get their expansion directly
+        others: dict[int, list[int]] = {}  # by run: clusters found by another run, which may have none in this one
+        transitions = []
+        for k, f, distinct, which in live:
+            task, ex = f.task, f.expansion
+            ids, new_clusters = [], 0
+            for c, rig, cert in distinct:
+                rows = stored[(c.n, cert)]
+                cid, is_new = insert_or_match(s, c, rig, task.run_id, task.params.tol_d, rows)
+                ids.append(cid)
+                if is_new:
+                    inserted.setdefault(task.run_id, []).append(cid)
+                    new_clusters += 1
+                elif next(r.found_in_run for r in rows if r.id == cid) != task.run_id:
+                    others.setdefault(task.run_id, []).append(cid)
+            targets = {i: ids[j] for i, j in which.items()}
+            targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
+            transitions.extend(
                 {"run_id": task.run_id, "source_id": task.cluster_id, "broken": contacts_json(e.broken),
                  "direction": e.direction, "outcome": e.outcome, "target_id": targets.get(i), "steps": e.steps,
                  "new_contacts": contacts_json(e.new_contacts)}
-                for i, e in enumerate(ex.endpoints)
-            ])
-    return {"expansion": task.expansion_id, "new_clusters": new_clusters, "paths": ex.paths_followed,
-            "seconds": seconds}
+                for i, e in enumerate(ex.endpoints))
+            summaries[k] = {"expansion": task.expansion_id, "new_clusters": new_clusters,
+                            "paths": ex.paths_followed, "seconds": f.seconds}
+        for run_id in sorted(inserted.keys() | others.keys()):
+            ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
+        if transitions:
+            s.execute(_INSERT_TRANSITION, transitions)
+    return summaries
 
 
 def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, on_batch=None) -> int:

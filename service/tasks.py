@@ -3,10 +3,11 @@
 
 A task receives only a few (expansion id, lease token) pairs and the name of
 the plugin holding the engine; it reads their clusters and the run's
-parameters from the database (one read-only query), and for each runs
-:func:`workers.expand.expand` and writes the result back with
-:func:`service.store.record_expansion` (one transaction per expansion, guarded
-by its lease token).  Engines are never pickled into tasks.
+parameters from the database (one read-only query), runs
+:func:`workers.expand.expand` on each, and writes the results back with
+:func:`service.store.record_expansions` (one transaction for the task, each
+expansion guarded by its own lease token).  Engines are never pickled into
+tasks.
 """
 
 from __future__ import annotations
@@ -30,16 +31,15 @@ def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Rea
     task = store.load_task(Reader or Session_, expansion_id, token)
     if task is None:
         return {"expansion": expansion_id, "stale": True}
-    return run_loaded(Session_, task, token, worker)
+    summary = store.record_expansions(Session_, [run_loaded(task, token)], worker or store.process_name())[0]
+    return summary if summary is not None else {"expansion": expansion_id, "stale": True}
 
 
-def run_loaded(Session_, task: store.Task, token: str, worker: str = "") -> dict:
-    """:func:`run_expansion` of a task already read (:func:`service.store.load_tasks`)."""
+def run_loaded(task: store.Task, token: str) -> store.Finished:
+    """:func:`workers.expand.expand` of a task already read (:func:`service.store.load_tasks`), timed."""
     t0 = time.perf_counter()
     ex = expand(task.cluster, task.params)
-    seconds = time.perf_counter() - t0
-    summary = store.record_expansion(Session_, task, token, ex, seconds, worker or store.process_name())
-    return summary if summary is not None else {"expansion": task.expansion_id, "stale": True}
+    return store.Finished(task, token, ex, time.perf_counter() - t0)
 
 
 class ExpansionsFailed(Exception):
@@ -59,22 +59,29 @@ def error_line(exc: BaseException) -> str:
 
 
 def expand_task(expansions: list[tuple[int, str]], plugin: str) -> list[dict]:
-    """The Dask task: :func:`run_expansion` for each (expansion id, lease token) in turn, with this
-    worker's engine (all read in one query first); each is written back in its own transaction.  One
-    that fails does not stop the others; if any failed, the task raises :class:`ExpansionsFailed` at
-    the end, naming them."""
+    """The Dask task: expand each (expansion id, lease token) in turn, with this worker's engine (all
+    read in one query first), and write them back together in one transaction
+    (:func:`service.store.record_expansions`; a stale lease's expansion is left out of it).  One whose
+    expansion fails does not stop the others; if any failed (or the write-back did, and so all of
+    them), the task raises :class:`ExpansionsFailed` at the end, naming them."""
     w = get_worker()
     p = w.plugins[plugin]
     tasks = store.load_tasks(p.readers, expansions)  # one read for all (each lease is checked again on write)
-    out, errors = [], {}
+    finished, errors = [], {}
     for expansion_id, token in expansions:
-        if expansion_id not in tasks:
-            out.append({"expansion": expansion_id, "stale": True})
-            continue
+        if expansion_id in tasks:
+            try:
+                finished.append(run_loaded(tasks[expansion_id], token))
+            except Exception as exc:  # noqa: BLE001 - reported to the coordinator, which retries or fails it
+                errors[expansion_id] = error_line(exc)
+    written: dict[int, dict] = {}
+    if finished:
         try:
-            out.append(run_loaded(p.sessions, tasks[expansion_id], token, worker=w.address))
-        except Exception as exc:  # noqa: BLE001 - reported to the coordinator, which retries or fails it
-            errors[expansion_id] = error_line(exc)
+            summaries = store.record_expansions(p.sessions, finished, w.address)
+        except Exception as exc:  # noqa: BLE001 - nothing was written: all of them are retried
+            errors.update(dict.fromkeys((f.task.expansion_id for f in finished), error_line(exc)))
+        else:
+            written = {f.task.expansion_id: summary for f, summary in zip(finished, summaries) if summary is not None}
     if errors:
         raise ExpansionsFailed(errors)
-    return out
+    return [written.get(eid, {"expansion": eid, "stale": True}) for eid, _ in expansions]

@@ -132,6 +132,63 @@ def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
     assert not run_expansion(S, eid, token).get("stale")
 
 
+def _two_finished(S, info) -> list:
+    """Two expansions of the run, leased and expanded, not yet written back (as a task holds them)."""
+    from service.tasks import run_loaded
+
+    [(eid, token)] = store.claim(S, info.id, OWNER, 1)
+    run_expansion(S, eid, token)  # the seed: the clusters it reaches become pending
+    leases = store.claim(S, info.id, OWNER, 2)
+    assert len(leases) == 2
+    tasks = store.load_tasks(S, leases)
+    return [run_loaded(tasks[e], t) for e, t in leases]
+
+
+def test_a_tasks_expansions_are_written_back_together_or_not_at_all(run8, engine, monkeypatch):
+    """One transaction for a task: when writing its second expansion fails, nothing of the first is
+    left either (not its new clusters, not its transitions, not its being done)."""
+    S, info = run8
+    first, second = _two_finished(S, info)
+    before = snapshot(engine)
+    in_first = len(store.distinct_endpoints(first.expansion, Params().tol_d)[0])
+    real, calls = store.insert_or_match, []
+
+    def dying(session, c, *a, **kw):
+        calls.append(c)
+        if len(calls) > in_first:  # the second expansion's first endpoint
+            raise RuntimeError("worker died mid-write")
+        return real(session, c, *a, **kw)
+
+    monkeypatch.setattr(store, "insert_or_match", dying)
+    with pytest.raises(RuntimeError):
+        store.record_expansions(S, [first, second], "w")
+    assert in_first >= 1 and len(calls) == in_first + 1
+    assert snapshot(engine) == before
+    monkeypatch.setattr(store, "insert_or_match", real)
+    summaries = store.record_expansions(S, [first, second], "w")
+    assert [s["expansion"] for s in summaries] == [first.task.expansion_id, second.task.expansion_id]
+    with S() as s:
+        assert {s.get(Expansion, f.task.expansion_id).status for f in (first, second)} == {DONE}
+        sources = set(s.execute(select(Transition.source_id)).scalars())
+    assert {first.task.cluster_id, second.task.cluster_id} <= sources
+
+
+def test_a_stale_expansion_is_left_out_of_its_tasks_write_back(run8, engine):
+    """A task's expansion whose lease went to another is not written; the others of the task are."""
+    S, info = run8
+    live, stale = _two_finished(S, info)
+    with S.begin() as s:
+        s.get(Expansion, stale.task.expansion_id).lease_token = "another-task"
+    summaries = store.record_expansions(S, [live, stale], "w")
+    assert summaries[1] is None and summaries[0]["expansion"] == live.task.expansion_id
+    with S() as s:
+        assert s.get(Expansion, live.task.expansion_id).status == DONE
+        e = s.get(Expansion, stale.task.expansion_id)
+        assert e.status == LEASED and e.lease_token == "another-task" and e.outcomes is None
+        sources = set(s.execute(select(Transition.source_id)).scalars())
+    assert live.task.cluster_id in sources and stale.task.cluster_id not in sources
+
+
 def test_a_result_for_a_lease_given_to_another_is_rejected(run8, engine):
     S, info = run8
     [(eid, old)] = store.claim(S, info.id, OWNER, 1)
