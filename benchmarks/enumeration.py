@@ -9,8 +9,12 @@ processes, a fresh SQLite file), and reports:
 * run: the coordinator's own time for the run (what the command prints);
 * in expand: the time the workers spent inside ``workers.expand`` (the sum of
   ``expansions.seconds``), divided by K (so it is comparable with the run time);
-* outside: 1 − in expand / run, the share of the run spent outside
-  ``workers.expand``: the database, Dask, serialisation, idle workers;
+* outside (of the wall time): 1 − in expand / wall, the share of the command's
+  wall time that the workers spend outside ``workers.expand``: starting Python
+  and Dask and warming the workers up, the database, Dask between tasks,
+  serialisation, idle workers at the end, shutting down;
+* outside (of the run): 1 − in expand / run, the same share of the
+  coordinator's run only (from the first claim to the last result);
 * peak RSS of the largest worker process and of the coordinator, sampled every
   0.2 s;
 * the counts by number of contacts.
@@ -105,7 +109,8 @@ def run_one(n: int, k: int, directory: Path) -> dict:
     per_worker = (in_expand or 0.0) / k
     return {
         "n": n, "workers": k, "wall_s": round(wall, 2), "run_s": run, "in_expand_s": round(per_worker, 2),
-        "outside_share": round(1.0 - per_worker / run, 4) if run else None,
+        "outside_share_of_wall": round(1.0 - per_worker / wall, 4),
+        "outside_share_of_run": round(1.0 - per_worker / run, 4) if run else None,
         "expansions": expansions, "paths": paths,
         "ms_per_path_in_expand": round(1000.0 * (in_expand or 0.0) / paths, 3) if paths else None,
         "peak_worker_rss_mib": round(rss.worker / 2**20, 1), "peak_coordinator_rss_mib": round(rss.coordinator / 2**20, 1),
@@ -132,7 +137,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
         return 0
-    cols = ["n", "workers", "wall_s", "run_s", "in_expand_s", "outside_share", "expansions", "paths",
+    cols = ["n", "workers", "wall_s", "run_s", "in_expand_s", "outside_share_of_wall", "outside_share_of_run",
+            "expansions", "paths",
             "ms_per_path_in_expand", "peak_worker_rss_mib", "peak_coordinator_rss_mib", "total"]
     widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in cols]
     print("  ".join(c.rjust(w) for c, w in zip(cols, widths)))

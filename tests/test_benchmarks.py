@@ -1,0 +1,36 @@
+"""The benchmarks a user runs from the README (``python -m benchmarks ...``) run and report what they say."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def benchmark(*args: str) -> dict:
+    r = subprocess.run([sys.executable, "-m", "benchmarks", *args, "--json"], cwd=ROOT, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_the_enumerate_benchmark_reports_the_shares_outside_expand(paper_counts):
+    report = benchmark("enumerate", "--sizes", "7", "--workers", "1")
+    [row] = report["runs"]
+    assert row["n"] == 7 and row["workers"] == 1 and row["status"] == "complete"
+    assert row["by_contacts"] == paper_counts["clusters_by_contacts"]["7"]
+    # the command's wall time holds the run, and the run the time in expand: both shares follow
+    assert 0.0 < row["in_expand_s"] < row["run_s"] < row["wall_s"]
+    assert abs(row["outside_share_of_wall"] - (1.0 - row["in_expand_s"] / row["wall_s"])) < 2e-3  # both rounded
+    assert 0.0 < row["outside_share_of_run"] < row["outside_share_of_wall"] < 1.0
+
+
+def test_the_paths_benchmark_compares_the_backends_on_the_same_paths():
+    report = benchmark("paths", "--quick")
+    assert report["first_call_seconds"] > 0.0
+    assert [r["n"] for r in report["rows"]] == [10, 12, 14]
+    for r in report["rows"]:
+        assert r["paths"] > 0 and r["same_outcome"] == r["paths"] and 0.0 < r["median_ms_compiled"] < r["median_ms_numpy"]
