@@ -55,7 +55,7 @@ from service.models import (
 from workers.classify import lattice_type
 from workers.cluster import Cluster as CoreCluster
 from workers.expand import CIRCULAR, Expansion as CoreExpansion
-from workers.identity import ClusterIndex, certificate_key, find_match
+from workers.identity import certificate_key, find_match
 from workers.params import Params
 from workers.paths import RIGID
 from workers.rigidity import Rigidity, rigidity
@@ -404,22 +404,15 @@ def _params(params_text: str) -> Params:
     return Params.from_dict(json.loads(params_text))
 
 
-def distinct_endpoints(ex: CoreExpansion, tol_d: float) -> tuple[list[tuple[CoreCluster, Rigidity, str]], dict[int, int]]:
-    """The distinct rigid endpoints of an expansion, each once (endpoints equal within ``tol_d`` are
-    one), with their certificates, and for each rigid endpoint's index which of them it is.
-
-    Many paths from one cluster end at the same cluster; doing this before the write-back's
-    transaction keeps the certificates and the in-expansion comparisons out of the database's
-    lock (SQLite's is one for all workers)."""
-    index = ClusterIndex()
-    distinct: list[tuple[CoreCluster, Rigidity, str]] = []
-    which: dict[int, int] = {}
-    for i, e in enumerate(ex.endpoints):
-        if e.outcome == RIGID:
-            k, is_new = index.add(e.cluster, tol_d)
-            if is_new:
-                distinct.append((e.cluster, e.rigidity, certificate_key(e.cluster)))
-            which[i] = k
+def distinct_endpoints(ex: CoreExpansion) -> tuple[list[tuple[CoreCluster, Rigidity, str]], dict[int, int]]:
+    """The distinct rigid endpoints of an expansion (:meth:`workers.expand.Expansion.distinct`, told
+    apart by :func:`workers.expand.expand`), each once with its certificate, and for each rigid
+    endpoint's index which of them it is."""
+    first = ex.distinct()
+    position = {i: k for k, i in enumerate(first)}
+    distinct = [(ex.endpoints[i].cluster, ex.endpoints[i].rigidity, certificate_key(ex.endpoints[i].cluster))
+                for i in first]
+    which = {i: position[j] for i, j in enumerate(ex.same_as) if j is not None}
     return distinct, which
 
 
@@ -454,7 +447,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
     """
     prepared = []
     for f in finished:
-        distinct, which = distinct_endpoints(f.expansion, f.task.params.tol_d)
+        distinct, which = distinct_endpoints(f.expansion)
         outcomes = dict(sorted(f.expansion.outcomes().items()))
         outcomes["widened_paths"] = f.expansion.widened_paths
         prepared.append((f, distinct, which, json.dumps(outcomes)))

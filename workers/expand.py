@@ -12,7 +12,7 @@ import numpy as np
 from workers import kernels
 from workers.cluster import Cluster
 from workers.dimension import solution_dimension
-from workers.identity import certificate, same_geometry
+from workers.identity import ClusterIndex, certificate, same_geometry
 from workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
     BELOW_MIN_CONTACTS,
     CIRCULAR,
@@ -50,10 +50,16 @@ class Endpoint:
 
 @dataclass(frozen=True)
 class Expansion:
-    """The result of :func:`expand`: every subset tried and every endpoint reached."""
+    """The result of :func:`expand`: every subset tried and every endpoint reached.
+
+    ``same_as[i]`` is, for a rigid endpoint ``i`` (outcome ``rigid``), the first rigid endpoint that
+    is the same cluster (``i`` itself for the first), and None for the other endpoints: many paths
+    from one cluster end at the same cluster, and this is where they are told apart.
+    """
 
     source: Cluster
     endpoints: tuple[Endpoint, ...] = field(default_factory=tuple)
+    same_as: tuple[int | None, ...] = ()
 
     @property
     def subsets_tried(self) -> int:
@@ -74,6 +80,10 @@ class Expansion:
     def rigid_endpoints(self) -> list[Endpoint]:
         """Endpoints that are candidate clusters (rigid and not the source)."""
         return [e for e in self.endpoints if e.outcome == RIGID]
+
+    def distinct(self) -> list[int]:
+        """The rigid endpoints that are distinct clusters: the first of each (indices into ``endpoints``)."""
+        return [i for i, j in enumerate(self.same_as) if j == i]
 
 
 def break_sizes(m: int, rank: int, params: Params) -> range:
@@ -160,7 +170,24 @@ def expand(cluster: Cluster, params: Params) -> Expansion:
             out.append(a)
         else:
             out.append(_classify(cluster, cert, a.broken_contacts, a.direction, a.follow(params), params))
-    return Expansion(cluster, tuple(out))
+    return Expansion(cluster, tuple(out), same_as(out, params.tol_d))
+
+
+def same_as(endpoints, tol_d: float) -> tuple[int | None, ...]:
+    """:attr:`Expansion.same_as` of these endpoints: rigid endpoints that are the same cluster (same
+    certificate, same geometry within ``tol_d``) point at the first of them."""
+    index = ClusterIndex()
+    first: list[int] = []  # endpoint index of each cluster of the index
+    out: list[int | None] = []
+    for i, e in enumerate(endpoints):
+        if e.outcome != RIGID:
+            out.append(None)
+            continue
+        k, is_new = index.add(e.cluster, tol_d)
+        if is_new:
+            first.append(i)
+        out.append(first[k])
+    return tuple(out)
 
 
 def _lengthening(x: np.ndarray, v: np.ndarray, i: int, j: int) -> float:

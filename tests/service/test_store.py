@@ -150,7 +150,7 @@ def test_a_tasks_expansions_are_written_back_together_or_not_at_all(run8, engine
     S, info = run8
     first, second = _two_finished(S, info)
     before = snapshot(engine)
-    in_first = len(store.distinct_endpoints(first.expansion, Params().tol_d)[0])
+    in_first = len(store.distinct_endpoints(first.expansion)[0])
     real, calls = store.insert_or_match, []
 
     def dying(session, c, *a, **kw):

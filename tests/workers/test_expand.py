@@ -65,6 +65,30 @@ def test_expand_invariant_under_rotation_reflection_relabelling(seed, reflect):
     moved = Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts])
     a, b = expand(c, P), expand(moved, P)
     assert _endpoint_keys(a) == _endpoint_keys(b)
+    # the same distinct clusters among the endpoints
+    assert Counter(certificate_hex(a.endpoints[i].cluster) for i in a.distinct()) == \
+        Counter(certificate_hex(b.endpoints[i].cluster) for i in b.distinct())
+
+
+def test_the_endpoints_that_are_one_cluster_point_at_the_first_of_them():
+    """Many paths from one cluster end at the same cluster: expand tells them apart once, and the
+    write-back compares each distinct one only with the stored clusters."""
+    from workers.explore import explore
+    from workers.identity import same_geometry
+
+    c = max(explore(9).clusters, key=lambda c: c.m)  # a hyperstatic cluster: pairs broken, many paths
+    ex = expand(c, P)
+    rigid = [i for i, e in enumerate(ex.endpoints) if e.outcome == RIGID]
+    first = ex.distinct()
+    assert len(rigid) > len(first) > 1
+    assert len(ex.same_as) == len(ex.endpoints)
+    for i, j in enumerate(ex.same_as):
+        if i not in rigid:
+            assert j is None
+            continue
+        assert j <= i and ex.same_as[j] == j and same_geometry(ex.endpoints[i].cluster, ex.endpoints[j].cluster, P.tol_d)
+    for k, i in enumerate(first):
+        assert not any(same_geometry(ex.endpoints[i].cluster, ex.endpoints[j].cluster, P.tol_d) for j in first[:k])
 
 
 def test_hyperstatic_cluster_breaks_pairs():
