@@ -84,6 +84,16 @@ def _shares(claimed: list, tasks: int) -> list[list]:
     return out
 
 
+def _task_count(claimed: int, wanted: int, capacity: int, batch: int) -> int:
+    """How many tasks to share ``claimed`` expansions out among: the ``wanted`` tasks while the frontier
+    is large; when the claim took all that was pending (fewer than ``wanted * batch``), as many as the
+    workers hold (``capacity``, one expansion each at least), so that the last expansions of a run (which
+    at n = 11 take 0.2-0.5 s each) are not queued in one task on one worker while another has none."""
+    if claimed >= wanted * batch:
+        return wanted
+    return max(wanted, min(claimed, capacity))
+
+
 class _Heartbeat(threading.Thread):
     """Marks the run as driven by this coordinator every HEARTBEAT_SECONDS,
     however long the tasks take, so that other hosts do not take it over."""
@@ -161,14 +171,15 @@ def run_enumeration(
     def fill(force: bool = False) -> None:
         """Keep up to ``per_worker`` tasks per worker thread in flight: claim once at most half of them
         are left (one claim transaction per few results rather than per result), up to ``batch``
-        expansions for each task wanted, and share what was claimed out among those tasks."""
+        expansions for each task wanted, and share what was claimed out among those tasks (among more,
+        smaller ones when that was all that was pending: :func:`_task_count`)."""
         nonlocal in_flight
         capacity = per_worker * threads()
         if not force and in_flight > capacity // 2:
             return
         tasks = capacity - in_flight
         claimed = store.claim(Session_, info.id, owner, tasks * batch)
-        for part in _shares(claimed, tasks):
+        for part in _shares(claimed, _task_count(len(claimed), tasks, capacity, batch)):
             eid, token = part[0]
             fut = client.submit(expand_task, part, plugin.name, key=f"expand-{eid}-{len(part)}-{token}", pure=False)
             fut.expansions = part  # type: ignore[attr-defined]

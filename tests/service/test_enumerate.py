@@ -299,6 +299,18 @@ def test_claimed_expansions_are_shared_out_evenly():
     assert _shares([], 4) == [] and _shares(claimed, 0) == []
 
 
+def test_the_last_expansions_of_a_run_go_out_in_small_tasks():
+    """While the frontier is large a task takes ``batch`` expansions; once a claim takes all that is
+    pending, what it took is spread over as many tasks as the workers hold, so that one worker does not
+    hold them all in one task while another has none."""
+    from service.coordinator import _task_count
+
+    assert _task_count(32, 4, 8, 8) == 4  # a full claim: the tasks wanted, eight each
+    assert _task_count(20, 4, 8, 8) == 8  # the frontier ran out: spread over the capacity
+    assert _task_count(3, 4, 8, 8) == 4  # fewer than the tasks wanted: one each (_shares leaves none empty)
+    assert _task_count(6, 2, 8, 8) == 6
+
+
 def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch):
     from contextlib import nullcontext
     from types import SimpleNamespace
