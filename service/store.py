@@ -57,7 +57,6 @@ from workers.cluster import Cluster as CoreCluster
 from workers.expand import CIRCULAR, Expansion as CoreExpansion
 from workers.identity import certificate_key, find_match
 from workers.params import Params
-from workers.paths import RIGID
 from workers.rigidity import Rigidity, rigidity
 from workers.seeds import seed_cluster
 
