@@ -1,12 +1,12 @@
 """The coordinator: drives one run from the frontier in the database.
 
 It claims pending expansions in batches sized to the workers, submits them as
-Dask tasks of up to ``batch`` expansions each (one, while the frontier is
-smaller than the workers' share of tasks), consumes results as they complete
-and claims more, until nothing is pending or leased.  Each expansion is
-written back in its own transaction; an expansion that fails is put back to
-pending and retried, at most ``max_attempts`` times in all, then marked
-failed with its error text.  Everything needed to resume is in the database:
+Dask tasks of up to ``batch`` expansions each (fewer, while a claim takes all
+that is pending: at the start and the end of a run), consumes results as they
+complete and claims more, until nothing is pending or leased.  A task writes
+its expansions back in one transaction, each guarded by its lease token; an
+expansion that fails is put back to pending and retried, at most
+``max_attempts`` times in all, then marked failed with its error text.  Everything needed to resume is in the database:
 a coordinator that is killed leaves leases behind, and the next one (the same
 command) puts them back to pending when it starts.
 """
