@@ -19,6 +19,23 @@ def plugin_name(url: str) -> str:
     return f"packings-db-{advisory_key(display_url(parse_url(url))) & 0xFFFFFFFF:08x}"
 
 
+def prepare_process() -> float:
+    """Import the tasks' modules and warm the compiled kernels up in this process; returns the warm-up's
+    seconds (a few milliseconds where it was done already, e.g. in a worker forked from the fork server
+    that ran it: :mod:`service.preload`).
+
+    Pays the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
+    """
+    import service.tasks  # noqa: F401 - the tasks' module, and with it workers.expand
+    from workers.kernels import warm_up
+
+    seconds = warm_up()
+    # What is loaded now lives as long as the process: keep it out of the garbage collector's full
+    # passes, and out of its last one when the process exits (0.2-0.3 s: the cluster's close waits for it).
+    gc.freeze()
+    return seconds
+
+
 class DatabasePlugin(WorkerPlugin):
     """Creates the database engine once per worker process."""
 
@@ -31,14 +48,7 @@ class DatabasePlugin(WorkerPlugin):
         self.engine = make_engine(self.url)
         self.sessions = sessions(self.engine)
         self.readers = sessions(self.engine, readonly=True)  # SQLite: reading a task takes no write lock
-        # Pay the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
-        import service.tasks  # noqa: F401 - the tasks' module, and with it workers.expand
-        from workers.kernels import warm_up
-
-        self.warm_up_seconds = warm_up()
-        # What is loaded now lives as long as the process: keep it out of the garbage collector's full
-        # passes, and out of its last one when the process exits (0.2-0.3 s: the cluster's close waits for it).
-        gc.freeze()
+        self.warm_up_seconds = prepare_process()
 
     def teardown(self, worker) -> None:
         if self.engine is not None:

@@ -121,10 +121,13 @@ def test_enumerate_10(db_url, paper_counts):
 
 
 def _worker_processes(pid: int) -> list[psutil.Process]:
-    """The Dask worker processes a LocalCluster started under ``pid``."""
-    kids = psutil.Process(pid).children(recursive=True)
-    return [p for p in kids if any("multiprocessing" in a or "spawn_main" in a for a in p.cmdline())
+    """The Dask worker processes a LocalCluster started under ``pid`` (spawned, or forked from the fork
+    server, which is left out: it is their parent)."""
+    kids = [p for p in psutil.Process(pid).children(recursive=True)
+            if any("multiprocessing" in a or "spawn_main" in a for a in p.cmdline())
             and "resource_tracker" not in " ".join(p.cmdline())]
+    pids = {p.pid for p in kids}
+    return [p for p in kids if not any(c.pid in pids for c in p.children())]
 
 
 def test_killing_a_worker_mid_run(db_url, reference9):
@@ -378,6 +381,67 @@ def test_a_local_cluster_sets_its_workers_up_as_they_start(engine):
     assert len(seen) == 2
     for has_engine, warm_up_seconds, frozen in seen.values():
         assert has_engine and warm_up_seconds > 0.0 and frozen > 10_000
+
+
+def _worker_origin():
+    """What a worker process tells of how it started (run in it)."""
+    import os
+
+    preload = sys.modules.get("service.preload")
+    return (os.getppid(), preload is not None, getattr(preload, "warm_up_seconds", 0.0),
+            os.environ.get("OMP_NUM_THREADS"), os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+
+
+@pytest.fixture
+def fresh_dask_config(monkeypatch):
+    """Dask's configuration read again from the environment (as a new process would), and again after."""
+    import dask
+
+    dask.config.refresh()
+    yield monkeypatch
+    monkeypatch.undo()
+    dask.config.refresh()
+
+
+@pytest.mark.skipif("forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+                    reason="this platform has no fork server: local workers are spawned")
+def test_a_local_clusters_workers_are_forked_warm_from_one_fork_server(engine, fresh_dask_config):
+    """The local cluster's workers are forked from one fork server that imported the tasks' modules and
+    warmed the kernels up before (service.preload), not spawned by this process to import it all each
+    again; they have the environment Dask gives new worker processes (one BLAS thread, malloc trim)."""
+    import os
+
+    import service.cli
+    from service.plugin import DatabasePlugin
+
+    fresh_dask_config.delenv(service.cli.METHOD_ENV, raising=False)
+    plugin = DatabasePlugin(engine.url.render_as_string(hide_password=False))
+    with service.cli._dask_client(None, 2, True, plugins=(plugin,)) as local:
+        seen = local.client.run(_worker_origin)
+    assert len(seen) == 2
+    parents = {parent for parent, *_ in seen.values()}
+    assert len(parents) == 1 and os.getpid() not in parents, "one parent, the fork server, for both"
+    for _, preloaded, preload_warm_up, omp, trim in seen.values():
+        assert preloaded and preload_warm_up > 0.0, "the fork server had loaded and warmed up the kernels"
+        assert (omp, trim) == ("1", "65536")
+
+
+def test_a_chosen_start_method_is_kept(engine, fresh_dask_config):
+    """A user who chose how Dask starts its workers (the environment variable) gets that: here spawned
+    by this process, and no fork server is started for them."""
+    import os
+
+    import dask
+
+    import service.cli
+
+    fresh_dask_config.setenv(service.cli.METHOD_ENV, "spawn")
+    dask.config.refresh()
+    assert service.cli.start_fork_server() is False
+    with service.cli._dask_client(None, 1, True) as local:
+        seen = local.client.run(_worker_origin)
+    ((parent, preloaded, *_),) = seen.values()
+    assert parent == os.getpid() and not preloaded
 
 
 def test_the_command_line_starts_the_workers_before_loading_the_kernels():
