@@ -20,8 +20,8 @@ Conventions:
 from __future__ import annotations
 
 import datetime as dt
-import functools
 import json
+import threading
 
 import numpy as np
 from sqlalchemy import (
@@ -119,14 +119,38 @@ class Cluster(Base):
         return core_cluster(self.n, self.coords, self.contact_list)
 
 
-@functools.lru_cache(maxsize=32768)
+CORE_CLUSTERS = 32768  #: how many core clusters :func:`core_cluster` keeps (the most recently used)
+_CORE: dict[tuple[int, bytes, str], CoreCluster] = {}  #: in order of use, the most recent last
+_CORE_LOCK = threading.Lock()
+
+
 def core_cluster(n: int, coords: bytes, contact_list: str) -> CoreCluster:
     """The (immutable) core cluster of a row's values, shared by every row with the same values, so
     that what is computed from it once (its canonical form, workers.identity) is kept: a worker
     compares each new endpoint with the same stored rows again and again.  Keyed by the values, not
     the id, which SQLite may give again after a rollback."""
+    key = (n, coords, contact_list)
+    with _CORE_LOCK:
+        c = _CORE.pop(key, None)
+        if c is not None:
+            _CORE[key] = c
+            return c
     x = np.frombuffer(coords, dtype="<f8").reshape(n, 3).astype(np.float64)
-    return CoreCluster(x, tuple(tuple(c) for c in json.loads(contact_list)))
+    c = CoreCluster(x, tuple(tuple(p) for p in json.loads(contact_list)))
+    remember_core_cluster(n, coords, contact_list, c)
+    return c
+
+
+def remember_core_cluster(n: int, coords: bytes, contact_list: str, c: CoreCluster) -> None:
+    """Make ``c`` the core cluster of these row values (a row just written from it, with values
+    computed from it: equal coordinates and contacts), so that what was computed from ``c`` already (its
+    canonical form, when its expansion told its endpoints apart) is not computed again for the row."""
+    key = (n, coords, contact_list)
+    with _CORE_LOCK:
+        _CORE.pop(key, None)
+        _CORE[key] = c
+        while len(_CORE) > CORE_CLUSTERS:
+            del _CORE[next(iter(_CORE))]
 
 
 class Expansion(Base):

@@ -50,6 +50,7 @@ from service.models import (
     Run,
     Transition,
     core_cluster,
+    remember_core_cluster,
     utcnow,
 )
 from workers.classify import lattice_type
@@ -83,8 +84,21 @@ def params_json(params: Params) -> str:
 
 
 def contacts_json(pairs) -> str:
-    """``[[i, j], ...]`` exactly as ``json.dumps`` writes it (a write-back writes two per attempt)."""
+    """``[[i, j], ...]`` exactly as ``json.dumps`` writes it (a write-back writes two per attempt: the few
+    sets of broken and new contacts of n spheres recur, so those given as tuples are remembered)."""
+    if isinstance(pairs, tuple):
+        try:
+            return _contacts_json(pairs)
+        except TypeError:  # not hashable
+            pass
+    return _format_contacts(pairs)
+
+
+def _format_contacts(pairs) -> str:
     return "[" + ", ".join(f"[{int(i)}, {int(j)}]" for i, j in pairs) + "]"
+
+
+_contacts_json = functools.lru_cache(maxsize=65536)(_format_contacts)
 
 
 def process_name() -> str:
@@ -108,6 +122,10 @@ _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
 _INSERT_CLUSTER = insert(_C)
 _INSERT_EXPANSION = insert(_E)
 _INSERT_TRANSITION = insert(_T)
+#: a transition's values, in this order (as tuples: see :func:`insert_transitions`)
+TRANSITION_COLUMNS = ("run_id", "source_id", "broken", "direction", "outcome", "target_id", "steps", "new_contacts")
+_SQLITE_INSERT_TRANSITIONS = (f"INSERT INTO {_T.name} ({', '.join(TRANSITION_COLUMNS)}) "
+                              f"VALUES ({', '.join('?' * len(TRANSITION_COLUMNS))})")
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -196,6 +214,7 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
     result = session.execute(_INSERT_CLUSTER, {
         **values, "lattice": lattice_value(c), "embedding": embedding, "found_in_run": run_id})
     cid = int(result.inserted_primary_key[0])
+    remember_core_cluster(c.n, values["coords"], values["contact_list"], c)  # read back as c, labelled already
     rows.append(Stored(cid, embedding, c, run_id))
     return cid, True
 
@@ -489,17 +508,28 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             targets = {i: ids[j] for i, j in which.items()}
             targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
             transitions.extend(
-                {"run_id": task.run_id, "source_id": task.cluster_id, "broken": contacts_json(e.broken),
-                 "direction": e.direction, "outcome": e.outcome, "target_id": targets.get(i), "steps": e.steps,
-                 "new_contacts": contacts_json(e.new_contacts)}
+                (task.run_id, task.cluster_id, contacts_json(e.broken), e.direction, e.outcome, targets.get(i),
+                 e.steps, contacts_json(e.new_contacts))
                 for i, e in enumerate(ex.endpoints))
             summaries[k] = {"expansion": task.expansion_id, "new_clusters": new_clusters,
                             "paths": ex.paths_followed, "seconds": f.seconds}
         for run_id in sorted(inserted.keys() | others.keys()):
             ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
-        if transitions:
-            s.execute(_INSERT_TRANSITION, transitions)
+        insert_transitions(s, transitions)
     return summaries
+
+
+def insert_transitions(conn: Connection, rows: list[tuple]) -> None:
+    """Insert transitions, each a tuple of :data:`TRANSITION_COLUMNS`' values.  On SQLite straight
+    through the driver's ``executemany``: SQLAlchemy's processing of each row's parameters cost about a
+    tenth of a write-back, which inserts a few dozen a cluster.  Elsewhere as a Core insert (on
+    PostgreSQL SQLAlchemy sends many rows in each statement)."""
+    if not rows:
+        return
+    if conn.dialect.name == "sqlite":
+        conn.exec_driver_sql(_SQLITE_INSERT_TRANSITIONS, rows)
+    else:
+        conn.execute(_INSERT_TRANSITION, [dict(zip(TRANSITION_COLUMNS, r)) for r in rows])
 
 
 def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, on_batch=None) -> int:

@@ -673,9 +673,13 @@ def aligned_max_error(x, y):
 
 
 @numba.njit(**_JIT)
-def some_automorphism_aligns(ax, bx, adist, bdist, autos, bound, tol_d):
-    """Whether, for some automorphism s (a row of ``autos``, in order), every |adist - bdist[s][:, s]|
-    is at most ``bound`` and ``bx[s]`` aligns with ``ax`` within ``tol_d``."""
+def some_automorphism_aligns(ax, bx, adist, bdist, asorted, bsorted, autos, bound, tol_d):
+    """Whether every |asorted - bsorted| is at most ``bound`` and, for some automorphism s (a row of
+    ``autos``, in order), every |adist - bdist[s][:, s]| is at most ``bound`` and ``bx[s]`` aligns with
+    ``ax`` within ``tol_d``."""
+    for i in range(asorted.shape[0]):
+        if abs(asorted[i] - bsorted[i]) > bound:
+            return False
     k, n = autos.shape
     y = np.empty_like(bx)
     for g in range(k):

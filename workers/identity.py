@@ -85,8 +85,19 @@ def certificate_key(cluster: Cluster) -> str:
     certificate it does not depend on the machine's word size or byte order,
     so it is what the database stores.
     """
-    a = _canonical(cluster).adjacency
-    return np.packbits(a[_upper(cluster.n)]).tobytes().hex()
+    c = _canonical(cluster)
+    key = _KEYS.get((c.n, c.cert))
+    if key is None:
+        key = np.packbits(c.adjacency[_upper(c.n)]).tobytes().hex()
+        if len(_KEYS) >= _GROUPS_MAX:
+            _KEYS.clear()
+        _KEYS[(c.n, c.cert)] = key
+    return key
+
+
+#: certificate_key by certificate (the key is a function of the canonical graph, which the certificate
+#: determines): a write-back keys a few dozen endpoints of a few contact graphs
+_KEYS: dict[tuple[int, bytes], str] = {}
 
 
 def canonical_labelling(cluster: Cluster) -> np.ndarray:
@@ -224,13 +235,12 @@ def _same_geometry_canonical(a: _Canonical, b: _Canonical, autos: np.ndarray, to
         return False
     if a.n == 0:
         return True
-    # Coordinates within tol_d move each distance by at most 2*sqrt(3)*tol_d,
-    # and sorting does not increase the max difference: safe cheap rejection.
+    # Coordinates within tol_d move each distance by at most 2*sqrt(3)*tol_d, and sorting does not
+    # increase the max difference: a safe cheap rejection on the sorted distances, then the same for
+    # each automorphism s (b's distances relabelled by s), then the alignment; all in one kernel call.
     bound = 4.0 * tol_d
-    if np.max(np.abs(a.sorted_dist - b.sorted_dist), initial=0.0) > bound:
-        return False
-    # The same rejection for each automorphism s (b's distances relabelled by s), then the alignment.
-    return kernels.some_automorphism_aligns(a.x, b.x, a.dist, b.dist, autos, bound, tol_d)
+    return kernels.some_automorphism_aligns(a.x, b.x, a.dist, b.dist, a.sorted_dist, b.sorted_dist, autos,
+                                            bound, tol_d)
 
 
 def same_geometry(a: Cluster, b: Cluster, tol_d: float) -> bool:

@@ -414,17 +414,21 @@ def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
 
 
 def some_automorphism_aligns(ax: np.ndarray, bx: np.ndarray, adist: np.ndarray, bdist: np.ndarray,
-                             autos: np.ndarray, bound: float, tol_d: float) -> bool:
+                             asorted: np.ndarray, bsorted: np.ndarray, autos: np.ndarray, bound: float,
+                             tol_d: float) -> bool:
     """Whether two clusters in canonical order are the same geometry under some automorphism.
 
     ``ax``, ``bx``: centred coordinates (n x 3); ``adist``, ``bdist``: their pair-distance matrices;
+    ``asorted``, ``bsorted``: their pair distances sorted (a rejection that needs no labelling);
     ``autos``: the automorphism group of their (common) canonical contact graph, one permutation a
-    row.  True iff for some ``s`` (tried in order) every |adist - bdist[s][:, s]| is at most
-    ``bound`` and ``bx[s]`` is within ``tol_d`` of ``ax`` in every coordinate after the optimal
-    orthogonal alignment (:func:`aligned_max_error`).
+    row.  True iff every |asorted - bsorted| is at most ``bound`` and for some ``s`` (tried in order)
+    every |adist - bdist[s][:, s]| is at most ``bound`` and ``bx[s]`` is within ``tol_d`` of ``ax`` in
+    every coordinate after the optimal orthogonal alignment (:func:`aligned_max_error`).
     """
     if _backend == "numba":
-        return bool(_compiled.some_automorphism_aligns(ax, bx, adist, bdist, autos, bound, tol_d))
+        return bool(_compiled.some_automorphism_aligns(ax, bx, adist, bdist, asorted, bsorted, autos, bound, tol_d))
+    if np.max(np.abs(asorted - bsorted), initial=0.0) > bound:
+        return False
     relabelled = bdist[autos[:, :, None], autos[:, None, :]]
     passing = np.flatnonzero(np.abs(relabelled - adist).max(axis=(1, 2), initial=0.0) <= bound)
     return any(aligned_max_error(ax, bx[autos[k]]) <= tol_d for k in passing)

@@ -329,3 +329,54 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
         assert found == {first: 13}
         assert s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == second)).scalar_one() \
             == s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == first)).scalar_one()
+
+
+def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine):
+    """store.insert_transitions (the driver's executemany on SQLite, a Core insert elsewhere) puts each
+    value of a row's tuple in its column, in the order of TRANSITION_COLUMNS."""
+    S, info = run8
+    with S() as s:
+        seed = s.execute(select(Cluster.id)).scalar_one()
+    rows = [(info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]"),
+            (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]")]
+    with engine.begin() as conn:
+        store.insert_transitions(conn, rows)
+        store.insert_transitions(conn, [])
+    cols = [getattr(Transition, c) for c in store.TRANSITION_COLUMNS]
+    with S() as s:
+        back = sorted(tuple(r) for r in s.execute(select(*cols)).all())
+    assert back == sorted(rows)
+
+
+def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, monkeypatch):
+    """A row inserted from a cluster is read back (stored_with) as that very cluster, so what was computed
+    from it (its canonical form) is not computed again; the clusters kept are bounded."""
+    import service.models as models
+    from workers.expand import expand
+    from workers.identity import certificate_key
+
+    S, info = run8
+    with S() as s:
+        seed = s.execute(select(Cluster)).scalar_one().to_core()
+    ex = expand(seed, Params())
+    new = [ex.endpoints[i].cluster for i in ex.distinct()]
+    with engine.begin() as conn:
+        for c in new:
+            store.insert_or_match(conn, c, ex.endpoints[0].rigidity, info.id, Params().tol_d)
+    with engine.connect() as conn:
+        stored = store.stored_with(conn, 8, {certificate_key(c) for c in new})
+    read = [r.cluster for rows in stored.values() for r in rows]
+    assert all(any(r is c for r in read) for c in new)
+    monkeypatch.setattr(models, "CORE_CLUSTERS", 3)
+    for c in new:
+        models.core_cluster(8, np.ascontiguousarray(c.coords, dtype="<f8").tobytes(), store.contacts_json(c.contacts))
+    assert len(models._CORE) <= 3
+
+
+@pytest.mark.parametrize("pairs", [(), ((0, 1),), ((0, 1), (2, 5)), [(3, 4), (1, 9)],
+                                   ((np.int64(2), np.int64(7)),), [[0, 3]], ((0, 1), [2, 3])])
+def test_contacts_are_written_as_json_writes_them(pairs):
+    import json
+
+    assert store.contacts_json(pairs) == json.dumps([[int(i), int(j)] for i, j in pairs])
+    assert store.contacts_json(pairs) == store.contacts_json(pairs)  # a second time, from the cache
