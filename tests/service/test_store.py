@@ -368,6 +368,7 @@ def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, mo
     read = [r.cluster for rows in stored.values() for r in rows]
     assert all(any(r is c for r in read) for c in new)
     monkeypatch.setattr(models, "CORE_CLUSTERS", 3)
+    monkeypatch.setattr(models, "_CORE", {})
     for c in new:
         models.core_cluster(8, np.ascontiguousarray(c.coords, dtype="<f8").tobytes(), store.contacts_json(c.contacts))
     assert len(models._CORE) <= 3
