@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     from workers import kernels
     from workers.params import Params
 
-    if kernels._compiled is None:
+    if not kernels.numba_available():
         print("numba is not available: nothing to compare", file=sys.stderr)
         return 1
     params = Params()

@@ -26,7 +26,8 @@ def prepare_process() -> float:
 
     Pays the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
     """
-    import service.tasks  # noqa: F401 - the tasks' module, and with it workers.expand
+    import service.tasks  # noqa: F401 - the tasks' module
+    import workers.expand  # noqa: F401 - which the tasks import when they first run
     from workers.kernels import warm_up
 
     seconds = warm_up()

@@ -31,6 +31,7 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass
 from importlib import metadata
+from typing import TYPE_CHECKING
 
 import numpy as np
 from sqlalchemy import Connection, bindparam, func, insert, select, text, update
@@ -55,11 +56,14 @@ from service.models import (
 )
 from workers.classify import lattice_type
 from workers.cluster import Cluster as CoreCluster
-from workers.expand import CIRCULAR, Expansion as CoreExpansion
 from workers.identity import certificate_key, find_match
+from workers.outcomes import CIRCULAR
 from workers.params import Params
 from workers.rigidity import Rigidity, rigidity
 from workers.seeds import seed_cluster
+
+if TYPE_CHECKING:  # the coordinator, which imports this module, never loads the path-following code
+    from workers.expand import Expansion as CoreExpansion
 
 #: clusters.lattice of a cluster that is not a close-packed fragment (NULL means not yet classified)
 NOT_CLOSE_PACKED = "none"

@@ -17,7 +17,14 @@ import time
 from distributed import get_worker
 
 from service import store
-from workers.expand import expand
+
+
+def expand(cluster, params):
+    """:func:`workers.expand.expand`, imported when first called: the coordinator imports this module (to
+    submit its tasks) and never expands, so it never loads the path-following code and numba."""
+    from workers.expand import expand as expand_cluster
+
+    return expand_cluster(cluster, params)
 
 
 def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Reader=None) -> dict:

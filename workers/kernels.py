@@ -43,6 +43,7 @@ kernel before the first path.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import time
 from dataclasses import dataclass
@@ -60,17 +61,32 @@ BACKENDS = ("numba", "numpy")
 #: of R_f is at least GUARD_FACTOR * tol_n: far from the SVD's zero threshold tol_n.
 GUARD_FACTOR = 100.0
 
-try:  # numba is a dependency; without it (or with a broken install) the reference still runs
-    from workers import _compiled
-except ImportError:  # pragma: no cover
-    _compiled = None
+#: workers._compiled, imported when the compiled backend is first used (:func:`_numba`): importing
+#: numba takes a quarter of a second, which a process that never follows a path (the coordinator,
+#: the query commands) need not pay
+_compiled = None
+
+
+def numba_available() -> bool:
+    """Whether numba is installed (a dependency; without it the numpy reference still runs)."""
+    return _compiled is not None or importlib.util.find_spec("numba") is not None
+
+
+def _numba():
+    """:mod:`workers._compiled`, imported on first use."""
+    global _compiled
+    if _compiled is None:
+        from workers import _compiled as module
+
+        _compiled = module
+    return _compiled
 
 
 def _initial_backend() -> str:
     name = os.environ.get("PACKINGS_KERNELS", "").strip().lower() or "numba"
     if name not in BACKENDS:
         raise ValueError(f"PACKINGS_KERNELS must be one of {BACKENDS}, got {name!r}")
-    if name == "numba" and _compiled is None:  # pragma: no cover
+    if name == "numba" and not numba_available():  # pragma: no cover
         return "numpy"
     return name
 
@@ -88,7 +104,7 @@ def set_backend(name: str) -> str:
     global _backend
     if name not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {name!r}")
-    if name == "numba" and _compiled is None:
+    if name == "numba" and not numba_available():
         raise RuntimeError("numba is not available")
     previous, _backend = _backend, name
     return previous
@@ -151,7 +167,7 @@ def to_frame(x: np.ndarray, tri: tuple[int, int, int]) -> np.ndarray:
 def residual(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """f_ij(x) = |x_i - x_j|^2 - 1 for every contact (i, j)."""
     if _backend == "numba":
-        return _compiled.residual(_f64(x), _i64(edges))
+        return _numba().residual(_f64(x), _i64(edges))
     return residual_numpy(x, edges)
 
 
@@ -188,7 +204,7 @@ def rigidity_matrix(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
     It is half the Jacobian of the residuals, and (R(p) y)_k = (p_i - p_j).(y_i - y_j).
     """
     if _backend == "numba":
-        return _compiled.rigidity_matrix(_f64(x), _i64(edges))
+        return _numba().rigidity_matrix(_f64(x), _i64(edges))
     return rigidity_matrix_numpy(x, edges)
 
 
@@ -292,11 +308,12 @@ def project_compiled(
         a[:, free] = ea
         b = as_kernel_array(extra[1], np.float64, (-1,))
     g = guard_threshold(DEFAULT.tol_n if tol_n is None else tol_n)
-    xn, status, it, fsq, _, _ = _compiled.newton(
+    compiled = _numba()
+    xn, status, it, fsq, _, _ = compiled.newton(
         x, _i64(edges), free, free_mask(x.size, free), a, b, float(tol), float(dx_max), int(max_iter), bool(polish), float(g),
         int(stall),
     )
-    return Projection(xn, status == _compiled.NEWTON_OK, int(it), float(fsq))
+    return Projection(xn, status == compiled.NEWTON_OK, int(it), float(fsq))
 
 
 def project_numpy(
@@ -371,7 +388,7 @@ def regular_flexes(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: fl
         return None
     x = _f64(x)
     free = as_kernel_array(free, np.int64, (-1,))
-    a = _compiled.regular_flexes(x, _i64(edges), free, free_mask(x.size, free), guard_threshold(tol_n))
+    a = _numba().regular_flexes(x, _i64(edges), free, free_mask(x.size, free), guard_threshold(tol_n))
     return None if a < 0 else int(a)
 
 
@@ -407,7 +424,7 @@ def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
 def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """|x_i - x_j| for each (i, j) in ``pairs``."""
     if _backend == "numba":
-        return _compiled.pair_distances_flat(_f64(x), _i64(pairs))
+        return _numba().pair_distances_flat(_f64(x), _i64(pairs))
     p = x.reshape(-1, 3)
     d = p[pairs[:, 0]] - p[pairs[:, 1]]
     return np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -426,7 +443,7 @@ def some_automorphism_aligns(ax: np.ndarray, bx: np.ndarray, adist: np.ndarray, 
     every coordinate after the optimal orthogonal alignment (:func:`aligned_max_error`).
     """
     if _backend == "numba":
-        return bool(_compiled.some_automorphism_aligns(ax, bx, adist, bdist, asorted, bsorted, autos, bound, tol_d))
+        return bool(_numba().some_automorphism_aligns(ax, bx, adist, bdist, asorted, bsorted, autos, bound, tol_d))
     if np.max(np.abs(asorted - bsorted), initial=0.0) > bound:
         return False
     relabelled = bdist[autos[:, :, None], autos[:, None, :]]

@@ -8,7 +8,6 @@ from itertools import combinations
 import numpy as np
 
 from workers import kernels
-from workers.kernels import _compiled
 from workers.cluster import contacts_from_coords, pair_distances
 from workers.dimension import solution_dimension
 from workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
@@ -23,6 +22,11 @@ from workers.outcomes import (  # noqa: F401 - the outcomes of a path, named her
 )
 from workers.params import Params
 from workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces, rigidity_without_stress
+
+try:  # numba is a dependency; without it (or with a broken install) the reference still runs
+    from workers import _compiled
+except ImportError:  # pragma: no cover
+    _compiled = None
 
 
 @dataclass(frozen=True)

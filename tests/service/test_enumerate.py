@@ -453,6 +453,26 @@ def test_the_command_line_starts_the_workers_before_loading_the_kernels():
     assert out.strip() == "[]"
 
 
+def test_the_coordinator_never_loads_the_path_following_code(tmp_path):
+    """The coordinator (and every command that only reads or writes the database) creates a run, seeds
+    it, claims, submits and counts without importing the path-following code and numba (a quarter of a
+    second of a run's start-up, on the cores the workers need)."""
+    code = (
+        "import sys\n"
+        "from service import coordinator, store\n"
+        "from service.db import open_database, sessions\n"
+        "from workers.params import Params\n"
+        f"S = sessions(open_database('sqlite:///{tmp_path / 'c.db'}', create=True))\n"
+        "info = store.start_run(S, 8, Params(), 'here:1')\n"
+        "assert store.claim(S, info.id, 'here:1', 8)\n"
+        "with S() as s:\n"
+        "    store.run_counts(s, info.id), store.run_diagnostics(s, info.id)\n"
+        "print(sorted(m for m in ('numba', 'workers._compiled', 'workers.paths', 'workers.expand') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
 @pytest.mark.parametrize("env, expected", [(None, False), ("True", True)])
 def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
     """Dask's statistical profiler (a stack sample every 10 ms) costs a run about 8 %: the local
