@@ -108,7 +108,7 @@ def run_one(n: int, k: int, directory: Path) -> dict:
     run = result["seconds"]
     per_worker = (in_expand or 0.0) / k
     return {
-        "n": n, "workers": k, "wall_s": round(wall, 2), "run_s": run, "in_expand_s": round(per_worker, 2),
+        "n": n, "workers": k, "wall_s": round(wall, 2), "run_s": run, "in_expand_s": round(per_worker, 3),
         "outside_share_of_wall": round(1.0 - per_worker / wall, 4),
         "outside_share_of_run": round(1.0 - per_worker / run, 4) if run else None,
         "expansions": expansions, "paths": paths,
