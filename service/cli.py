@@ -16,10 +16,12 @@ import threading
 from pathlib import Path
 
 import click
-from sqlalchemy.exc import SQLAlchemyError
 
-from service.db import DatabaseError, default_url, display_url, first_line, parse_url
 from workers.params import Params
+
+# What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
+# enumerate` starts the fork server of its local cluster's workers first thing (start_fork_server), and
+# every 0.1 s before it is 0.1 s more before the workers can start.  The commands import what they use.
 
 MAX_N = 24  #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
 
@@ -31,6 +33,8 @@ db_option = click.option(
 
 def resolve_url(db_url: str | None) -> str:
     """The database URL to use, with a relative SQLite path made absolute (workers may run elsewhere)."""
+    from service.db import default_url, parse_url
+
     url = parse_url(db_url or default_url())
     if url.get_backend_name() == "sqlite" and url.database and url.database != ":memory:" \
             and not url.database.startswith("file:"):
@@ -88,11 +92,11 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     check_n(n)
     if n_workers is not None and scheduler is not None:
         raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
-    params = Params(max_break=max_break, min_contacts=min_contacts)
-    url = resolve_url(db_url)
     if scheduler is None:
         start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
-    from service.db import preflight
+    params = Params(max_break=max_break, min_contacts=min_contacts)
+    url = resolve_url(db_url)
+    from service.db import display_url, parse_url, preflight
 
     preflight(url)  # a bad URL, server or schema is reported before any Dask cluster starts
     from service.plugin import DatabasePlugin
@@ -300,7 +304,7 @@ def db_group() -> None:
 @db_option
 def db_upgrade(db_url: str | None) -> None:
     """Create the schema, or migrate it to this code's version."""
-    from service.db import current_revision, head_revision
+    from service.db import current_revision, display_url, head_revision
 
     engine = open_db(db_url, create=True, migrate=True)
     click.echo(f"{display_url(engine.url)}: schema {current_revision(engine)} (this code: {head_revision()})")
@@ -421,12 +425,21 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 # --------------------------------------------------------------------------- queries: select, show, export
 
 from service import export as _export  # noqa: E402 - the query commands' formats
-from service.selection import describe_keys as _describe_keys  # noqa: E402
 
 _SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
                    "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
-                   "'n=10,contacts<24,singular', '!singular,min_gap>0.1', hyperstatic, run=1.  Keys:\n\n\b\n"
-                   + _describe_keys())
+                   "'n=10,contacts<24,singular', '!singular,min_gap>0.1', hyperstatic, run=1.  Keys:\n\n\b\n")
+
+
+class _SelectionCommand(click.Command):
+    """A command taking a SELECTION, whose help ends with the selection's keys (built when the help is
+    shown: they come from service.selection, which loads SQLAlchemy)."""
+
+    def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        from service.selection import describe_keys
+
+        self.epilog = _SELECTION_HELP + describe_keys()
+        super().format_epilog(ctx, formatter)
 _TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "lattice",
                   "certificate"]
 
@@ -470,7 +483,7 @@ def _table_row(f: dict) -> list:
             None if f["min_gap"] is None else f"{f['min_gap']:.6g}", f["lattice"], cert if len(cert) <= 16 else cert[:13] + "..."]
 
 
-@cli.command("select", epilog=_SELECTION_HELP)
+@cli.command("select", cls=_SelectionCommand)
 @click.argument("selection", required=False, default="")
 @db_option
 @click.option("--json", "as_json", is_flag=True, help="A JSON list: every fact, coords and contact_list.")
@@ -532,7 +545,7 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     click.echo("\n".join(out))
 
 
-@cli.command("export", epilog=_SELECTION_HELP)
+@cli.command("export", cls=_SelectionCommand)
 @click.argument("selection", required=False, default="")
 @click.option("--n", "n", type=int, default=None, help="Only clusters of N spheres.")
 @click.option("--format", "fmt", type=click.Choice(_export.FORMATS), default=None,
@@ -569,6 +582,20 @@ from service.plots import plot as _plot  # noqa: E402 - its own module; imports 
 cli.add_command(_plot)
 
 
+def _database_error(e: Exception) -> str | None:
+    """The one line for a database's error (service.db.DatabaseError: one a user can fix; SQLAlchemy's:
+    e.g. the server went away mid-command, and transactions rolled back), None for any other error."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from service.db import DatabaseError, first_line
+
+    if isinstance(e, DatabaseError):
+        return str(e)
+    if isinstance(e, SQLAlchemyError):
+        return f"database: {first_line(e)}"
+    return None
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     try:
@@ -579,11 +606,11 @@ def main(argv: list[str] | None = None) -> None:
     except click.ClickException as e:
         click.echo(f"packings: error: {e.format_message()}", err=True)
         sys.exit(e.exit_code)
-    except DatabaseError as e:
-        click.echo(f"packings: error: {e}", err=True)
-        sys.exit(1)
-    except SQLAlchemyError as e:  # e.g. the server went away mid-command; transactions roll back
-        click.echo(f"packings: error: database: {first_line(e)}", err=True)
+    except Exception as e:  # noqa: BLE001 - only the database's errors are a line; the rest is raised again
+        line = _database_error(e)
+        if line is None:
+            raise
+        click.echo(f"packings: error: {line}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
         click.echo("packings: interrupted; rerun the same command to resume", err=True)

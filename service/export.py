@@ -27,7 +27,6 @@ import tempfile
 from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator
 
-from workers.classify import LATTICES, static_class
 
 #: the scalar facts of a cluster, in the order the formats list them
 FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
@@ -44,6 +43,8 @@ FORMATS = ("extxyz", "xyz", "json")
 
 def facts(c) -> dict:
     """The scalar facts of a cluster row."""
+    from workers.classify import LATTICES, static_class  # here: the command line imports this module light
+
     out = {name: getattr(c, name) for name in FACTS if name not in _DERIVED}
     out["excess"] = c.contacts - (3 * c.n - 6)
     out["static"] = static_class(c.n, c.contacts)

@@ -453,6 +453,15 @@ def test_the_command_line_starts_the_workers_before_loading_the_kernels():
     assert out.strip() == "[]"
 
 
+def test_the_command_line_loads_light_so_that_the_fork_server_starts_first():
+    """Importing the command line loads none of SQLAlchemy, numpy, Dask (0.3 s in all): `packings
+    enumerate` starts its workers' fork server before it loads them, and the commands load what they use."""
+    code = ("import sys, service.cli; "
+            "print(sorted(m for m in ('sqlalchemy', 'numpy', 'dask', 'distributed') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
 def test_the_coordinator_never_loads_the_path_following_code(tmp_path):
     """The coordinator (and every command that only reads or writes the database) creates a run, seeds
     it, claims, submits and counts without importing the path-following code and numba (a quarter of a
