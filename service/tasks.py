@@ -36,10 +36,14 @@ def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Rea
     ones: the lease is checked again when the result is written).
     """
     task = store.load_task(Reader or Session_, expansion_id, token)
-    if task is None:
-        return {"expansion": expansion_id, "stale": True}
-    summary = store.record_expansions(Session_, [run_loaded(task, token)], worker or store.process_name())[0]
-    return summary if summary is not None else {"expansion": expansion_id, "stale": True}
+    summary = None if task is None else store.record_expansions(
+        Session_, [run_loaded(task, token)], worker or store.process_name())[0]
+    return summary if summary is not None else stale(expansion_id)
+
+
+def stale(expansion_id: int) -> dict:
+    """The summary of an expansion whose lease is not (or no longer) its task's: nothing was written."""
+    return {"expansion": expansion_id, "stale": True}
 
 
 def run_loaded(task: store.Task, token: str) -> store.Finished:
@@ -91,4 +95,4 @@ def expand_task(expansions: list[tuple[int, str]], plugin: str) -> list[dict]:
             written = {f.task.expansion_id: summary for f, summary in zip(finished, summaries) if summary is not None}
     if errors:
         raise ExpansionsFailed(errors)
-    return [written.get(eid, {"expansion": eid, "stale": True}) for eid, _ in expansions]
+    return [written.get(eid) or stale(eid) for eid, _ in expansions]
