@@ -88,10 +88,7 @@ def certificate_key(cluster: Cluster) -> str:
     c = _canonical(cluster)
     key = _KEYS.get((c.n, c.cert))
     if key is None:
-        key = np.packbits(c.adjacency[_upper(c.n)]).tobytes().hex()
-        if len(_KEYS) >= _GROUPS_MAX:
-            _KEYS.clear()
-        _KEYS[(c.n, c.cert)] = key
+        key = _keep(_KEYS, (c.n, c.cert), np.packbits(c.adjacency[_upper(c.n)]).tobytes().hex())
     return key
 
 
@@ -142,7 +139,15 @@ def _group_closure(generators: list[np.ndarray], n: int) -> list[np.ndarray]:
 #: automorphism groups by certificate (the canonical adjacency matrix): every cluster with that
 #: contact graph has the same group, and a worker compares many endpoints with each graph
 _GROUPS: dict[tuple[int, bytes], np.ndarray] = {}
-_GROUPS_MAX = 65536  #: the cache is emptied when it reaches this many graphs
+_GROUPS_MAX = 65536  #: a cache by certificate is emptied when it reaches this many graphs
+
+
+def _keep(cache: dict, key, value):
+    """``cache[key] = value`` in a cache by certificate, emptied first if it holds _GROUPS_MAX; returns value."""
+    if len(cache) >= _GROUPS_MAX:
+        cache.clear()
+    cache[key] = value
+    return value
 
 
 def _group(c: "_Canonical") -> np.ndarray:
@@ -153,9 +158,7 @@ def _group(c: "_Canonical") -> np.ndarray:
     if group is None:
         group = np.array(_compute_automorphisms(c.adjacency), dtype=np.int64).reshape(-1, c.n)
         group.setflags(write=False)
-        if len(_GROUPS) >= _GROUPS_MAX:
-            _GROUPS.clear()
-        _GROUPS[key] = group
+        _keep(_GROUPS, key, group)
     return group
 
 
