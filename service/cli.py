@@ -75,14 +75,15 @@ def cli() -> None:
               help="Worker processes of the local Dask cluster (default: one per core).")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.")
-@click.option("--max-break", type=click.IntRange(1, 10), default=Params.max_break, show_default=True,
-              help="Largest number of contacts broken at once.")
+@click.option("--max-break", type=click.IntRange(1, 10), default=None,
+              help="Largest number of contacts broken at once (default: no cap, every size up to m - rank + 1 as the "
+                   "paper for n <= 14; a cap is for restricted runs of large n).")
 @click.option("--min-contacts", type=int, default=None, help="Keep only clusters with at least this many contacts.")
 @click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
               help="Tries per expansion before it is marked failed.")
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: str | None, max_break: int,
+def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: str | None, max_break: int | None,
                   min_contacts: int | None, max_attempts: int, as_json: bool, quiet: bool) -> None:
     """Enumerate the rigid clusters of N spheres into the database and print them by number of contacts.
 

@@ -24,7 +24,7 @@ from workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond
 )
 from workers.params import Params
 from workers.paths import PathEnd, follow_path
-from workers.rigidity import Rigidity, contact_triangle, rigidity
+from workers.rigidity import Rigidity, contact_triangle
 
 
 @dataclass(frozen=True)
@@ -87,20 +87,26 @@ class Expansion:
 
 
 def break_sizes(m: int, rank: int, params: Params) -> range:
-    """Sizes of the subsets to break: 1 .. max(1, m - rank + 1), at most max_break.
+    """Sizes of the subsets to break: 1 .. max(1, m - rank + 1), at most max_break when one is set.
 
     ``rank`` is the rank of the pinned rigidity matrix.  For a regular cluster it
-    is 3n - 6 and this is METHOD.md's m - (3n - 6) + 1 (with single breaks for
+    is 3n - 6 and this is the paper's m - (3n - 6) + 1 (with single breaks for
     hypostatic clusters).  A singular cluster has rank < 3n - 6: each missing
     rank is a linear flex held by a stress, and breaking one more contact can
     still leave a one-dimensional set, so it gets one more size per flex.
     """
-    return range(1, min(max(1, m - rank + 1), params.max_break) + 1)
+    top = max(1, m - rank + 1)
+    if params.max_break is not None:
+        top = min(top, params.max_break)
+    return range(1, top + 1)
 
 
 def cluster_rank(cluster: Cluster, params: Params) -> int:
     """Rank of the rigidity matrix of ``cluster`` with a contact triangle pinned: 3n - 6 - #flexes."""
-    return 3 * cluster.n - 6 - rigidity(cluster.coords, cluster.contacts, params).flexes
+    edges = cluster.edges()
+    tri = contact_triangle(edges)
+    x = kernels.to_frame(cluster.coords, tri).ravel()
+    return 3 * cluster.n - 6 - kernels.null_spaces(x, edges, kernels.free_coordinates(cluster.n, tri), params.tol_n).V.shape[1]
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Numerical parameters of the method (METHOD.md), with the paper's values as defaults."""
+"""Numerical parameters of the method (docs/method.md), with the paper's values as defaults."""
 
 from __future__ import annotations
 
@@ -32,8 +32,10 @@ class Params:
     #: iterations (0: it runs the full newton_max_iter), see workers.dimension.solution_dimension
     probe_stall: int = 10
     max_path_steps: int = 3000  #: steps along one path before it is abandoned
-    max_break: int = 3  #: largest number of contacts broken at once
-    #: stop a path whose set is more than one-dimensional after its first step (METHOD.md's rule);
+    #: largest number of contacts broken at once; None (the default, as in the paper for every n <= 14)
+    #: breaks up to m - rank(R) + 1, a cap is for restricted runs (n >= 15), see workers.expand.break_sizes
+    max_break: int | None = None
+    #: stop a path whose set is more than one-dimensional after its first step (the paper's rule);
     #: by default such a path goes on and is counted (see workers.paths.follow_path)
     stop_on_dimension_change: bool = False
     min_contacts: int | None = None  #: keep only rigid clusters with at least this many contacts
@@ -45,7 +47,7 @@ class Params:
             object.__setattr__(self, "x_tol_min", self.ds / 8)
         if self.v_tol is None:
             object.__setattr__(self, "v_tol", 2 * self.ds)
-        if self.max_break < 1:
+        if self.max_break is not None and self.max_break < 1:
             raise ValueError("max_break must be at least 1")
 
     def to_dict(self) -> dict:

@@ -26,8 +26,9 @@ def test_break_sizes():
     assert list(break_sizes(24, 23, P)) == [1, 2]  # singular: one flex held by one stress
     assert list(break_sizes(23, 22, P)) == [1, 2]  # hypostatic singular
     assert list(break_sizes(20, 24, P)) == [1]  # never fewer than single breaks
-    assert list(break_sizes(40, 36, P)) == [1, 2, 3]  # capped by max_break
-    assert list(break_sizes(40, 36, P.with_(max_break=5))) == [1, 2, 3, 4, 5]
+    assert list(break_sizes(40, 36, P)) == [1, 2, 3, 4, 5]  # no cap by default: n = 14's 40-contact clusters
+    assert list(break_sizes(33, 30, P)) == [1, 2, 3, 4]  # n = 12's 33-contact cluster
+    assert list(break_sizes(40, 36, P.with_(max_break=3))) == [1, 2, 3]  # a restricted run's cap
 
 
 def test_expand_octahedron_reaches_only_itself_and_the_polytetrahedron():
@@ -128,7 +129,7 @@ def test_rigid_endpoints_are_exact_and_record_how_they_were_reached():
 
 def test_paths_that_widen_after_the_first_step_stop_only_when_asked():
     """Pair breaks of a singular cluster: some paths are one-dimensional at the start and two-dimensional
-    after the first step (a thin set around a singular path).  METHOD.md's rule stops them; otherwise they
+    after the first step (a thin set around a singular path).  the paper's rule stops them; otherwise they
     go on, and the widening is recorded."""
     import json
     from pathlib import Path
@@ -162,7 +163,7 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
     from workers.cluster import Cluster
     from workers.identity import same_geometry
     from workers.params import DEFAULT
-    from workers.paths import RIGID, _endpoint
+    from workers.paths import _rigidity, close_pairs
     from workers.rigidity import contact_triangle
 
     data = json.loads((Path(__file__).parents[1] / "data" / "n12_near_miss.json").read_text())
@@ -175,14 +176,14 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
         assert len(keep) == len(edges) - 1 == 30
         assert abs(kernels.residual(c.coords.ravel(), near)[0]) ** 2 > DEFAULT.tol  # as stored: not a contact to tol
         tri = contact_triangle(keep)
-        end = _endpoint(kernels.to_frame(c.coords, tri).ravel(), keep, near, kernels.free_coordinates(c.n, tri),
-                        DEFAULT, 1)
+        free = kernels.free_coordinates(c.n, tri)
+        xe, contacts = close_pairs(kernels.to_frame(c.coords, tri).ravel(), keep, near, free, DEFAULT)
         # projected onto every contact, the point moves onto the cluster the path passed by, which may
         # bring further pairs into contact: those are projected onto too
-        assert end.outcome == RIGID and set(map(tuple, m["contacts"])) <= set(end.contacts)
-        f = kernels.residual(end.coords.ravel(), np.array(end.contacts, dtype=np.int64))
+        assert _rigidity(xe, contacts, free, DEFAULT).rigid and set(map(tuple, m["contacts"])) <= set(contacts)
+        f = kernels.residual(xe, np.array(contacts, dtype=np.int64))
         assert float(f @ f) < DEFAULT.tol
-        ends.append(Cluster(end.coords, end.contacts))
+        ends.append(Cluster(xe.reshape(-1, 3), contacts))
     assert not same_geometry(*(Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))
                                for m in data["endpoints"]), DEFAULT.tol_d)  # stored: two clusters
     assert same_geometry(ends[0], ends[1], DEFAULT.tol_d)  # now: one
