@@ -4,8 +4,7 @@ Nothing outside :mod:`workers.kernels` and :mod:`workers.paths` should import th
 module: :mod:`workers.kernels` is the interface, and selects between these
 functions and the plain numpy reference (``workers.kernels.set_backend``).
 
-Numerics (METHOD.md, "Projection onto the constraint set" and "Following a
-one-dimensional path"), exactly as in the numpy reference up to round-off:
+Numerics (docs/method.md, "Following a path"), exactly as in the numpy reference up to round-off:
 
 * Coordinates are full 3n vectors; ``mask`` is 1.0 on the free coordinates and
   0.0 on the six pinned ones, so R_f (the pinned rigidity matrix) acts as

@@ -1,4 +1,4 @@
-"""Dimension of the solution set near x after contacts are deleted (METHOD.md)."""
+"""Dimension of the solution set near x after contacts are deleted (docs/method.md)."""
 
 from __future__ import annotations
 
@@ -41,7 +41,7 @@ def solution_dimension(
 
     If R has full row rank and no more rows than columns, D = |V|.  Otherwise the
     rigidity test decides D = 0, and failing that the numerical estimate of
-    METHOD.md: for each v_j in V and each sign, step to x + s ds0 v_j and project
+    docs/method.md: for each v_j in V and each sign, step to x + s ds0 v_j and project
     back (first with the correction orthogonal to v_j, then, if that fails or is
     rejected, without).  The displacement v_t = x' - x is rejected if
     |v_t| > x_tol_max or |v_t| < x_tol_min; otherwise its part orthogonal to the

@@ -13,7 +13,7 @@ Conventions
   removed by pinning a triangle (a, b, c) placed with a at the origin, b on the
   x-axis and c in the xy-plane: the six coordinates x_a, y_a, z_a, y_b, z_b, z_c
   are fixed.  Dropping their columns from the rigidity matrix is the same as
-  adding the six unit pinning rows of METHOD.md: the right null space of the
+  adding the six unit pinning rows of the paper: the right null space of the
   pinned matrix is the null space of the reduced one (zeros in the pinned
   coordinates), and the left null spaces (self-stresses) coincide because a
   self-stress exerts no net force or torque.
@@ -372,6 +372,53 @@ def project_numpy(
     if converged:
         return Projection(best_x, True, max_iter, best_fsq)
     return Projection(x, False, max_iter, fsq)
+
+
+def refine_singular(x: np.ndarray, edges: np.ndarray, free: np.ndarray, max_iter: int = 100) -> np.ndarray:
+    """x moved to where E = sum_k f_k^2 is smallest, by Newton's method on E with its full Hessian.
+
+    At a singular solution (a flex held by a stress) the least-squares Newton step of
+    :func:`project` is orthogonal to the flexes, so it cannot correct an error along them: the
+    part of f it cannot reduce is of second order in that error, and a polished singular point
+    keeps coordinates accurate only to about sqrt(|f|), which can exceed tol_d (one cluster then
+    stored twice).  The Hessian of E, R^T R + sum_k f_k grad^2 f_k (each grad^2 f_k a constant
+    Laplacian block), sees that curvature: each step solves H dx = -grad E with |H|'s
+    eigenvalues (those below 1e-16 of the largest, round-off, left out), halved until E decreases; the
+    iteration ends when no halving does.  Numpy only: it runs for the few singular endpoints.
+    """
+    n = x.size // 3
+    x = np.array(x, dtype=np.float64, copy=True)
+    f = residual_numpy(x, edges)
+    e0 = float(f @ f)
+    eye = np.eye(3)
+    for _ in range(max_iter):
+        if e0 == 0.0:
+            break
+        j = 2.0 * rigidity_matrix_numpy(x, edges)[:, free]
+        grad = j.T @ f
+        lap = np.zeros((n, n))
+        np.add.at(lap, (edges[:, 0], edges[:, 0]), f)
+        np.add.at(lap, (edges[:, 1], edges[:, 1]), f)
+        np.add.at(lap, (edges[:, 0], edges[:, 1]), -f)
+        np.add.at(lap, (edges[:, 1], edges[:, 0]), -f)
+        h = j.T @ j + 2.0 * np.kron(lap, eye)[np.ix_(free, free)]
+        w, u = np.linalg.eigh(h)
+        w = np.abs(w)
+        w[w < 1e-16 * w.max()] = np.inf
+        dx = -u @ ((u.T @ grad) / w)
+        t = 1.0
+        while t > 1e-6:
+            y = x.copy()
+            y[free] += t * dx
+            fy = residual_numpy(y, edges)
+            ey = float(fy @ fy)
+            if ey < e0:
+                break
+            t /= 2
+        else:
+            break
+        x, f, e0 = y, fy, ey
+    return x
 
 
 def regular_flexes(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float) -> int | None:

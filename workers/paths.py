@@ -1,7 +1,8 @@
-"""Following a one-dimensional path from a rigid cluster to its next rigid cluster (METHOD.md)."""
+"""Following a one-dimensional path from a rigid cluster to its next rigid cluster (docs/method.md)."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, replace
 from itertools import combinations
 
@@ -44,11 +45,19 @@ class PathEnd:
 
 def non_contact_pairs(n: int, edges: np.ndarray) -> np.ndarray:
     """All pairs (i < j) that are not in ``edges``, as a (k x 2) array."""
-    mask = np.triu(np.ones((n, n), dtype=bool), k=1)
-    mask[edges[:, 0], edges[:, 1]] = False
-    mask[edges[:, 1], edges[:, 0]] = False
-    i, j = np.nonzero(mask)
-    return np.stack([i, j], axis=1).astype(np.int64)
+    adjacent = np.zeros((n, n), dtype=bool)
+    adjacent[edges[:, 0], edges[:, 1]] = True
+    adjacent[edges[:, 1], edges[:, 0]] = True
+    upper = _upper_pairs(n)
+    return upper[~adjacent[upper[:, 0], upper[:, 1]]]
+
+
+@functools.lru_cache(maxsize=None)
+def _upper_pairs(n: int) -> np.ndarray:
+    """Every pair (i < j) of n spheres, row by row (read-only, shared)."""
+    pairs = np.stack(np.triu_indices(n, 1), axis=1).astype(np.int64)
+    pairs.setflags(write=False)
+    return pairs
 
 
 def follow_path(
@@ -75,7 +84,7 @@ def follow_path(
 
     The dimension is re-checked after the first step and recorded in the result.
     If it is 0 the path stops.  If it is more than 1 the path stops when
-    ``params.stop_on_dimension_change`` is set (METHOD.md's rule); otherwise it
+    ``params.stop_on_dimension_change`` is set (the paper's rule); otherwise it
     goes on, carrying the tangent by least squares as at any singular point.
     Going on cannot produce a false cluster, since every endpoint is kept only
     if it passes the rigidity test; it reaches the rigid clusters that lie at the
@@ -161,7 +170,7 @@ def _follow_numpy(x, keep, broken, tangent, free, params: Params) -> PathEnd:
                 if h < h_min:
                     return end(PROJECTION_FAILED, steps)
                 continue
-            return replace(_endpoint(xn, keep, pairs[hit], free, params, steps + 1), first_step_dim=first_dim)
+            return replace(_endpoint(x, xn, keep, pairs, hit, free, params, steps + 1), first_step_dim=first_dim)
         tn, dim = _svd_tangent(xn, keep, free, t, params, first_dim is None)
         if first_dim is None:
             first_dim = dim
@@ -217,7 +226,7 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
         if dim >= 0:
             first_dim = int(dim)
         if status == _compiled.ST_HIT:
-            return replace(_endpoint(xn, keep, pairs[hit], free, params, steps + 1), first_step_dim=first_dim)
+            return replace(_endpoint(x, xn, keep, pairs, hit, free, params, steps + 1), first_step_dim=first_dim)
         if status != _compiled.ST_NEED_SVD:
             return PathEnd(_COMPILED_OUTCOMES[status], steps, first_step_dim=first_dim)
         tn, dim = _svd_tangent(xn, keep, free, t, params, first_dim is None)
@@ -233,51 +242,221 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
             return PathEnd(TOO_LONG, steps, first_step_dim=first_dim)
 
 
-def _endpoint(x, keep, new, free, params: Params, steps: int) -> PathEnd:
-    """Add the new contacts, project, and classify the endpoint."""
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
-    new_t = tuple((int(i), int(j)) for i, j in new)
-    pr = None
-    for r in range(0, len(new)):
-        for drop in combinations(range(len(new)), r):
-            sel = np.array([k for k in range(len(new)) if k not in drop], dtype=np.int64)
-            edges = np.vstack([keep, new[sel]])
-            pr = kernels.project(x, edges, free, polish=True, **kw)
-            if pr.ok:
-                break
-        if pr is not None and pr.ok:
-            break
-    if pr is None or not pr.ok:
-        return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
-    coords = pr.x.reshape(-1, 3)
-    contacts = contacts_from_coords(coords, params.tol_a)
-    constrained = {(int(i), int(j)) for i, j in edges}
-    for _ in range(3):
-        if set(contacts) <= constrained:
-            break
-        # A pair within tol_a of touching that was not a constraint: a contact of the endpoint must hold
-        # to the Newton tolerance like every other, so project again with all of them.  Where no such
-        # point exists (the pair passes within tol_a of touching and the path goes on) the endpoint is
-        # not a cluster: without this, each such near miss was stored as a "rigid" cluster, a new copy
-        # for each path that passed by (n = 12: one contact graph with 74 such geometries).
-        edges = np.array(contacts, dtype=np.int64)
-        pr = kernels.project(pr.x, edges, free, polish=True, **kw)
+def _newton(params: Params) -> dict:
+    """The Newton projection's settings (workers.kernels.project) from the run's parameters."""
+    return dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
+
+
+def max_move(a: np.ndarray, b: np.ndarray) -> float:
+    """The largest displacement of a sphere between two flat coordinate vectors of one frame."""
+    d = (np.asarray(a) - np.asarray(b)).reshape(-1, 3)
+    return float(np.sqrt(np.einsum("ij,ij->i", d, d)).max(initial=0.0))
+
+
+def _smallest_gap(x: np.ndarray, pairs: np.ndarray) -> float:
+    return float(kernels.pair_distances_flat(x, pairs).min()) - 1.0
+
+
+def approach_contact(x0: np.ndarray, x1: np.ndarray, keep: np.ndarray, pairs: np.ndarray, hit: np.ndarray,
+                     free: np.ndarray, params: Params, max_iter: int = 100) -> np.ndarray | None:
+    """The point of the path through x0 and x1 (consecutive points on {f_keep = 0}) where the first
+    approaching pair touches; ``pairs`` are the non-contact pairs, ``hit`` marks those that stopped
+    the path at x1.
+
+    The path stops once an approaching pair is within 1 + tol_a0 of touching.  Projecting that
+    point onto the enlarged constraints at once is a Newton solve started up to tol_a0 from the
+    contact, and along a slow approach far further along the path: Newton then leaves the basin
+    of the contact and converges to another solution of the enlarged equations, far from the
+    path (docs/method.md, "The endpoint").  So the path is first walked to the contact, by a
+    secant iteration on the smallest gap g of the approaching pairs against the distance along
+    the path: each new point is predicted from the last two (along their chord, or between the
+    two ends of a bracket once a point overlaps, Illinois) and projected onto the path's
+    constraints; a step is at most ``ds0``, the path's own largest step.  A pair that comes within
+    tol_a0 while approaching joins the pairs watched.  Converged when |g| <= sqrt(tol), finer than
+    projected distances are resolved.  None when the gap stops decreasing before a bracket is
+    found (the pairs pass by without touching), a projection fails, or it does not converge.
+    """
+    kw = _newton(params)
+    watched = hit.copy()
+    d0 = kernels.pair_distances_flat(x0, pairs)
+    d1 = kernels.pair_distances_flat(x1, pairs)
+    y0, s0, g0 = x0, 0.0, float(d0[watched].min()) - 1.0
+    y1, s1, g1 = x1, float(np.linalg.norm(x1 - x0)), float(d1[watched].min()) - 1.0
+    g_tol = float(np.sqrt(params.tol))
+    lo = (s0, g0, y0) if g0 > 0 else None  # bracket ends (s, g, y) with g > 0 and with g < 0
+    hi = None
+    side = 0  # Illinois: the end kept last time (1: lo, -1: hi)
+    for _ in range(max_iter):
+        if abs(g1) <= g_tol:
+            return y1
+        if g1 > 0:
+            lo = (s1, g1, y1)
+        else:
+            hi = (s1, g1, y1)
+        if lo is not None and hi is not None:
+            (sa, ga, ya), (sb, gb, yb) = lo, hi
+            ga, gb = (ga / 2, gb) if side == 1 else (ga, gb / 2) if side == -1 else (ga, gb)
+            theta = ga / (ga - gb)
+            s2, pred = sa + theta * (sb - sa), ya + theta * (yb - ya)
+        else:
+            if g1 >= g0 or s1 == s0:  # not approaching: the pairs pass by
+                return None
+            step = min(-g1 * (s1 - s0) / (g1 - g0), params.ds0)
+            chord = y1 - y0
+            s2, pred = s1 + step, y1 + step * chord / np.linalg.norm(chord)
+        pr = kernels.project(pred, keep, free, **kw)
         if not pr.ok:
-            return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+            return None
+        d2 = kernels.pair_distances_flat(pr.x, pairs)
+        watched |= (d2 < 1.0 + params.tol_a0) & (d2 < d1)
+        g2 = float(d2[watched].min()) - 1.0
+        if lo is not None and hi is not None:
+            side = 1 if g2 < 0 else -1
+        y0, s0, g0, y1, s1, g1, d1 = y1, s1, g1, pr.x, s2, g2, d2
+    return None
+
+
+def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.ndarray,
+                params: Params) -> tuple[np.ndarray, tuple[tuple[int, int], ...]] | None:
+    """Project x onto the contacts ``edges`` and the pairs ``extra``; (x', contacts of x') or None.
+
+    The paper's procedure at a path's end: project onto the enlarged constraint set, deleting
+    subsets of ``extra`` only when the projection fails (never all of them); adjacency is then
+    decided with tol_a, and a pair within tol_a of touching that was not a constraint is added
+    and the point projected again, since a contact must hold to Newton's tolerance like every
+    other.  Every projection is polished and counts only if it moves no sphere by more than
+    tol_a0 from x: the point sought is where these pairs touch, and tol_a0 is the distance at
+    which the method takes a pair for a contact to be.  A projection that goes further has
+    converged to another solution of the equations, not the one at x.
+    """
+    kw = _newton(params)
+    pr = None
+    for r in range(len(extra)):
+        for drop in combinations(range(len(extra)), r):
+            sel = np.array([k for k in range(len(extra)) if k not in drop], dtype=np.int64)
+            cons = np.vstack([edges, extra[sel]])
+            pr = kernels.project(x, cons, free, polish=True, **kw)
+            if pr.ok and max_move(pr.x, x) <= params.tol_a0:
+                break
+        else:
+            continue
+        break
+    else:
+        return None
+    constrained = {(int(i), int(j)) for i, j in cons}
+    for _ in range(3):
+        contacts = contacts_from_coords(pr.x.reshape(-1, 3), params.tol_a)
+        if set(contacts) <= constrained:
+            return _refined(pr, cons, free, x, params), contacts
+        # Without this, each near miss (a pair passing within tol_a) was stored as a rigid cluster of its own.
+        cons = np.array(contacts, dtype=np.int64)
+        pr = kernels.project(pr.x, cons, free, polish=True, **kw)
+        if not pr.ok or max_move(pr.x, x) > params.tol_a0:
+            return None
         constrained = set(contacts)
-        coords = pr.x.reshape(-1, 3)
-        contacts = contacts_from_coords(coords, params.tol_a)
-    else:
-        return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
-    dist = pair_distances(coords)
-    np.fill_diagonal(dist, np.inf)
-    if dist.min() < 1.0 - params.tol_a:
-        return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=new_t)
-    edges = np.array(contacts, dtype=np.int64)
-    flexes = kernels.regular_flexes(pr.x, edges, free, params.tol_n)
-    if flexes is not None:  # certified full row rank: what the SVD would find, without it
-        rig = rigidity_without_stress(flexes)
-    else:
-        rig = rigidity_from_null_spaces(kernels.null_spaces(pr.x, edges, free, params.tol_n), edges, params)
+    return None
+
+
+#: sum f^2 that a polished regular point reaches (round-off): above it, the point is singular
+_ROUND_OFF = 1e-28
+
+
+def _refined(pr: kernels.Projection, edges: np.ndarray, free: np.ndarray, x0: np.ndarray, params: Params) -> np.ndarray:
+    """A polished projection's point, refined along its flexes where it is singular
+    (:func:`workers.kernels.refine_singular`) so that two copies of one singular cluster agree far
+    below tol_d; kept as polished if the refinement would move a sphere further than tol_a0 from x0."""
+    if pr.residual <= _ROUND_OFF:
+        return pr.x
+    y = kernels.refine_singular(pr.x, edges, free)
+    return y if max_move(y, x0) <= params.tol_a0 else pr.x
+
+
+def near_pairs(x: np.ndarray, contacts, tol: float, candidates: np.ndarray | None = None) -> np.ndarray:
+    """The pairs that are not ``contacts`` and are closer than 1 + tol, as a (k x 2) array; among
+    ``candidates`` (pairs, some of which may be contacts) if given, else among all pairs."""
+    n = x.size // 3
+    if candidates is None:
+        candidates = _upper_pairs(n)
+    close = candidates[kernels.pair_distances_flat(x, candidates) < 1.0 + tol]
+    if not close.size:
+        return close
+    touching = {(int(i), int(j)) for i, j in contacts}
+    return close[[(int(i), int(j)) not in touching for i, j in close]]
+
+
+def resolve_near_pairs(x: np.ndarray, contacts, free: np.ndarray, params: Params,
+                       candidates: np.ndarray | None = None) -> tuple[np.ndarray, tuple[tuple[int, int], ...], Rigidity] | None:
+    """The rigid cluster that x (flat, pinned frame) becomes with its pairs within tol_a0 of
+    touching as contacts, or None.
+
+    x satisfies ``contacts``; its other pairs closer than 1 + tol_a0 are added (subsets deleted
+    only when the projection fails, :func:`close_pairs`, which also keeps every sphere within
+    tol_a0 of x).  If that projects, overlaps nothing and is rigid, it is the cluster x stands
+    for: x is then a second solution of the same contact equations within tol_a0 of a cluster
+    with more contacts, closer than the method resolves (docs/method.md, "The endpoint").
+    ``candidates``: the pairs that may be near (default all; a path passes its non-contacts).
+    """
+    near = near_pairs(x, contacts, params.tol_a0, candidates)
+    if not near.size:
+        return None
+    alt = close_pairs(x, np.array(contacts, dtype=np.int64), near, free, params)
+    if alt is None or _overlaps(alt[0], params):
+        return None
+    rig = _rigidity(alt[0], alt[1], free, params)
+    return (alt[0], alt[1], rig) if rig.rigid else None
+
+
+def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int) -> PathEnd:
+    """The endpoint of a path that stopped at ``x_hit`` for the pairs ``pairs[hit]``, and its verdict.
+
+    The paper's step first: add the pairs that stopped the path and project, deleting subsets of
+    them only when that fails (:func:`close_pairs`, which counts a projection only if it moves
+    no sphere further than tol_a0).  If none counts, or one overlaps, walk the path to where the
+    first of them touches (:func:`approach_contact`) and do the same there with every pair
+    touching.  Then the endpoint rule for pairs within tol_a0 of touching: if adding them gives
+    a rigid cluster within tol_a0 (:func:`resolve_near_pairs`), that cluster is the endpoint;
+    the point without them is a second solution of the same contact equations closer to it
+    than the method resolves (docs/method.md, "The endpoint").
+    """
+    new_t = tuple((int(i), int(j)) for i, j in pairs[hit])
+    closed = close_pairs(x_hit, keep, pairs[hit], free, params)
+    if closed is None or _overlaps(closed[0], params):
+        y = approach_contact(x_prev, x_hit, keep, pairs, hit, free, params)
+        if y is None:
+            return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+        touching = pairs[kernels.pair_distances_flat(y, pairs) < 1.0 + params.tol_a]
+        closed = close_pairs(y, keep, touching, free, params)
+        if closed is None:
+            return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+    xe, contacts = closed
+    resolved = resolve_near_pairs(xe, contacts, free, params, pairs)
+    if resolved is not None:
+        xr, cr, rig = resolved
+        return PathEnd(RIGID, steps, xr.reshape(-1, 3), cr, rig, _formed(cr, keep))
+    coords = xe.reshape(-1, 3)
+    if _overlaps(xe, params):
+        return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
+    rig = _rigidity(xe, contacts, free, params)
     outcome = RIGID if rig.rigid else (UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
-    return PathEnd(outcome, steps, coords, contacts, rig, new_t)
+    return PathEnd(outcome, steps, coords, contacts, rig, _formed(contacts, keep))
+
+
+def _formed(contacts, keep) -> tuple[tuple[int, int], ...]:
+    """The contacts of an endpoint that the path did not keep: the ones it formed."""
+    kept = {(int(i), int(j)) for i, j in keep}
+    return tuple(c for c in contacts if c not in kept)
+
+
+def _overlaps(x: np.ndarray, params: Params) -> bool:
+    dist = pair_distances(x.reshape(-1, 3))
+    np.fill_diagonal(dist, np.inf)
+    return bool(dist.min() < 1.0 - params.tol_a)
+
+
+def _rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
+    """The rigidity test of an endpoint (x in the path's pinned frame)."""
+    edges = np.array(contacts, dtype=np.int64)
+    flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
+    if flexes is not None:  # certified full row rank: what the SVD would find, without it
+        return rigidity_without_stress(flexes)
+    return rigidity_from_null_spaces(kernels.null_spaces(x, edges, free, params.tol_n), edges, params, x, free)

@@ -1,4 +1,4 @@
-"""Rigidity of a cluster: first order, then pre-stress stability (METHOD.md, "Rigidity")."""
+"""Rigidity of a cluster: first order, then pre-stress stability (docs/method.md, "Rigidity")."""
 
 from __future__ import annotations
 
@@ -141,8 +141,15 @@ def rigidity_without_stress(flexes: int) -> Rigidity:
     return Rigidity(False, FLOPPY, flexes, 0, "no-stress")
 
 
-def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params: Params) -> Rigidity:
-    """The rigidity test of METHOD.md given V and W."""
+def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params: Params,
+                              x: np.ndarray | None = None, free: np.ndarray | None = None) -> Rigidity:
+    """The rigidity test of docs/method.md given V and W.
+
+    With the point ``x`` (flat, pinned frame) and its ``free`` coordinates, a pre-stress verdict
+    "rigid" stands only if x is also isolated at the scale of the method's probes
+    (:func:`on_a_curve`); otherwise the point is floppy (method ``probe``).  Without them (the
+    dimension test, which probes for itself) the pre-stress test alone decides.
+    """
     a, b = ns.V.shape[1], ns.W.shape[1]
     if b == 0:
         return rigidity_without_stress(a)
@@ -150,7 +157,35 @@ def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params:
         return Rigidity(True, FIRST_ORDER, 0, b, "first-order")
     Q = stress_forms(ns.V, ns.W, edges)
     rigid, method, margin = prestress_test(Q, params.tol_psd)
+    if rigid and x is not None and on_a_curve(x, edges, free, ns.V, params):
+        return Rigidity(False, FLOPPY, a, b, "probe", margin)
     return Rigidity(rigid, PRESTRESS if rigid else UNDECIDED, a, b, method, margin)
+
+
+def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray, params: Params) -> bool:
+    """Whether the contact equations have solutions at distance eps from x along a flex of V.
+
+    For each flex v, each sign and eps = ds0 and ds0 / 2, x + eps v is projected onto the contacts
+    with its correction orthogonal to v; a projection that converges, no further than 2 eps from x,
+    is a solution at distance eps along v: x lies on a curve of solutions and is not rigid.  At a
+    pre-stress stable point with margin mu the residual on that hyperplane is at least about
+    mu eps^2, so such a projection cannot converge (sum f^2 < tol) unless mu < tol / eps^4
+    (about 5e-5 at eps = ds0 / 2, a few times tol_psd): this decides what the margin cannot where
+    the point lies on a curve of singular points, at which the coordinates are accurate only to
+    about sqrt(|f|) and the computed margin is noise (docs/method.md, "The endpoint").
+    """
+    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n,
+              stall=params.probe_stall)
+    for j in range(V.shape[1]):
+        v = V[:, j]
+        vf = v[free]
+        for eps in (params.ds0, params.ds0 / 2):
+            for sign in (1.0, -1.0):
+                x0 = x + sign * eps * v
+                pr = kernels.project(x0, edges, free, extra=(vf[None, :], np.array([vf @ x0[free]])), **kw)
+                if pr.ok and np.linalg.norm(pr.x - x) <= 2 * eps:
+                    return True
+    return False
 
 
 def contact_triangle(edges, forbidden=()) -> tuple[int, int, int] | None:
@@ -175,5 +210,6 @@ def rigidity(coords: np.ndarray, contacts, params: Params) -> Rigidity:
         raise ValueError("cluster has no triangle of contacts to pin")
     n = coords.shape[0]
     x = kernels.to_frame(np.asarray(coords, dtype=np.float64), tri).ravel()
-    ns = kernels.null_spaces(x, edges, kernels.free_coordinates(n, tri), params.tol_n)
-    return rigidity_from_null_spaces(ns, edges, params)
+    free = kernels.free_coordinates(n, tri)
+    ns = kernels.null_spaces(x, edges, free, params.tol_n)
+    return rigidity_from_null_spaces(ns, edges, params, x, free)

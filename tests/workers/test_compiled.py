@@ -25,7 +25,7 @@ from workers.cluster import Cluster
 from workers.expand import expand, path_starts
 from workers.identity import certificate, same_geometry
 from workers.params import Params
-from workers.paths import RIGID, UNDECIDED_END, follow_path
+from workers.paths import RIGID, PROJECTION_FAILED, UNDECIDED_END, follow_path
 from workers.rigidity import contact_triangle
 from workers.seeds import seed_cluster
 
@@ -84,8 +84,11 @@ def test_both_backends_follow_paths_to_the_same_ends(path_sample):
     sensitive = []
     for (label, p), a, b in zip(path_sample, compiled, reference):
         where = (label, p.broken_contacts, p.direction)
-        assert a.outcome == b.outcome, where
         assert a.first_step_dim == b.first_step_dim, where
+        if a.outcome != b.outcome and RIGID not in (a.outcome, b.outcome):
+            sensitive.append((where, (a.outcome, b.outcome)))
+            continue
+        assert a.outcome == b.outcome, where
         if a.outcome == RIGID:
             rigid += 1
             assert a.steps == b.steps, where
@@ -97,11 +100,12 @@ def test_both_backends_follow_paths_to_the_same_ends(path_sample):
             if a.rigidity.flexes == 0 and a.rigidity.stresses == 0:  # regular, isostatic: Newton reaches round-off in both
                 assert np.abs(a.coords - b.coords).max() < 1e-9, where
         elif a.steps != b.steps or a.contacts != b.contacts:
-            sensitive.append((where, a.outcome))
+            sensitive.append((where, (a.outcome, b.outcome)))
     assert rigid > 60
-    # Paths may differ in detail only where the reference itself does under round-off: ending at
-    # undecided points reached through singular sets (a continuum of nearby endpoints).
-    assert all(outcome == UNDECIDED_END for _, outcome in sensitive), sensitive
+    # Paths may differ only where the reference itself does under round-off, and never at a rigid
+    # end: at points reached through singular sets (a continuum of nearby endpoints), which end
+    # undecided, or fail the endpoint's projection where it would have to move further than tol_a0.
+    assert all(set(outcomes) <= {UNDECIDED_END, PROJECTION_FAILED} for _, outcomes in sensitive), sensitive
     assert len(sensitive) <= 2
 
 
