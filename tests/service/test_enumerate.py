@@ -111,13 +111,23 @@ def test_enumerate_prints_the_table_the_dashboard_and_progress(sqlite_url):
     assert "expansions" in r.stderr and "clusters 5" in r.stderr
 
 
+@pytest.fixture(scope="module")
+def reference10():
+    """The serial in-memory enumeration of n = 10 (workers.explore): one order of discovery."""
+    from workers.explore import explore
+
+    return list(explore(10).clusters)
+
+
 @pytest.mark.slow
-def test_enumerate_10(db_url, paper_counts):
+def test_enumerate_10(db_url, paper_counts, reference10):
     r = packings("enumerate", "10", "--db", db_url, "--json", "--quiet")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["total"] == 263
     assert out["by_contacts"] == paper_counts["clusters_by_contacts"]["10"] == {"23": 1, "24": 259, "25": 3}
+    # two workers finishing in their own order store the same clusters as the serial enumeration
+    assert_same_clusters(db_url, 10, reference10)
 
 
 def _worker_processes(pid: int) -> list[psutil.Process]:
