@@ -112,8 +112,8 @@ class AuditReport:
     def to_dict(self) -> dict:
         return {"tolerances": {str(n): t for n, t in self.tolerances.items()},
                 "near": [asdict(r) for r in self.near], "prestress": [asdict(r) for r in self.prestress],
-                "close": [asdict(r) for r in self.close], "near_copies": {str(k): v for k, v in self.near_copies.items()},
-                "clean": self.clean}
+                "close": [asdict(r) for r in self.close],
+                "near_copies": {str(k): v for k, v in self.near_copies.items()}, "clean": self.clean}
 
 
 def run_params(s: Session, n: int) -> Params:
@@ -171,7 +171,8 @@ def prestress_rows(s: Session, n: int, params: Params) -> list[PrestressRow]:
          .where(Cluster.n == n, Cluster.rigid_kind == PRESTRESS,
                 or_(Cluster.margin < PRESTRESS_FACTOR * params.tol_psd, Cluster.margin.is_(None)))
          .order_by(Cluster.margin, Cluster.id))
-    return [PrestressRow(id_, n, m, method, margin, params.tol_psd, gap) for id_, m, method, margin, gap in s.execute(q)]
+    return [PrestressRow(id_, n, m, method, margin, params.tol_psd, gap)
+            for id_, m, method, margin, gap in s.execute(q)]
 
 
 def close_rows(s: Session, n: int, params: Params) -> list[CloseRow]:

@@ -276,8 +276,8 @@ def geometry_distance(a: Cluster, b: Cluster) -> float:
     coordinate difference depends on the frame, so the distance is not quite
     symmetric (as ``same_geometry`` is not): the store compares a new endpoint
     with the stored clusters, ``find_match(new, stored)``.  Used to audit a
-    catalogue for copies of one cluster stored as two.  Raises ValueError if the certificates differ (no correspondence of
-    spheres to measure).
+    catalogue for copies of one cluster stored as two.  Raises ValueError if
+    the certificates differ (no correspondence of spheres to measure).
     """
     ca, cb = _canonical(a), _canonical(b)
     if ca.n != cb.n or ca.cert != cb.cert:

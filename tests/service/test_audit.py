@@ -99,7 +99,8 @@ def test_a_near_pair_whose_cluster_is_not_stored_says_so(engine):
     assert [x.id for x in r.near] == [junk_id] * 3
     assert all(x.status == RIGID and x.match is None for x in r.near) and r.near_copies == {}
     assert "not stored" in format_audit(r)
-    assert format_audit(r).splitlines()[-1] == "not clean: 1 cluster with a near pair, 0 of them near copies of stored clusters"
+    assert format_audit(r).splitlines()[-1] == ("not clean: 1 cluster with a near pair, 0 of them near copies of "
+                                                "stored clusters")
 
 
 # --------------------------------------------------------------------------- close geometries
