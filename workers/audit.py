@@ -82,7 +82,8 @@ def with_contacts_added(cluster: Cluster, pairs, params: Params) -> Added:
     newton_max_iter and tol_n; the contacts are then the pairs closer than
     1 + tol_a, and if that brings in pairs that were not constraints the point
     is projected again with all of them (a contact must hold to the Newton
-    tolerance like the others).  An overlap (a pair closer than 1 - tol_a after
+    tolerance like the others; up to three projections, then it counts as not
+    projecting).  An overlap (a pair closer than 1 - tol_a after
     any of these projections) is rejected, and the rest is given the rigidity
     test.
     """
