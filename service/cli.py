@@ -423,6 +423,27 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
 
 
+@cli.command("audit")
+@db_option
+@click.option("--n", "n", type=int, default=None, help="Only this n.")
+@click.option("--json", "as_json", is_flag=True, help="One JSON object: the three lists and the tolerances.")
+def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
+    """Look for junk clusters: (a) clusters with a non-contact pair within tol_a0 of touching, and what
+    adding the pair gives (a stored cluster: a near copy of it); (b) pre-stress margins within a factor
+    of 10 of tol_psd; (c) two geometries of one contact graph within 100 tol_d.  A clean catalogue has
+    (a) and (c) empty.  Exits 0 whatever it finds (it is a report)."""
+    from service.audit import audit, format_audit
+    from service.db import sessions
+
+    engine = open_db(db_url)
+    try:
+        with sessions(engine, readonly=True)() as s:
+            report = audit(s, n)
+    finally:
+        engine.dispose()
+    click.echo(json.dumps(report.to_dict()) if as_json else format_audit(report))
+
+
 # --------------------------------------------------------------------------- queries: select, show, export
 
 from service import export as _export  # noqa: E402 - the query commands' formats

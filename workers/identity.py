@@ -42,6 +42,7 @@ __all__ = [
     "canonical_labelling",
     "automorphisms",
     "same_geometry",
+    "geometry_distance",
     "find_match",
     "ClusterIndex",
 ]
@@ -260,6 +261,30 @@ def same_geometry(a: Cluster, b: Cluster, tol_d: float) -> bool:
     if ca.n != cb.n or ca.cert != cb.cert:
         return False
     return _same_geometry_canonical(ca, cb, _group(ca), tol_d)
+
+
+def geometry_distance(a: Cluster, b: Cluster) -> float:
+    """How far apart two clusters with one contact graph are: the number :func:`same_geometry` compares
+    with ``tol_d``.
+
+    Both in canonical order and centred; for each automorphism ``s`` of the
+    canonical graph, the largest coordinate difference between ``a`` and
+    ``b``'s spheres relabelled by ``s`` after the optimal orthogonal alignment
+    (reflections allowed, :func:`kernels.aligned_max_error`); the smallest over
+    ``s``.  So ``same_geometry(a, b, tol_d)`` iff ``geometry_distance(a, b) <=
+    tol_d``.  It is ``a`` that is rotated onto ``b``, and the largest
+    coordinate difference depends on the frame, so the distance is not quite
+    symmetric (as ``same_geometry`` is not): the store compares a new endpoint
+    with the stored clusters, ``find_match(new, stored)``.  Used to audit a
+    catalogue for copies of one cluster stored as two.  Raises ValueError if
+    the certificates differ (no correspondence of spheres to measure).
+    """
+    ca, cb = _canonical(a), _canonical(b)
+    if ca.n != cb.n or ca.cert != cb.cert:
+        raise ValueError("geometry_distance needs two clusters with the same contact graph (certificate)")
+    if ca.n == 0:
+        return 0.0
+    return min(kernels.aligned_max_error(ca.x, cb.x[s]) for s in _group(ca))
 
 
 def find_match(cluster: Cluster, candidates: Iterable[Cluster], tol_d: float) -> int | None:
