@@ -2,7 +2,7 @@
 
 A stored cluster whose smallest non-contact gap is a few ``tol_a`` may be a junk
 "near copy": a point on a path that passed close by a cluster, stored with a
-near contact left out (METHOD.md, "Endpoint accuracy").  Genuine clusters can
+near contact left out (docs/method.md, "The endpoint").  Genuine clusters can
 have small gaps too (at n = 13 down to about 6e-5), so each near pair is tested:
 the cluster is projected onto its contacts and the pair(s), and the result, if it
 is rigid, is looked up among the stored clusters by the caller
@@ -16,18 +16,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from workers import kernels
-from workers.cluster import Cluster, Contact, contacts_from_coords, pair_distances
+from workers.cluster import Cluster, Contact, pair_distances
 from workers.params import Params
+from workers.paths import close_pairs
 from workers.rigidity import Rigidity, contact_triangle, rigidity
 
 RIGID = "rigid"  #: projected onto the added contacts, no overlap, and rigid
 NOT_RIGID = "not-rigid"  #: projected, no overlap, but the rigidity test fails (floppy or undecided)
 DOES_NOT_PROJECT = "does-not-project"  #: Newton's method found no point with every contact and the pairs
 OVERLAP = "overlap"  #: projected, but two spheres then overlap by more than tol_a
-
-#: how many times the contacts are recomputed and projected onto again (as workers.paths._endpoint)
-_REPROJECTIONS = 3
-
 
 @dataclass(frozen=True)
 class NearPair:
@@ -76,44 +73,29 @@ class Added:
 def with_contacts_added(cluster: Cluster, pairs, params: Params) -> Added:
     """Project ``cluster`` onto its contacts and ``pairs`` and say what it becomes.
 
-    As :func:`workers.paths._endpoint` treats a path's endpoint: a contact
-    triangle of the cluster is pinned, Newton's method (with polish) projects
-    onto the contacts and the pairs with the Params' tol, dx_max,
-    newton_max_iter and tol_n; the contacts are then the pairs closer than
-    1 + tol_a, and if that brings in pairs that were not constraints the point
-    is projected again with all of them (a contact must hold to the Newton
-    tolerance like the others; up to three projections, then it counts as not
-    projecting).  An overlap (a pair closer than 1 - tol_a after
-    any of these projections) is rejected, and the rest is given the rigidity
-    test.
+    As a path's endpoint is treated (:func:`workers.paths.close_pairs`: polished projection,
+    adjacency with tol_a and projection onto every contact, an overlapping point returned as
+    it is), but with no bound on how far the spheres move, so that the audit can say how far
+    the cluster it stands for is; the endpoint rule accepts it only within tol_a0
+    (``moved``, compared by :mod:`service.audit`).  An overlap (a pair closer than
+    1 - tol_a) is rejected, and the rest is given the rigidity test.
     """
     pairs = tuple(sorted((min(int(i), int(j)), max(int(i), int(j))) for i, j in pairs))
     tri = contact_triangle(cluster.edges())
     if tri is None:
         raise ValueError("cluster has no triangle of contacts to pin")
     free = kernels.free_coordinates(cluster.n, tri)
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
     x = kernels.to_frame(cluster.coords, tri).ravel()
-    constrained = set(cluster.contacts) | set(pairs)
-    for _ in range(_REPROJECTIONS):
-        edges = np.array(sorted(constrained), dtype=np.int64).reshape(-1, 2)
-        pr = kernels.project(x, edges, free, polish=True, **kw)
-        if not pr.ok:
-            return Added(pairs, DOES_NOT_PROJECT)
-        x = pr.x
-        coords = x.reshape(-1, 3)
-        contacts = contacts_from_coords(coords, params.tol_a)
-        if pair_distances(coords)[np.triu_indices(cluster.n, 1)].min() < 1.0 - params.tol_a:
-            # checked before the contacts are projected onto again: an overlapping pair would count as one
-            return Added(pairs, OVERLAP, Cluster(coords, contacts), None, _moved(cluster.coords, coords))
-        if set(contacts) <= constrained:
-            break
-        constrained = set(contacts)
-    else:
+    closed = close_pairs(x, cluster.edges(), np.array(pairs, dtype=np.int64).reshape(-1, 2), free,
+                         params.with_(tol_a0=np.inf))
+    if closed is None:
         return Added(pairs, DOES_NOT_PROJECT)
-    new = Cluster(coords, contacts)
+    coords = closed[0].reshape(-1, 3)
+    new = Cluster(coords, closed[1])
     moved = _moved(cluster.coords, coords)
-    rig = rigidity(coords, contacts, params)
+    if new.min_distance() < 1.0 - params.tol_a:
+        return Added(pairs, OVERLAP, new, None, moved)
+    rig = rigidity(coords, new.contacts, params)
     return Added(pairs, RIGID if rig.rigid else NOT_RIGID, new, rig, moved)
 
 

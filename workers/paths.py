@@ -327,11 +327,12 @@ def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.nd
     other.  Every projection is polished and counts only if it moves no sphere by more than
     tol_a0 from x: the point sought is where these pairs touch, and tol_a0 is the distance at
     which the method takes a pair for a contact to be.  A projection that goes further has
-    converged to another solution of the equations, not the one at x.
+    converged to another solution of the equations, not the one at x.  A point where two
+    spheres overlap is returned as it is, for the caller to reject.
     """
     kw = _newton(params)
     pr = None
-    for r in range(len(extra)):
+    for r in range(max(1, len(extra))):
         for drop in combinations(range(len(extra)), r):
             sel = np.array([k for k in range(len(extra)) if k not in drop], dtype=np.int64)
             cons = np.vstack([edges, extra[sel]])
@@ -346,6 +347,8 @@ def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.nd
     constrained = {(int(i), int(j)) for i, j in cons}
     for _ in range(3):
         contacts = contacts_from_coords(pr.x.reshape(-1, 3), params.tol_a)
+        if _overlaps(pr.x, params):  # an overlapping pair is no contact to project onto: the caller rejects it
+            return pr.x, contacts
         if set(contacts) <= constrained:
             return _refined(pr, cons, free, x, params), contacts
         # Without this, each near miss (a pair passing within tol_a) was stored as a rigid cluster of its own.
