@@ -167,3 +167,33 @@ def test_sub_cluster_keeps_the_given_order():
     assert set(c.contacts) == {(min(a, b), max(a, b)) for a, b in
                                [({3: 0, 0: 1, 1: 2}[i], {3: 0, 0: 1, 1: 2}[j]) for i, j in parent.contacts
                                 if i in (3, 0, 1) and j in (3, 0, 1)]}
+
+
+def test_the_lost_cluster_of_11_is_a_remainder_of_its_parent_of_12_and_no_path_leaves_it():
+    """tests/data/n11_catalysis.json: the cluster of 12 whose remainder without sphere 9 is the cluster of 11
+    that the path enumeration does not reach (docs/method.md, "Known limit").  The remainder is rigid (pre-
+    stress stable: two flexes, one stress) with 26 contacts (3n - 7), an hcp fragment; and, as the paper
+    describes it, breaking either of two of its contacts, or both, leaves it rigid (dimension 0) and
+    breaking any other contact leaves two degrees of freedom, any other pair three: no subset leaves a
+    one-dimensional set, so no path leaves it, and none can arrive (a path's reverse would leave it)."""
+    from workers.classify import lattice_type
+    from workers.expand import expand
+    from workers.outcomes import NOT_1D
+
+    data = json.loads((DATA / "n11_catalysis.json").read_text())
+    parent = Cluster(np.array(data["parent"]["coords"]), tuple(map(tuple, data["parent"]["contacts"])))
+    assert certificate_key(parent) == data["parent"]["certificate"]
+    r = remainder(parent, data["deleted"], P)
+    c = r.cluster
+    assert r.rigid and (c.n, c.m) == (11, 26)
+    assert (r.rigidity.kind, r.rigidity.flexes, r.rigidity.stresses) == ("prestress", 2, 1)
+    assert certificate_key(c) == data["certificate"]
+    assert lattice_type(c.coords, c.contacts) == "hcp"
+    ex = expand(c, P)
+    assert ex.paths_followed == 0 and set(ex.outcomes()) == {NOT_1D}
+    single = {e.broken[0]: e.dim for e in ex.endpoints if len(e.broken) == 1}
+    assert len(single) == 26 and Counter(single.values()) == {2: 24, 0: 2}
+    pairs = {e.broken: e.dim for e in ex.endpoints if len(e.broken) == 2}
+    rigid_two = tuple(sorted(b for b, d in single.items() if d == 0))
+    assert len(pairs) == comb(26, 2) and pairs.pop(rigid_two) == 0
+    assert set(pairs.values()) == {3}
