@@ -132,9 +132,73 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
                    + (" (resumed)" if result.resumed else "") + f"; database {display_url(parse_url(url))}")
     for err in result.errors[:10]:
         click.echo(f"packings: failed task: {err}", err=True)
+    if result.status == "complete" and not as_json:
+        _offer_catalysis(url, n)
     if result.status != "complete":
         raise click.ClickException(f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
                                    "failed (see `packings status`); rerun the same command to retry them")
+
+
+def _offer_catalysis(url: str, n: int) -> None:
+    """One line when clusters of n + 1 spheres are stored: catalysis may find clusters no path reaches."""
+    from service.catalysis import count_stored
+    from service.db import make_engine, sessions
+
+    engine = make_engine(url)
+    try:
+        more = count_stored(sessions(engine, readonly=True), n + 1)
+    finally:
+        engine.dispose()
+    if more:
+        click.echo(f"{more} clusters of {n + 1} spheres are stored: `packings catalyse {n}` deletes a sphere from "
+                   "each and adds the rigid remainders no path reached")
+
+
+@cli.command("catalyse")
+@click.argument("n", type=int)
+@db_option
+@click.option("--spheres", "k", type=click.IntRange(1, 10), default=1, show_default=True,
+              help="Spheres deleted from each stored cluster of N + K spheres.")
+@click.option("--max-break", type=click.IntRange(1, 10), default=Params.max_break, show_default=True,
+              help="As for enumerate: chooses the run of N that the clusters found are added to.")
+@click.option("--min-contacts", type=int, default=None,
+              help="As for enumerate: keep only remainders with at least this many contacts (and choose that run).")
+@click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int, min_contacts: int | None, as_json: bool,
+                 quiet: bool) -> None:
+    """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
+    yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
+    afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one)."""
+    check_n(n)
+    check_n(n + k)
+    params = Params(max_break=max_break, min_contacts=min_contacts)
+    from service.catalysis import NoParents, catalyse, format_report
+    from service.db import sessions
+
+    engine = open_db(db_url)
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit="cluster", desc=f"clusters of {n + k}", file=sys.stderr, disable=quiet or None)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    try:
+        report = catalyse(sessions(engine), n, params, spheres=k, on_progress=progress)
+    except NoParents as e:
+        raise click.ClickException(str(e)) from None
+    finally:
+        bar.close()
+        engine.dispose()
+    if as_json:
+        click.echo(json.dumps(report.to_dict()))
+        return
+    click.echo(format_report(report))
+    if report.new:
+        click.echo(f"run `packings enumerate {n}` to expand them")
 
 
 #: the modules that the fork server of a local cluster's workers loads before it forks them

@@ -46,6 +46,11 @@ LEASED = "leased"
 DONE = "done"
 FAILED = "failed"
 
+# How a cluster was first found (clusters.found_by).
+FOUND_SEED = "seed"  #: a run's starting cluster (workers.seeds)
+FOUND_PATH = "path"  #: the endpoint of a path from clusters.source_id
+FOUND_CATALYSIS = "catalysis"  #: a remainder of clusters.source_id (more spheres) after deleting spheres
+
 # Run statuses.
 RUNNING = "running"
 COMPLETE = "complete"
@@ -104,6 +109,12 @@ class Cluster(Base):
     #: NULL only for rows stored before revision 0002 until the backfill (``packings db upgrade``) ran
     lattice: Mapped[str | None] = mapped_column(String(16), nullable=True)
     found_in_run: Mapped[int | None] = mapped_column(ForeignKey("runs.id"), nullable=True)
+    #: FOUND_SEED, FOUND_PATH or FOUND_CATALYSIS: how the cluster was first found (revision 0003)
+    found_by: Mapped[str] = mapped_column(String(16), server_default=FOUND_PATH)
+    #: the cluster it was found from: for a path, the cluster whose expansion reached it; for catalysis,
+    #: the cluster of more spheres it is a remainder of; None for a seed
+    source_id: Mapped[int | None] = mapped_column(ForeignKey("clusters.id", name="fk_clusters_source_id"),
+                                                  nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     #: not a column: the number of stored clusters sharing this one's contact graph, filled in by
     #: service.selection.query (None when the row was loaded another way)
@@ -113,6 +124,7 @@ class Cluster(Base):
         UniqueConstraint("n", "certificate", "embedding", name="uq_clusters_key"),
         Index("ix_clusters_n_contacts", "n", "contacts"),
         Index("ix_clusters_n_lattice", "n", "lattice"),
+        Index("ix_clusters_source", "source_id"),
     )
 
     def to_core(self) -> CoreCluster:

@@ -42,6 +42,8 @@ from service.models import (
     COMPLETE,
     DONE,
     FAILED,
+    FOUND_PATH,
+    FOUND_SEED,
     INCOMPLETE,
     LEASED,
     PENDING,
@@ -198,14 +200,16 @@ def stored_with(session: Session | Connection, n: int, certificates) -> dict[str
 
 
 def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
-                    rows: list[Stored] | None = None) -> tuple[int, bool]:
+                    rows: list[Stored] | None = None, *, found_by: str, source_id: int | None) -> tuple[int, bool]:
     """The id of the stored cluster equal to ``c`` (same certificate, same
     geometry within ``tol_d``), inserting it if there is none.  The caller
     holds the certificate's lock (:func:`lock_certificates`).  ``rows`` are the
     stored clusters with its certificate (:func:`stored_with`; a row inserted
     here is appended to it) if the caller has them already.  The row's values
     (:func:`cluster_values`, the lattice) are computed only if it is inserted:
-    most endpoints are clusters stored already."""
+    most endpoints are clusters stored already.  ``found_by`` and ``source_id``
+    (models.FOUND_*: how it was found, and from which cluster) are written only
+    if it is inserted: a cluster keeps how it was first found."""
     if rows is None:
         cert = certificate_key(c)
         rows = stored_with(session, c.n, [cert])[cert]
@@ -216,7 +220,8 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
     embedding = (rows[-1].embedding + 1) if rows else 0
     values = cluster_values(c, rig)
     result = session.execute(_INSERT_CLUSTER, {
-        **values, "lattice": lattice_value(c), "embedding": embedding, "found_in_run": run_id})
+        **values, "lattice": lattice_value(c), "embedding": embedding, "found_in_run": run_id,
+        "found_by": found_by, "source_id": source_id})
     cid = int(result.inserted_primary_key[0])
     remember_core_cluster(c.n, values["coords"], values["contact_list"], c)  # read back as c, labelled already
     rows.append(Stored(cid, embedding, c, run_id))
@@ -281,7 +286,7 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
             seed = seed_cluster(n, params)
             rig = rigidity(seed.coords, seed.contacts, params)
             lock_certificates(s, [(n, certificate_key(seed))])
-            cid, _ = insert_or_match(s, seed, rig, run.id, params.tol_d)
+            cid, _ = insert_or_match(s, seed, rig, run.id, params.tol_d, found_by=FOUND_SEED, source_id=None)
             ensure_expansions(s, run.id, [cid])
         elif run.coordinator and run.coordinator != owner and _coordinator_alive(run.coordinator, run.heartbeat_at):
             raise RunBusy(f"run {run.id} (n = {n}) is being driven by coordinator {run.coordinator}; "
@@ -502,7 +507,8 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ids, new_clusters = [], 0
             for c, rig, cert in distinct:
                 rows = stored[(c.n, cert)]
-                cid, is_new = insert_or_match(s, c, rig, task.run_id, task.params.tol_d, rows)
+                cid, is_new = insert_or_match(s, c, rig, task.run_id, task.params.tol_d, rows,
+                                              found_by=FOUND_PATH, source_id=task.cluster_id)
                 ids.append(cid)
                 if is_new:
                     inserted.setdefault(task.run_id, []).append(cid)

@@ -216,3 +216,109 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
         assert c.exec_driver_sql("PRAGMA busy_timeout").scalar() == 200
     holder.dispose()
     eng.dispose()
+
+
+
+def _migrate(engine, revision: str, down: bool = False) -> None:
+    from alembic import command
+
+    from service.db import alembic_config
+
+    cfg = alembic_config(engine)
+    with engine.begin() as conn:
+        cfg.attributes["connection"] = conn
+        (command.downgrade if down else command.upgrade)(cfg, revision)
+
+
+def _how_found(engine) -> dict[int, tuple[str, int | None]]:
+    with engine.connect() as c:
+        return {i: (f, s) for i, f, s in c.execute(text("SELECT id, found_by, source_id FROM clusters"))}
+
+
+def _copy_as_0002(source, target) -> None:
+    """Every row of ``source`` (at head) into ``target`` (at 0002): the columns 0002 has."""
+    from sqlalchemy import MetaData
+
+    old = MetaData()
+    old.reflect(target, only=["runs", "clusters", "expansions", "transitions"])
+    with source.connect() as src, target.begin() as dst:
+        for name in ("runs", "clusters", "expansions", "transitions"):
+            table = old.tables[name]
+            rows = [{k: v for k, v in r.items() if k in table.c}
+                    for r in src.execute(Base.metadata.tables[name].select()).mappings()]
+            dst.execute(table.insert(), rows)
+
+
+def test_revision_0003_backfills_how_stored_clusters_were_found(engine, tmp_path):
+    """Runs of n = 7 and 8 copied into a database at revision 0002 (this code's rows without the two
+    columns) are upgraded to 0003: each run's seed (the cluster of its first expansion) becomes 'seed'
+    with no source, every other cluster 'path' with the source of the first transition from another
+    cluster that reached it: what the write-back had recorded.  Seeds are reached by paths too, so being
+    reached is not the test."""
+    from tests.service.conftest import fill_database
+
+    fill_database(engine, 7)
+    fill_database(engine, 8)
+    written = _how_found(engine)
+    seeds = {i for i, (f, _) in written.items() if f == "seed"}
+    assert len(seeds) == 2 and len(written) == 18
+    assert all(s is not None for f, s in written.values() if f == "path")
+    with engine.connect() as c:
+        reached = set(c.execute(text("SELECT target_id FROM transitions WHERE target_id <> source_id")).scalars())
+    assert seeds & reached
+    with _another(engine, tmp_path) as target:
+        _migrate(target, "0002")
+        _copy_as_0002(engine, target)
+        assert current_revision(target) == "0002"
+        _migrate(target, "head")
+        assert current_revision(target) == head_revision()
+        assert _how_found(target) == written
+        cols = {c["name"]: c for c in inspect(target).get_columns("clusters")}
+        assert not cols["found_by"]["nullable"] and cols["source_id"]["nullable"]
+        fks = {tuple(fk["constrained_columns"]): fk["referred_table"] for fk in inspect(target).get_foreign_keys("clusters")}
+        assert fks[("source_id",)] == "clusters"
+        with pytest.raises(Exception, match="(?i)foreign key"):  # source_id must name a stored cluster
+            with target.begin() as c:
+                c.execute(text("UPDATE clusters SET source_id = 99999 WHERE id = :i"), {"i": min(written)})
+
+
+class _another:
+    """An empty database on the same backend as ``engine`` (an engine), disposed of (and dropped) after."""
+
+    def __init__(self, engine, tmp_path):
+        self.engine, self.tmp_path = engine, tmp_path
+
+    def __enter__(self):
+        if self.engine.dialect.name == "sqlite":
+            self.pg = None
+            self.target = make_engine(f"sqlite:///{self.tmp_path / 'old.db'}")
+        else:
+            from tests.service.conftest import pg_database
+
+            self.pg = pg_database()
+            self.target = make_engine(self.pg.__enter__())
+        return self.target
+
+    def __exit__(self, *exc):
+        self.target.dispose()
+        if self.pg is not None:
+            self.pg.__exit__(*exc)
+        return False
+
+
+def test_db_upgrade_migrates_a_0002_database_holding_clusters(engine, tmp_path):
+    """A database at 0002 with a run in it is refused with the fix, and `packings db upgrade` brings it
+    to head with the clusters' origins filled in."""
+    from tests.service.conftest import fill_database
+
+    fill_database(engine, 6)
+    with _another(engine, tmp_path) as old:
+        _migrate(old, "0002")
+        _copy_as_0002(engine, old)
+        url = old.url.render_as_string(hide_password=False)
+        assert "packings db upgrade" in one_line_error(cli("stats", "--db", url))
+        r = cli("db", "upgrade", "--db", url)
+        assert r.returncode == 0, r.stderr
+        assert current_revision(old) == head_revision()
+        assert _how_found(old) == _how_found(engine)
+        assert sorted(f for f, _ in _how_found(old).values()) == ["path", "seed"]

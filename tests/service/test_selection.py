@@ -150,7 +150,7 @@ def rows(catalog):
         for values in SYNTHETIC:
             x = rng.random((values["n"], 3))
             s.add(Cluster(**values, coords=x.astype("<f8").tobytes(), coords_json=json.dumps(x.tolist()),
-                          contact_list="[[0, 1]]", found_in_run=None))
+                          contact_list="[[0, 1]]", found_in_run=None, found_by="seed"))
     with sessions(catalog.engine)() as s:
         return s.execute(select(Cluster).order_by(Cluster.id)).scalars().all()
 

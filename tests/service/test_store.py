@@ -266,7 +266,7 @@ def _insert_all(url: str, clusters: list[dict], seed: int, barrier) -> list[tupl
         rig = rigidity(c.coords, c.contacts, params)
         with S.begin() as s:
             store.lock_certificates(s, [(c.n, certificate_key(c))])
-            out.append(store.insert_or_match(s, c, rig, None, params.tol_d))
+            out.append(store.insert_or_match(s, c, rig, None, params.tol_d, found_by="seed", source_id=None))
     engine.dispose()
     return out
 
@@ -362,7 +362,8 @@ def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, mo
     new = [ex.endpoints[i].cluster for i in ex.distinct()]
     with engine.begin() as conn:
         for c in new:
-            store.insert_or_match(conn, c, ex.endpoints[0].rigidity, info.id, Params().tol_d)
+            store.insert_or_match(conn, c, ex.endpoints[0].rigidity, info.id, Params().tol_d, found_by="path",
+                                  source_id=None)
     with engine.connect() as conn:
         stored = store.stored_with(conn, 8, {certificate_key(c) for c in new})
     read = [r.cluster for rows in stored.values() for r in rows]

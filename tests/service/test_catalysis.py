@@ -1,0 +1,152 @@
+"""Catalysis in the database (service.catalysis) and `packings catalyse`."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from sqlalchemy import select, text
+
+from service import store
+from service.catalysis import NoParents, catalyse
+from service.db import sessions
+from service.models import COMPLETE, DONE, FOUND_CATALYSIS, PENDING, RUNNING, Cluster, Expansion, Run
+from tests.service.conftest import fill_database
+from workers.cluster import Cluster as Core
+from workers.params import Params
+from workers.rigidity import rigidity
+
+DATA = Path(__file__).parent.parent / "data"
+
+
+def cli(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+                          timeout=600, cwd=cwd)
+
+
+def one_line_error(r) -> str:
+    assert r.returncode != 0, r.stdout
+    assert "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("packings: error:"), r.stderr
+    return lines[0]
+
+
+def url_of(engine) -> str:
+    return engine.url.render_as_string(hide_password=False)
+
+
+def test_catalysis_of_8_from_9_finds_nothing_new(engine):
+    """Every rigid remainder of the 52 clusters of 9 is one of the 13 clusters of 8 already stored."""
+    run8 = fill_database(engine, 8)
+    fill_database(engine, 9)
+    S = sessions(engine)
+    with S() as s:
+        before = s.execute(select(Cluster.id).order_by(Cluster.id)).scalars().all()
+    r = catalyse(S, 8, Params())
+    assert (r.run_id, r.parents, r.remainders) == (run8, 52, 52 * 9)
+    assert r.rigid == r.already_stored > 0
+    assert r.new == [] and r.expansions_added == 0 and not r.run_reopened
+    with S() as s:
+        assert s.execute(select(Cluster.id).order_by(Cluster.id)).scalars().all() == before
+        assert s.get(Run, run8).status == COMPLETE
+
+
+def test_no_parents_is_an_error_and_writes_nothing(engine):
+    fill_database(engine, 6)
+    S = sessions(engine)
+    try:
+        catalyse(S, 6, Params())
+    except NoParents as e:
+        assert "packings enumerate 7" in str(e)
+    else:
+        raise AssertionError("no clusters of 7 are stored")
+    with S() as s:
+        assert s.execute(select(Run.n)).scalars().all() == [6]
+
+
+def _complete_after_the_seed(engine, n: int) -> int:
+    """A run of n whose seed's expansion is marked done and which is marked complete, without following
+    a path: a catalogue of n holding only its seed (a stand-in for a run that missed clusters)."""
+    S = sessions(engine)
+    info = store.start_run(S, n, Params(), "test:0:seed")
+    with S.begin() as s:
+        s.execute(Expansion.__table__.update().where(Expansion.run_id == info.id).values(status=DONE, outcomes="{}", paths=0))
+    assert store.finish_run(S, info.id, "test:0:seed", 0.0) == COMPLETE
+    return info.id
+
+
+def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_them(engine):
+    """Into a complete run of 6 that holds only its seed (the polytetrahedron), catalysis from the 5 clusters
+    of 7 adds the octahedron, found_by = catalysis with a parent of 7, pending in the run, which is marked
+    running again; `packings enumerate 6` then expands it and completes the run, and says catalysis is
+    possible as clusters of 7 are stored."""
+    run6 = _complete_after_the_seed(engine, 6)
+    fill_database(engine, 7)
+    S = sessions(engine)
+    r = catalyse(S, 6, Params())
+    assert r.run_id == run6 and r.parents == 5 and len(r.new) == 1 and r.run_reopened
+    new = r.new[0]
+    assert new.contacts == 12 and r.expansions_added == 1
+    with S() as s:
+        row = s.get(Cluster, new.id)
+        assert (row.found_by, row.source_id, row.found_in_run) == (FOUND_CATALYSIS, new.parent_id, run6)
+        assert s.get(Cluster, new.parent_id).n == 7
+        assert s.get(Run, run6).status == RUNNING
+        exp = s.execute(select(Expansion).where(Expansion.cluster_id == new.id)).scalar_one()
+        assert (exp.run_id, exp.status) == (run6, PENDING)
+    again = catalyse(S, 6, Params())  # idempotent: everything is stored now
+    assert again.new == [] and again.expansions_added == 0
+    r = cli("enumerate", "6", "--quiet", "--workers", "1", "--db", url_of(engine))
+    assert r.returncode == 0, r.stderr
+    assert "n = 6: 2 rigid clusters" in r.stdout
+    assert "`packings catalyse 6`" in r.stdout
+    with S() as s:
+        assert s.get(Run, run6).status == COMPLETE
+        exp = s.execute(select(Expansion).where(Expansion.cluster_id == new.id)).scalar_one()
+        assert exp.status == DONE and exp.paths > 0
+
+
+def test_catalyse_command(engine, tmp_path):
+    fill_database(engine, 6)
+    url = url_of(engine)
+    line = one_line_error(cli("catalyse", "6", "--db", url))
+    assert "no clusters of 7 spheres stored: run `packings enumerate 7` first" in line
+    line = one_line_error(cli("catalyse", "5", "--spheres", "2", "--db", url, "--quiet"))
+    assert "packings enumerate 7" in line
+    for n in ("3", "500"):
+        assert "n" in one_line_error(cli("catalyse", n, "--db", url))
+    fill_database(engine, 7)
+    r = cli("catalyse", "6", "--db", url, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "parents 5, remainders tested 35" in r.stdout and "new 0" in r.stdout
+    assert "packings enumerate 6` to expand" not in r.stdout
+    r = cli("catalyse", "6", "--db", url, "--json")
+    out = json.loads(r.stdout)
+    assert out["parents"] == 5 and out["new"] == [] and out["rigid"] == out["already_stored"]
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    assert "no database" in one_line_error(cli("catalyse", "6", "--db", f"sqlite:///{elsewhere / 'none.db'}"))
+    assert list(elsewhere.iterdir()) == []  # nothing created
+
+
+def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):
+    """The stored n = 12 parent of the cluster of 11 that no path reaches: catalysis into an empty
+    catalogue of 11 (a new run, seeded) stores it, with 26 contacts, an hcp fragment, found by catalysis."""
+    data = json.loads((DATA / "n11_catalysis.json").read_text())
+    parent = Core(np.array(data["parent"]["coords"]), tuple(map(tuple, data["parent"]["contacts"])))
+    S = sessions(engine)
+    with S.begin() as s:
+        pid, _ = store.insert_or_match(s, parent, rigidity(parent.coords, parent.contacts, Params()), None,
+                                       Params().tol_d, found_by="path", source_id=None)
+    r = catalyse(S, 11, Params())
+    lost = [f for f in r.new if tuple(f.deleted) == tuple(data["deleted"])]
+    assert len(lost) == 1 and (lost[0].contacts, lost[0].lattice, lost[0].parent_id) == (26, "hcp", pid)
+    with S() as s:
+        row = s.get(Cluster, lost[0].id)
+        assert (row.n, row.found_by, row.source_id, row.lattice) == (11, FOUND_CATALYSIS, pid, "hcp")
+        assert row.certificate == data["certificate"]
+        assert s.execute(text("SELECT count(*) FROM expansions WHERE cluster_id = :i"), {"i": row.id}).scalar() == 1

@@ -1,0 +1,199 @@
+"""workers.catalysis: the rigid remainders of a cluster after deleting spheres."""
+
+import json
+from collections import Counter
+from math import comb
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from workers.catalysis import (
+    CONTACTS_DIFFER,
+    FEW_CONTACTS,
+    NOT_RIGID,
+    remainder,
+    remainder_count,
+    remainders,
+    rigid_remainders,
+    sub_cluster,
+)
+from workers.cluster import Cluster, contacts_from_coords
+from workers.identity import certificate_key
+from workers.outcomes import BELOW_MIN_CONTACTS, RIGID
+from workers.params import Params
+from workers.rigidity import rigidity
+from workers.seeds import seed_cluster
+
+P = Params()
+DATA = Path(__file__).parent.parent / "data"
+N10 = {k: Cluster.from_dict(v) for k, v in json.loads((DATA / "clusters_n10.json").read_text()).items()}
+
+
+def octahedron() -> Cluster:
+    s = 1 / np.sqrt(2.0)
+    x = np.array([[s, 0, 0], [-s, 0, 0], [0, s, 0], [0, -s, 0], [0, 0, s], [0, 0, -s]])
+    return Cluster.from_coords(x)
+
+
+def moved(c: Cluster, rng, reflect: bool) -> tuple[Cluster, np.ndarray]:
+    """``c`` relabelled (sphere i of ``c`` is sphere inv[i]), rotated, reflected if asked, translated."""
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    if reflect:
+        q = q @ np.diag([1.0, 1.0, -1.0])
+    perm = rng.permutation(c.n)
+    inv = np.argsort(perm)
+    return Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts]), inv
+
+
+def test_deleting_a_sphere_of_the_octahedron_leaves_a_square_pyramid_which_is_not_rigid():
+    out = list(remainders(octahedron(), 1, P))
+    assert len(out) == 6
+    for r in out:
+        assert r.cluster.n == 5 and r.cluster.m == 8  # the square pyramid: 3n - 6 = 9 would be needed
+        assert r.outcome == NOT_RIGID and r.rigidity.flexes == 1 and not r.rigidity.rigid
+    assert rigid_remainders(octahedron(), 1, P) == []
+
+
+def test_deleting_a_sphere_of_three_contacts_from_the_6_polytetrahedron_leaves_the_bipyramid():
+    """The polytetrahedron of 6 (three tetrahedra face to face) has two spheres of three contacts; deleting
+    either leaves the triangular bipyramid (the one rigid cluster of 5); deleting any other sphere leaves a
+    sphere with fewer than three contacts."""
+    parent = seed_cluster(6)
+    degree = np.bincount(parent.edges().ravel())
+    ends = [i for i in range(6) if degree[i] == 3]
+    assert len(ends) == 2
+    rigid = rigid_remainders(parent, 1, P)
+    assert [r.deleted for r in rigid] == [(i,) for i in ends]
+    bipyramid = certificate_key(seed_cluster(5))
+    for r in rigid:
+        assert r.cluster.m == 9 and certificate_key(r.cluster) == bipyramid
+        assert r.rigidity.rigid and r.rigidity.flexes == 0
+    assert {r.outcome for r in remainders(parent, 1, P) if not r.rigid} == {FEW_CONTACTS}
+
+
+def test_remainder_is_the_parents_spheres_and_contacts_renumbered():
+    parent = N10["n10_m25_first-order"]
+    r = remainder(parent, (7, 2), P)
+    assert r.deleted == (2, 7) and r.kept == tuple(i for i in range(10) if i not in (2, 7))
+    assert np.array_equal(r.cluster.coords, parent.coords[list(r.kept)])
+    back = {(r.kept[i], r.kept[j]) for i, j in r.cluster.contacts}
+    assert back == {(i, j) for i, j in parent.contacts if i not in (2, 7) and j not in (2, 7)}
+    assert all(i < j for i, j in r.cluster.contacts) and list(r.cluster.contacts) == sorted(r.cluster.contacts)
+
+
+def test_every_deleted_set_is_tried_once():
+    parent = N10["n10_m24_first-order"]
+    for k in (1, 2, 3):
+        out = list(remainders(parent, k, P))
+        assert len(out) == comb(10, k) == remainder_count(10, k)
+        assert len({r.deleted for r in out}) == len(out)
+    with pytest.raises(ValueError):
+        list(remainders(parent, 0, P))
+    with pytest.raises(ValueError):
+        list(remainders(parent, 8, P))
+
+
+@pytest.mark.parametrize("name", sorted(N10))
+def test_the_verdicts_are_the_rigidity_tests(name):
+    """Rigid remainders are what workers.rigidity.rigidity calls rigid, and so are no others: the shortcut
+    for a sphere of fewer than three contacts and the SVD-free certificate change nothing."""
+    for k in (1, 2):
+        for r in remainders(N10[name], k, P):
+            if r.outcome in (RIGID, NOT_RIGID, FEW_CONTACTS):
+                full = rigidity(r.cluster.coords, r.cluster.contacts, P)
+                assert full.rigid == r.rigid, (name, r.deleted, r.outcome)
+                if r.rigidity is not None:
+                    assert (full.kind, full.flexes) == (r.rigidity.kind, r.rigidity.flexes)
+
+
+def test_rigid_remainders_of_clusters_of_10_are_rigid_clusters_of_9_with_their_measured_contacts():
+    found = 0
+    for parent in N10.values():
+        for r in rigid_remainders(parent, 1, P):
+            found += 1
+            assert r.cluster.n == 9 and r.rigidity.rigid
+            assert contacts_from_coords(r.cluster.coords, P.tol_a) == r.cluster.contacts
+            assert r.cluster.m >= 3 * 9 - 8  # hypostatic at most by two at n = 9 (the paper: all 3n - 6)
+    assert found > 0
+
+
+def test_min_contacts_is_the_endpoint_rule():
+    parent = N10["n10_m25_first-order"]
+    rigid = rigid_remainders(parent, 1, P)
+    most = max(r.cluster.m for r in rigid)
+    strict = P.with_(min_contacts=most)
+    kept = rigid_remainders(parent, 1, strict)
+    assert [r.deleted for r in kept] == [r.deleted for r in rigid if r.cluster.m >= most]
+    below = [r for r in remainders(parent, 1, strict) if r.outcome == BELOW_MIN_CONTACTS]
+    assert [r.deleted for r in below] == [r.deleted for r in rigid if r.cluster.m < most]
+
+
+def test_a_remainder_whose_geometry_has_other_contacts_is_rejected():
+    """A parent whose contact list leaves out a touching pair (never a stored cluster) gives remainders
+    with that pair whose measured contacts differ; they are rejected, not kept with the wrong contacts."""
+    parent = N10["n10_m25_first-order"]
+    left_out = parent.contacts[-1]
+    bad = Cluster(parent.coords, parent.contacts[:-1])
+    out = {r.deleted: r for r in remainders(bad, 1, P)}
+    for (d,), r in out.items():
+        if d not in left_out and r.outcome != FEW_CONTACTS:
+            assert r.outcome == CONTACTS_DIFFER
+    assert any(r.outcome == CONTACTS_DIFFER for r in out.values())
+
+
+def _certificates(parent: Cluster, k: int) -> Counter:
+    return Counter(certificate_key(r.cluster) for r in rigid_remainders(parent, k, P))
+
+
+@settings(max_examples=8, deadline=None, derandomize=True)
+@given(st.sampled_from(sorted(N10)), st.integers(0, 2**31 - 1), st.booleans())
+def test_relabelling_rotating_and_reflecting_the_parent_changes_nothing(name, seed, reflect):
+    """The same deleted sets (relabelled) are rigid, with the same certificates."""
+    parent = N10[name]
+    other, inv = moved(parent, np.random.default_rng(seed), reflect)
+    a = {r.deleted: certificate_key(r.cluster) for r in rigid_remainders(parent, 1, P)}
+    b = {r.deleted: certificate_key(r.cluster) for r in rigid_remainders(other, 1, P)}
+    assert b == {(int(inv[d]),): cert for (d,), cert in a.items()}
+    assert _certificates(parent, 2) == _certificates(other, 2)
+
+
+def test_sub_cluster_keeps_the_given_order():
+    parent = N10["n10_m24_first-order"]
+    c = sub_cluster(parent, (3, 0, 1))
+    assert np.array_equal(c.coords, parent.coords[[3, 0, 1]])
+    assert set(c.contacts) == {(min(a, b), max(a, b)) for a, b in
+                               [({3: 0, 0: 1, 1: 2}[i], {3: 0, 0: 1, 1: 2}[j]) for i, j in parent.contacts
+                                if i in (3, 0, 1) and j in (3, 0, 1)]}
+
+
+def test_the_lost_cluster_of_11_is_a_remainder_of_its_parent_of_12_and_no_path_leaves_it():
+    """tests/data/n11_catalysis.json: the cluster of 12 whose remainder without sphere 9 is the cluster of 11
+    that the path enumeration does not reach (docs/method.md, "Known limit").  The remainder is rigid (pre-
+    stress stable: two flexes, one stress) with 26 contacts (3n - 7), an hcp fragment; and, as the paper
+    describes it, breaking either of two of its contacts, or both, leaves it rigid (dimension 0) and
+    breaking any other contact leaves two degrees of freedom, any other pair three: no subset leaves a
+    one-dimensional set, so no path leaves it, and none can arrive (a path's reverse would leave it)."""
+    from workers.classify import lattice_type
+    from workers.expand import expand
+    from workers.outcomes import NOT_1D
+
+    data = json.loads((DATA / "n11_catalysis.json").read_text())
+    parent = Cluster(np.array(data["parent"]["coords"]), tuple(map(tuple, data["parent"]["contacts"])))
+    assert certificate_key(parent) == data["parent"]["certificate"]
+    r = remainder(parent, data["deleted"], P)
+    c = r.cluster
+    assert r.rigid and (c.n, c.m) == (11, 26)
+    assert (r.rigidity.kind, r.rigidity.flexes, r.rigidity.stresses) == ("prestress", 2, 1)
+    assert certificate_key(c) == data["certificate"]
+    assert lattice_type(c.coords, c.contacts) == "hcp"
+    ex = expand(c, P)
+    assert ex.paths_followed == 0 and set(ex.outcomes()) == {NOT_1D}
+    single = {e.broken[0]: e.dim for e in ex.endpoints if len(e.broken) == 1}
+    assert len(single) == 26 and Counter(single.values()) == {2: 24, 0: 2}
+    pairs = {e.broken: e.dim for e in ex.endpoints if len(e.broken) == 2}
+    rigid_two = tuple(sorted(b for b, d in single.items() if d == 0))
+    assert len(pairs) == comb(26, 2) and pairs.pop(rigid_two) == 0
+    assert set(pairs.values()) == {3}
