@@ -19,9 +19,11 @@ their contacts hold to the Newton tolerance) and every set D of k spheres:
    (``few-contacts``; the rigidity test says the same, only slower: this is checked first, as
    most remainders end here);
 3. a remainder whose contacts hold no triangle is skipped (nothing to pin: ``no-triangle``);
-4. otherwise the remainder is kept when the rigidity test calls it rigid (as for a path's
-   endpoint: :func:`remainder_rigidity`), and when it has at least ``params.min_contacts`` contacts
-   if that is set (the endpoint rule of :func:`workers.expand.expand`).
+4. otherwise the endpoint rule of a path decides (docs/method.md, "The endpoint"): pairs within
+   tol_a0 of touching that close to a rigid cluster within tol_a0 make the remainder that cluster
+   (:func:`workers.paths.resolve_near_pairs`), else the remainder is kept when the rigidity test
+   with its isolation probe calls it rigid (:func:`workers.paths.endpoint_rigidity`); and only
+   with at least ``params.min_contacts`` contacts if that is set.
 
 The remainder's coordinates are not projected again: deleting spheres deletes equations, so
 the parent's point still solves the remainder's.  Its contacts, measured again from the
@@ -44,12 +46,8 @@ from workers import kernels
 from workers.cluster import Cluster, contacts_from_coords
 from workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
 from workers.params import Params
-from workers.rigidity import (
-    Rigidity,
-    contact_triangle,
-    rigidity_from_null_spaces,
-    rigidity_without_stress,
-)
+from workers.paths import endpoint_rigidity, resolve_near_pairs
+from workers.rigidity import Rigidity, contact_triangle
 
 NOT_RIGID = "not-rigid"  #: the rigidity test says floppy or undecided
 FEW_CONTACTS = "few-contacts"  #: a sphere of the remainder has fewer than three contacts: not rigid
@@ -83,19 +81,6 @@ def sub_cluster(parent: Cluster, kept) -> Cluster:
     return Cluster(parent.coords[list(kept)], contacts)
 
 
-def remainder_rigidity(c: Cluster, tri: tuple[int, int, int], params: Params) -> Rigidity:
-    """:func:`workers.rigidity.rigidity` of ``c`` pinned at the contact triangle ``tri``, decided as a
-    path's endpoint is (workers.paths): without the SVD when the compiled kernels certify that the
-    rigidity matrix has full row rank (then W is empty and the verdict depends on dim V alone)."""
-    x = kernels.to_frame(c.coords, tri).ravel()
-    edges = c.edges()
-    free = kernels.free_coordinates(c.n, tri)
-    flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
-    if flexes is not None:
-        return rigidity_without_stress(flexes)
-    return rigidity_from_null_spaces(kernels.null_spaces(x, edges, free, params.tol_n), edges, params)
-
-
 def remainder(parent: Cluster, deleted, params: Params) -> Remainder:
     """Delete the spheres ``deleted`` from ``parent`` and decide the rest (module doc, steps 1-4)."""
     deleted = tuple(sorted(int(i) for i in deleted))
@@ -109,7 +94,14 @@ def remainder(parent: Cluster, deleted, params: Params) -> Remainder:
         return Remainder(deleted, kept, c, NO_TRIANGLE)
     if contacts_from_coords(c.coords, params.tol_a) != c.contacts:
         return Remainder(deleted, kept, c, CONTACTS_DIFFER)
-    rig = remainder_rigidity(c, tri, params)
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(c.n, tri)
+    resolved = resolve_near_pairs(x, c.contacts, free, params)
+    if resolved is not None:  # pairs within tol_a0 close to a rigid cluster: that is the remainder
+        c = Cluster(resolved[0].reshape(-1, 3), resolved[1])
+        rig = resolved[2]
+    else:
+        rig = endpoint_rigidity(x, c.contacts, free, params)
     if not rig.rigid:
         return Remainder(deleted, kept, c, NOT_RIGID, rig)
     if params.min_contacts is not None and c.m < params.min_contacts:

@@ -405,7 +405,7 @@ def resolve_near_pairs(x: np.ndarray, contacts, free: np.ndarray, params: Params
     alt = close_pairs(x, np.array(contacts, dtype=np.int64), near, free, params)
     if alt is None or _overlaps(alt[0], params):
         return None
-    rig = _rigidity(alt[0], alt[1], free, params)
+    rig = endpoint_rigidity(alt[0], alt[1], free, params)
     return (alt[0], alt[1], rig) if rig.rigid else None
 
 
@@ -439,7 +439,7 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
     coords = xe.reshape(-1, 3)
     if _overlaps(xe, params):
         return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
-    rig = _rigidity(xe, contacts, free, params)
+    rig = endpoint_rigidity(xe, contacts, free, params)
     outcome = RIGID if rig.rigid else (UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
     return PathEnd(outcome, steps, coords, contacts, rig, _formed(contacts, keep))
 
@@ -456,8 +456,10 @@ def _overlaps(x: np.ndarray, params: Params) -> bool:
     return bool(dist.min() < 1.0 - params.tol_a)
 
 
-def _rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
-    """The rigidity test of an endpoint (x in the path's pinned frame)."""
+def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
+    """The rigidity test of an endpoint (x flat, in the pinned frame of ``free``): without the SVD
+    where the compiled kernels certify full row rank, and with the isolation probe for a
+    pre-stress verdict (workers.rigidity.rigidity_from_null_spaces)."""
     edges = np.array(contacts, dtype=np.int64)
     flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
     if flexes is not None:  # certified full row rank: what the SVD would find, without it

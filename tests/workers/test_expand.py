@@ -163,7 +163,7 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
     from workers.cluster import Cluster
     from workers.identity import same_geometry
     from workers.params import DEFAULT
-    from workers.paths import _rigidity, close_pairs
+    from workers.paths import close_pairs, endpoint_rigidity
     from workers.rigidity import contact_triangle
 
     data = json.loads((Path(__file__).parents[1] / "data" / "n12_near_miss.json").read_text())
@@ -180,7 +180,7 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
         xe, contacts = close_pairs(kernels.to_frame(c.coords, tri).ravel(), keep, near, free, DEFAULT)
         # projected onto every contact, the point moves onto the cluster the path passed by, which may
         # bring further pairs into contact: those are projected onto too
-        assert _rigidity(xe, contacts, free, DEFAULT).rigid and set(map(tuple, m["contacts"])) <= set(contacts)
+        assert endpoint_rigidity(xe, contacts, free, DEFAULT).rigid and set(map(tuple, m["contacts"])) <= set(contacts)
         f = kernels.residual(xe, np.array(contacts, dtype=np.int64))
         assert float(f @ f) < DEFAULT.tol
         ends.append(Cluster(xe.reshape(-1, 3), contacts))
