@@ -159,13 +159,13 @@ def _offer_catalysis(url: str, n: int) -> None:
 @db_option
 @click.option("--spheres", "k", type=click.IntRange(1, 10), default=1, show_default=True,
               help="Spheres deleted from each stored cluster of N + K spheres.")
-@click.option("--max-break", type=click.IntRange(1, 10), default=Params.max_break, show_default=True,
-              help="As for enumerate: chooses the run of N that the clusters found are added to.")
+@click.option("--max-break", type=click.IntRange(1, 10), default=None,
+              help="As for enumerate (default: no cap): chooses the run of N that the clusters found are added to.")
 @click.option("--min-contacts", type=int, default=None,
               help="As for enumerate: keep only remainders with at least this many contacts (and choose that run).")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int, min_contacts: int | None, as_json: bool,
+def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, as_json: bool,
                  quiet: bool) -> None:
     """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
     yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
