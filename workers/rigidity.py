@@ -146,9 +146,11 @@ def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params:
     """The rigidity test of docs/method.md given V and W.
 
     With the point ``x`` (flat, pinned frame) and its ``free`` coordinates, a pre-stress verdict
-    "rigid" stands only if x is also isolated at the scale of the method's probes
-    (:func:`on_a_curve`); otherwise the point is floppy (method ``probe``).  Without them (the
-    dimension test, which probes for itself) the pre-stress test alone decides.
+    "rigid" stands only if the margin exceeds tol_psd by more than the coordinates' accuracy
+    can change it (:func:`margin_uncertainty`; otherwise undecided, method ``unresolved``) and x
+    is isolated at the scale of the method's probes (:func:`on_a_curve`; otherwise floppy,
+    method ``probe``).  Without them (the dimension test, which probes for itself) the
+    pre-stress test alone decides.
     """
     a, b = ns.V.shape[1], ns.W.shape[1]
     if b == 0:
@@ -157,9 +159,25 @@ def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params:
         return Rigidity(True, FIRST_ORDER, 0, b, "first-order")
     Q = stress_forms(ns.V, ns.W, edges)
     rigid, method, margin = prestress_test(Q, params.tol_psd)
-    if rigid and x is not None and on_a_curve(x, edges, free, ns.V, params):
-        return Rigidity(False, FLOPPY, a, b, "probe", margin)
+    if rigid and x is not None:
+        if margin <= params.tol_psd + margin_uncertainty(x, edges, margin):
+            return Rigidity(False, UNDECIDED, a, b, "unresolved", margin)
+        if on_a_curve(x, edges, free, ns.V, params):
+            return Rigidity(False, FLOPPY, a, b, "probe", margin)
     return Rigidity(rigid, PRESTRESS if rigid else UNDECIDED, a, b, method, margin)
+
+
+def margin_uncertainty(x: np.ndarray, edges: np.ndarray, margin: float) -> float:
+    """How far the pre-stress margin computed at x can be from the margin at the solution x stands for.
+
+    Along the flexes the contact residuals grow only to second order, |f| ~ margin d^2 at a
+    distance d from a pre-stress stable solution: coordinates with residuals |f| are known along
+    the flexes only to d = sqrt(max |f| / margin), and the forms Q, which vary at a rate of order
+    one along them, to about d.  A margin no larger than tol_psd + d is not decided by the
+    coordinates (docs/method.md, "The endpoint").
+    """
+    f = float(np.abs(kernels.residual(x, edges)).max(initial=0.0))
+    return float(np.sqrt(f / margin)) if margin > 0 else np.inf
 
 
 def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray, params: Params) -> bool:
