@@ -33,7 +33,7 @@ def store(engine, clusters, rig=None) -> list[int]:
     with sessions(engine).begin() as s:
         for c in clusters:
             r = rig or rigidity(c.coords, c.contacts, DEFAULT)
-            ids.append(st.insert_or_match(s, c, r, None, DEFAULT.tol_d)[0])
+            ids.append(st.insert_or_match(s, c, r, None, DEFAULT.tol_d, found_by="path", source_id=None)[0])
     return ids
 
 
