@@ -253,10 +253,6 @@ def max_move(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.einsum("ij,ij->i", d, d)).max(initial=0.0))
 
 
-def _smallest_gap(x: np.ndarray, pairs: np.ndarray) -> float:
-    return float(kernels.pair_distances_flat(x, pairs).min()) - 1.0
-
-
 def approach_contact(x0: np.ndarray, x1: np.ndarray, keep: np.ndarray, pairs: np.ndarray, hit: np.ndarray,
                      free: np.ndarray, params: Params, max_iter: int = 100) -> np.ndarray | None:
     """The point of the path through x0 and x1 (consecutive points on {f_keep = 0}) where the first
