@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,24 +13,12 @@ from service.catalysis import NoParents, catalyse
 from service.db import sessions
 from service.models import COMPLETE, DONE, FOUND_CATALYSIS, PENDING, RUNNING, Cluster, Expansion, Run
 from tests.service.conftest import fill_database
+from tests.service.test_db import cli, one_line_error
 from workers.cluster import Cluster as Core
 from workers.params import Params
 from workers.rigidity import rigidity
 
 DATA = Path(__file__).parent.parent / "data"
-
-
-def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
-                          timeout=600, cwd=cwd)
-
-
-def one_line_error(r) -> str:
-    assert r.returncode != 0, r.stdout
-    assert "Traceback" not in r.stderr, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("packings: error:"), r.stderr
-    return lines[0]
 
 
 def url_of(engine) -> str:
