@@ -7,10 +7,17 @@ N ?= 10
 
 .PHONY: install run test test-fast clean
 
-$(BIN)/.installed: pyproject.toml
-	$(PYTHON) -m venv $(VENV)
+SOURCES := pyproject.toml $(wildcard service/*.py workers/*.py alembic/*.py alembic/*.mako alembic/versions/*.py)
+
+# Installed as a user installs it, from the wheel (never editable): the tests
+# run the code and the migrations the wheel carries.  Reinstalled when a source
+# file changes; build/ goes first so that no deleted module lingers in the wheel.
+$(BIN)/.installed: $(SOURCES)
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	rm -rf build
+	$(BIN)/python -m pip install --quiet '.[test]'
+	rm -rf build
 	touch $@
 
 install: $(BIN)/.installed

@@ -1,4 +1,4 @@
-"""Alembic environment: migrations for the packings schema (service.models).
+"""Alembic environment: migrations for the packings schema (packings.models).
 
 ``packings db upgrade`` passes an open connection in ``config.attributes``;
 the ``alembic`` command uses ``-x db=URL`` or ``sqlalchemy.url`` instead.
@@ -6,8 +6,8 @@ the ``alembic`` command uses ``-x db=URL`` or ``sqlalchemy.url`` instead.
 
 from alembic import context
 
-from service.db import make_engine
-from service.models import Base
+from packings.db import make_engine
+from packings.models import Base
 
 config = context.config
 target_metadata = Base.metadata

@@ -7,10 +7,10 @@ processes, a fresh SQLite file), and reports:
 * wall: the command's wall time, start to exit (Python start-up, Dask start-up,
   the workers' warm-up and the run itself);
 * run: the coordinator's own time for the run (what the command prints);
-* in expand: the time the workers spent inside ``workers.expand`` (the sum of
+* in expand: the time the workers spent inside ``packings.workers.expand`` (the sum of
   ``expansions.seconds``), divided by K (so it is comparable with the run time);
 * outside (of the wall time): 1 − in expand / wall, the share of the command's
-  wall time that the workers spend outside ``workers.expand``: starting Python
+  wall time that the workers spend outside ``packings.workers.expand``: starting Python
   and Dask and warming the workers up, the database, Dask between tasks,
   serialisation, idle workers at the end, shutting down;
 * outside (of the run): 1 − in expand / run, the same share of the
@@ -85,7 +85,7 @@ class _PeakRSS(threading.Thread):
 
 
 def _packings() -> list[str]:
-    return [sys.executable, "-m", "service.cli"]
+    return [sys.executable, "-m", "packings.cli"]
 
 
 def run_one(n: int, k: int, directory: Path) -> dict:

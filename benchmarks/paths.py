@@ -2,11 +2,11 @@
 
 For each n, a fixed set of rigid clusters is built cheaply and deterministically
 (the polytetrahedron seed and the first distinct rigid clusters one expansion of
-it reaches), every path those clusters start is listed (workers.expand.path_starts),
+it reaches), every path those clusters start is listed (packings.workers.expand.path_starts),
 and a seeded random sample of them is followed with both backends in the same
 process, alternating path by path.  One path's cost is one call of
-workers.paths.follow_path (stepping, endpoint projection and rigidity test).
-The first-call cost is that of workers.kernels.warm_up() at the start: numba
+packings.workers.paths.follow_path (stepping, endpoint projection and rigidity test).
+The first-call cost is that of packings.workers.expand.warm_up() at the start: numba
 compiling every kernel, or loading them from its on-disk cache (--cold forces
 a compile into a fresh cache directory).
 """
@@ -39,10 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _clusters(n: int, count: int, params):
     """The seed of n spheres and the first ``count - 1`` distinct rigid clusters its expansion reaches."""
-    from workers.expand import expand
-    from workers.identity import ClusterIndex
-    from workers.paths import RIGID
-    from workers.seeds import seed_cluster
+    from packings.workers.expand import expand
+    from packings.workers.identity import ClusterIndex
+    from packings.workers.paths import RIGID
+    from packings.workers.seeds import seed_cluster
 
     seed = seed_cluster(n, params)
     index = ClusterIndex()
@@ -58,7 +58,7 @@ def _clusters(n: int, count: int, params):
 def _sample(n: int, clusters: int, paths: int, seed: int, params):
     import numpy as np
 
-    from workers.expand import path_starts
+    from packings.workers.expand import path_starts
 
     starts = [p for c in _clusters(n, clusters, params) for p in path_starts(c, params)]
     rng = np.random.default_rng([seed, n])
@@ -67,7 +67,7 @@ def _sample(n: int, clusters: int, paths: int, seed: int, params):
 
 
 def _time_paths(starts, params) -> dict:
-    from workers import kernels
+    from packings.workers import kernels
 
     cost = {"numba": [], "numpy": []}
     cpu = {"numba": [], "numpy": []}
@@ -100,8 +100,9 @@ def run(args: argparse.Namespace) -> int:
         os.environ["NUMBA_CACHE_DIR"] = cache
     import numba
 
-    from workers import kernels
-    from workers.params import Params
+    from packings.workers import kernels
+    from packings.workers.expand import warm_up
+    from packings.workers.params import Params
 
     if not kernels.numba_available():
         print("numba is not available: nothing to compare", file=sys.stderr)
@@ -110,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     paths = 12 if args.quick else args.paths
     clusters = 2 if args.quick else args.clusters
     with kernels.backend("numba"):
-        first_call = kernels.warm_up()
+        first_call = warm_up()
     rows = []
     for n in args.sizes:
         with kernels.backend("numba"):  # building the sample is not measured
@@ -141,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
             f"{r['n']:>3} {r['paths']:>6} {r['median_ms_numpy']:>10.2f} {r['median_ms_compiled']:>12.3f} "
             f"{r['ratio']:>7.1f} {r['same_outcome']:>8}/{r['paths']}"
         )
-    print("(median wall time of one workers.paths.follow_path call; ratio = numpy / compiled;")
+    print("(median wall time of one packings.workers.paths.follow_path call; ratio = numpy / compiled;")
     if hasattr(os, "getloadavg"):
         print(f" load average at the end {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; --json adds CPU-time medians)")
     return 0

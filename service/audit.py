@@ -7,13 +7,13 @@ stored cluster with a near contact left out (docs/method.md, "The endpoint").
 
 (a) every cluster with a non-contact pair within ``tol_a0`` of touching, and what
     adding the pair gives (each pair alone, then all of a cluster's near pairs
-    together: :func:`workers.audit.what_adding_gives`): its status and, when it is
+    together: :func:`packings.workers.audit.what_adding_gives`): its status and, when it is
     rigid, the stored cluster it is (certificate, then geometry within ``tol_d``)
     or none;
 (b) every cluster decided by the pre-stress test whose margin is below
     ``PRESTRESS_FACTOR`` x ``tol_psd``;
 (c) every two stored clusters of one contact graph whose geometries differ by less
-    than ``CLOSE_FACTOR`` x ``tol_d`` (:func:`workers.identity.geometry_distance`).
+    than ``CLOSE_FACTOR`` x ``tol_d`` (:func:`packings.workers.identity.geometry_distance`).
 
 A clean catalogue has (a) and (c) empty.  Genuine clusters can have small gaps
 too (at n = 13 down to about 6e-5), which is why (a) says what adding the pair
@@ -29,13 +29,13 @@ from dataclasses import asdict, dataclass, field
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session
 
-from service.export import table
-from service.models import Cluster, Run, core_cluster
-from service.store import stored_with
-from workers.audit import RIGID, near_pairs, what_adding_gives
-from workers.identity import certificate_key, find_match, geometry_distance
-from workers.params import Params
-from workers.rigidity import PRESTRESS
+from packings.export import table
+from packings.models import ClusterRow, Run, core_cluster
+from packings.store import stored_with
+from packings.workers.audit import RIGID, near_pairs, what_adding_gives
+from packings.workers.identity import certificate_key, find_match, geometry_distance
+from packings.workers.params import Params
+from packings.workers.rigidity import PRESTRESS
 
 PRESTRESS_FACTOR = 10.0  #: list (b): pre-stress margins below this many tol_psd
 CLOSE_FACTOR = 100.0  #: list (c): geometries of one contact graph closer than this many tol_d
@@ -50,7 +50,7 @@ class NearRow:
     contacts: int
     pairs: list[list[int]]  #: one near pair, or all of the cluster's near pairs together
     gap: float  #: the smallest gap among ``pairs`` (distance - 1)
-    status: str  #: workers.audit: rigid, not-rigid, does-not-project, overlap
+    status: str  #: packings.workers.audit: rigid, not-rigid, does-not-project, overlap
     new_contacts: int | None  #: contacts of the projected cluster (None if it did not project)
     moved: float | None  #: largest coordinate change after alignment (None if it did not project)
     match: int | None  #: id of the stored cluster it is (rigid only; None: not stored)
@@ -125,8 +125,8 @@ def run_params(s: Session, n: int) -> Params:
 
 def audit(s: Session, n: int | None = None) -> AuditReport:
     """The audit of every n in the database (or only ``n``), smallest n first."""
-    q = select(Cluster.n).distinct().order_by(Cluster.n)
-    ns = s.execute(q if n is None else q.where(Cluster.n == n)).scalars().all()
+    q = select(ClusterRow.n).distinct().order_by(ClusterRow.n)
+    ns = s.execute(q if n is None else q.where(ClusterRow.n == n)).scalars().all()
     report = AuditReport()
     for k in ns:
         params = run_params(s, k)
@@ -140,9 +140,9 @@ def audit(s: Session, n: int | None = None) -> AuditReport:
 def near_rows(s: Session, n: int, params: Params) -> list[NearRow]:
     """List (a) for n: the clusters with a non-contact pair within tol_a0 of touching (those whose stored
     min_gap says so, or is not computed yet), each near pair alone and all together."""
-    q = (select(Cluster.id, Cluster.contacts, Cluster.coords, Cluster.contact_list)
-         .where(Cluster.n == n, or_(Cluster.min_gap < params.tol_a0, Cluster.min_gap.is_(None)))
-         .order_by(Cluster.id))
+    q = (select(ClusterRow.id, ClusterRow.contacts, ClusterRow.coords, ClusterRow.contact_list)
+         .where(ClusterRow.n == n, or_(ClusterRow.min_gap < params.tol_a0, ClusterRow.min_gap.is_(None)))
+         .order_by(ClusterRow.id))
     rows = []
     for id_, m, coords, contact_list in s.execute(q).all():
         c = core_cluster(n, coords, contact_list)
@@ -167,10 +167,10 @@ def _stored_as(s: Session, c, params: Params) -> int | None:
 
 def prestress_rows(s: Session, n: int, params: Params) -> list[PrestressRow]:
     """List (b) for n: clusters decided by the pre-stress test with margin below PRESTRESS_FACTOR tol_psd."""
-    q = (select(Cluster.id, Cluster.contacts, Cluster.rigid_method, Cluster.margin, Cluster.min_gap)
-         .where(Cluster.n == n, Cluster.rigid_kind == PRESTRESS,
-                or_(Cluster.margin < PRESTRESS_FACTOR * params.tol_psd, Cluster.margin.is_(None)))
-         .order_by(Cluster.margin, Cluster.id))
+    q = (select(ClusterRow.id, ClusterRow.contacts, ClusterRow.rigid_method, ClusterRow.margin, ClusterRow.min_gap)
+         .where(ClusterRow.n == n, ClusterRow.rigid_kind == PRESTRESS,
+                or_(ClusterRow.margin < PRESTRESS_FACTOR * params.tol_psd, ClusterRow.margin.is_(None)))
+         .order_by(ClusterRow.margin, ClusterRow.id))
     return [PrestressRow(id_, n, m, method, margin, params.tol_psd, gap)
             for id_, m, method, margin, gap in s.execute(q)]
 
@@ -178,8 +178,8 @@ def prestress_rows(s: Session, n: int, params: Params) -> list[PrestressRow]:
 def close_rows(s: Session, n: int, params: Params) -> list[CloseRow]:
     """List (c) for n: every two stored clusters of one contact graph whose geometry_distance (the later
     stored aligned onto the earlier) is below CLOSE_FACTOR tol_d."""
-    certs = s.execute(select(Cluster.certificate).where(Cluster.n == n).group_by(Cluster.certificate)
-                      .having(func.count() > 1).order_by(Cluster.certificate)).scalars().all()
+    certs = s.execute(select(ClusterRow.certificate).where(ClusterRow.n == n).group_by(ClusterRow.certificate)
+                      .having(func.count() > 1).order_by(ClusterRow.certificate)).scalars().all()
     rows = []
     for cert, stored in stored_with(s, n, certs).items():
         stored = sorted(stored, key=lambda r: r.id)

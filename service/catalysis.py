@@ -1,7 +1,7 @@
 """Catalysis in the database: clusters of n spheres found by deleting spheres from the stored clusters of n + k.
 
 :func:`catalyse` reads every stored cluster of n + k spheres (of any run), keeps the rigid remainders
-after deleting each set of k spheres (:mod:`workers.catalysis`, the endpoint rule of the enumeration),
+after deleting each set of k spheres (:mod:`packings.workers.catalysis`, the endpoint rule of the enumeration),
 and stores those not yet in the catalogue with ``found_by = 'catalysis'`` and ``source_id`` = the
 parent, in the run of n with the given parameters (found, or created and seeded as ``packings
 enumerate`` would), each with a pending expansion in that run: ``packings enumerate n`` afterwards
@@ -11,7 +11,7 @@ endpoint.  A run that was complete and gets expansions is marked running again (
 expands the pending expansions of any run it resumes, complete or not).
 
 Writes are batched: one transaction per batch of parents, taking the certificate locks
-(:func:`service.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
+(:func:`packings.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
 being enumerated, and an interrupted catalysis keeps what it committed (running it again finds those
 stored: it is idempotent).
 """
@@ -25,11 +25,12 @@ from typing import Callable
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import sessionmaker
 
-from service import store
-from service.models import FOUND_CATALYSIS, RUNNING, Cluster, Run, core_cluster
-from workers.catalysis import remainder_count, rigid_remainders
-from workers.identity import certificate_key
-from workers.params import Params
+from packings import store
+from packings.owners import process_name
+from packings.models import FOUND_CATALYSIS, RUNNING, ClusterRow, Run, core_cluster
+from packings.workers.catalysis import remainder_count, rigid_remainders
+from packings.workers.identity import certificate_key
+from packings.workers.params import Params
 
 BATCH = 200  #: parents per transaction
 
@@ -71,18 +72,18 @@ class CatalysisReport:
 
 def count_stored(Session_: sessionmaker, n: int) -> int:
     with Session_() as s:
-        return s.execute(select(func.count()).select_from(Cluster).where(Cluster.n == n)).scalar_one()
+        return s.execute(select(func.count()).select_from(ClusterRow).where(ClusterRow.n == n)).scalar_one()
 
 
 def run_for(Session_: sessionmaker, n: int, params: Params) -> int:
     """The id of the run of (n, params): the stored one, or a new one created and seeded by
-    :func:`service.store.start_run` (as ``packings enumerate`` would) and let go at once."""
-    pj = store.params_json(params)
+    :func:`packings.store.start_run` (as ``packings enumerate`` would) and let go at once."""
+    pj = params.to_json()
     with Session_() as s:
         run_id = s.execute(select(Run.id).where(Run.n == n, Run.params == pj)).scalar_one_or_none()
     if run_id is not None:
         return run_id
-    owner = f"{store.process_name()}:catalysis-{uuid.uuid4().hex[:8]}"
+    owner = f"{process_name()}:catalysis-{uuid.uuid4().hex[:8]}"
     info = store.start_run(Session_, n, params, owner)
     with Session_.begin() as s:
         s.execute(update(Run).where(Run.id == info.id, Run.coordinator == owner).values(coordinator=None))
@@ -102,8 +103,8 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     last = 0
     while True:
         with Session_() as s:
-            rows = s.execute(select(Cluster.id, Cluster.coords, Cluster.contact_list)
-                             .where(Cluster.n == n + spheres, Cluster.id > last).order_by(Cluster.id).limit(batch)).all()
+            rows = s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
+                             .where(ClusterRow.n == n + spheres, ClusterRow.id > last).order_by(ClusterRow.id).limit(batch)).all()
         if not rows:
             break
         last = rows[-1].id

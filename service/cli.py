@@ -9,21 +9,17 @@ from __future__ import annotations
 
 import gc
 import json
-import logging
-import os
 import sys
-import threading
-from pathlib import Path
 
 import click
 
-from workers.params import Params
+from packings.api import check_n, resolve_url
+from packings.errors import PackingsError, UsageError
+from packings.workers.params import Params
 
 # What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
 # enumerate` starts the fork server of its local cluster's workers first thing (start_fork_server), and
 # every 0.1 s before it is 0.1 s more before the workers can start.  The commands import what they use.
-
-MAX_N = 24  #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
 
 db_option = click.option(
     "--db", "db_url", default=None, metavar="URL",
@@ -31,19 +27,8 @@ db_option = click.option(
 )
 
 
-def resolve_url(db_url: str | None) -> str:
-    """The database URL to use, with a relative SQLite path made absolute (workers may run elsewhere)."""
-    from service.db import default_url, parse_url
-
-    url = parse_url(db_url or default_url())
-    if url.get_backend_name() == "sqlite" and url.database and url.database != ":memory:" \
-            and not url.database.startswith("file:"):
-        url = url.set(database=str(Path(url.database).expanduser().resolve()))
-    return url.render_as_string(hide_password=False)
-
-
 def open_db(db_url: str | None, create: bool = False, migrate: bool = False):
-    from service.db import open_database
+    from packings.db import open_database
 
     return open_database(resolve_url(db_url), create=create, migrate=migrate)
 
@@ -56,14 +41,8 @@ def format_counts(n: int, by_contacts: dict[int, int]) -> str:
     return "\n".join(lines)
 
 
-def check_n(n: int) -> None:
-    if n < 4:
-        raise click.UsageError(f"n must be at least 4 (got {n}): smaller clusters have no contact triangle to pin")
-    if n > MAX_N:
-        raise click.UsageError(f"n = {n} is too large: at most {MAX_N} (the number of clusters grows like (n-5)!)")
-
-
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="packings", prog_name="packings")
 def cli() -> None:
     """Enumerate every rigid cluster of n identical hard spheres."""
 
@@ -90,36 +69,13 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     Resumes the run with the same N and parameters if the database has one
     (an interrupted run goes on where it stopped; a complete one just prints).
     """
-    check_n(n)
-    if n_workers is not None and scheduler is not None:
-        raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
-    if scheduler is None:
-        start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
-    params = Params(max_break=max_break, min_contacts=min_contacts)
+    from packings import api
+
+    result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
+                           min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet)
     url = resolve_url(db_url)
-    from service.db import display_url, parse_url, preflight
+    from packings.db import display_url, parse_url
 
-    preflight(url)  # a bad URL, server or schema is reported before any Dask cluster starts
-    from service.plugin import DatabasePlugin
-
-    # a local cluster starts in the background, its workers warming up with the database plugin, while the
-    # database is opened here; .client waits for it
-    with _dask_client(scheduler, n_workers, quiet, plugins=(DatabasePlugin(url),)) as dask:
-        if scheduler:
-            dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
-        engine = open_db(url, create=True)
-        from service.coordinator import run_enumeration
-
-        if scheduler and engine.dialect.name == "sqlite":
-            click.echo("packings: warning: SQLite with --scheduler works only if every worker sees this file "
-                       f"({engine.url.database}); use PostgreSQL for many machines", err=True)
-        bar = _progress_bar(quiet)
-        try:
-            result = run_enumeration(engine, url, n, params, dask.client, on_progress=None if quiet else bar,
-                                     max_attempts=max_attempts)  # quiet: progress is not even read
-        finally:
-            bar.close()
-    engine.dispose()
     gc.freeze()  # what is left is freed by the exit: skip the collector's last pass over it (0.2-0.3 s)
     if as_json:
         click.echo(json.dumps({"n": n, "run": result.run_id, "status": result.status, "total": result.total,
@@ -141,8 +97,8 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
 
 def _offer_catalysis(url: str, n: int) -> None:
     """One line when clusters of n + 1 spheres are stored: catalysis may find clusters no path reaches."""
-    from service.catalysis import count_stored
-    from service.db import make_engine, sessions
+    from packings.catalysis import count_stored
+    from packings.db import make_engine, sessions
 
     engine = make_engine(url)
     try:
@@ -173,8 +129,8 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     check_n(n)
     check_n(n + k)
     params = Params(max_break=max_break, min_contacts=min_contacts)
-    from service.catalysis import NoParents, catalyse, format_report
-    from service.db import sessions
+    from packings.catalysis import NoParents, catalyse, format_report
+    from packings.db import sessions
 
     engine = open_db(db_url)
     from tqdm import tqdm
@@ -201,165 +157,6 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
         click.echo(f"run `packings enumerate {n}` to expand them")
 
 
-#: the modules that the fork server of a local cluster's workers loads before it forks them
-FORK_SERVER_PRELOAD = ("distributed", "service.preload")
-#: setting this environment variable (spawn, fork, forkserver) chooses how Dask starts local workers
-METHOD_ENV = "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD"
-
-
-def start_fork_server() -> bool:
-    """Start the process that a local cluster's worker processes are forked from; returns whether they
-    will be (it may have been started already: then this does nothing more).
-
-    It starts at once and loads, in the background, what every worker needs (:mod:`service.preload`:
-    Dask, SQLAlchemy, the numerical code, the compiled kernels, warmed up) once, while this process
-    checks and opens the database and starts the scheduler.  Each worker forked from it joins within a
-    few hundredths of a second of being asked for, where a worker spawned afresh (Dask's default)
-    imports and loads all of it itself: 1.3 s of CPU per worker, on cores the command's own start-up
-    needs too.
-
-    Dask's environment for new worker processes (``distributed.nanny.pre-spawn-environ``: one BLAS
-    thread, ``MALLOC_TRIM_THRESHOLD_``, and the hash seed that its nanny sets) is set before the server
-    starts, so that the forked workers have it as spawned ones would.  Nothing is done where the
-    platform has no fork server, nor when the user chose another start method (:data:`METHOD_ENV`, or
-    ``distributed.worker.multiprocessing-method`` in Dask's configuration).
-    """
-    import multiprocessing
-    from multiprocessing import forkserver
-
-    import dask
-
-    _load_distributed_defaults()
-    method = dask.config.get("distributed.worker.multiprocessing-method")
-    chosen = METHOD_ENV in os.environ or method != "spawn"
-    if (chosen and method != "forkserver") or "forkserver" not in multiprocessing.get_all_start_methods():
-        return False
-    env = {k: str(v) for k, v in (dask.config.get("distributed.nanny.pre-spawn-environ") or {}).items()}
-    if env.get("PYTHONHASHSEED") in (None, "0"):
-        env["PYTHONHASHSEED"] = "6640"  # as Dask's nanny does, so that every worker hashes alike
-    os.environ.update(env)
-    multiprocessing.set_forkserver_preload(list(FORK_SERVER_PRELOAD))  # if it is not running yet
-    forkserver.ensure_running()  # starts it (if need be) and returns; a worker's start waits for its preload
-    dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
-    return True
-
-
-def _load_distributed_defaults() -> None:
-    """Dask's configuration with distributed's defaults, as ``import distributed`` sets them, but without
-    the import (0.3 s, which the fork server's start would wait for): from its ``distributed.yaml``."""
-    import importlib.util
-
-    import dask
-    import yaml
-
-    if "distributed" in sys.modules:
-        return
-    spec = importlib.util.find_spec("distributed")
-    path = Path(spec.origin).with_name("distributed.yaml") if spec and spec.origin else None
-    if path is None or not path.is_file():
-        import distributed  # noqa: F401 - which sets them
-
-        return
-    dask.config.update_defaults(yaml.safe_load(path.read_text()))
-
-
-#: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
-PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
-
-
-class _dask_client:
-    """A Client on a new LocalCluster, or on an existing scheduler; errors become one line.
-
-    The connection is made in the background from ``__enter__`` on, so that the caller can do its own
-    work meanwhile (a local cluster takes a second or two: its scheduler and dashboard start, its worker
-    processes are forked from the fork server (:func:`start_fork_server`) once that has loaded what they
-    need, and run ``plugins``' setup before it is up); :attr:`client` waits for it.
-    """
-
-    def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool, plugins=()):
-        self.scheduler, self.n_workers, self.quiet, self.plugins = scheduler, n_workers, quiet, tuple(plugins)
-        self.cluster = self._client = self._error = self._thread = None
-        self._announced = False
-
-    def __enter__(self) -> "_dask_client":
-        self._thread = threading.Thread(target=self._connect_or_fail, name="packings-dask-start", daemon=True)
-        self._thread.start()
-        return self
-
-    def _connect_or_fail(self) -> None:
-        try:
-            self._connect()
-        except BaseException as e:  # noqa: BLE001 - raised again by .client, in the caller's thread
-            self._error = e
-
-    def _connect(self) -> None:
-        import dask
-        from distributed import Client, LocalCluster
-
-        for name in ("distributed", "bokeh", "tornado"):
-            logging.getLogger(name).setLevel(logging.ERROR)
-        if self.scheduler:
-            try:
-                self._client = Client(self.scheduler, timeout="10s")
-            except (OSError, TimeoutError, ValueError) as e:
-                raise click.ClickException(f"cannot reach the Dask scheduler at {self.scheduler}: "
-                                           f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
-        else:
-            k = self.n_workers or os.cpu_count() or 1
-            if PROFILE_ENV not in os.environ:
-                # Dask's statistical profiler samples each worker's stack every 10 ms: 8 % of a run's time
-                # at n = 11 (the dashboard's Profile page is empty without it; the variable turns it back on)
-                dask.config.set({"distributed.worker.profile.enabled": False})
-            start_fork_server()  # if `packings enumerate` has not yet
-            # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
-            self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        dashboard_address="127.0.0.1:8787", silence_logs=logging.ERROR,
-                                        plugins=self.plugins)
-            self._client = Client(self.cluster)
-
-    @property
-    def client(self):
-        """The Client, once connected (waits); a failure to connect is raised here."""
-        return self.wait()
-
-    def wait(self):
-        """:attr:`client`."""
-        if self._thread.is_alive():
-            self._thread.join()
-        if self._error is not None:
-            raise self._error
-        if not (self.quiet or self._announced):
-            where = self.scheduler or f"local cluster, {len(self._client.nthreads())} worker processes"
-            click.echo(f"dask: {where}; dashboard {self._client.dashboard_link}", err=True)
-            self._announced = True
-        return self._client
-
-    def __exit__(self, *exc):
-        if self._thread is not None:
-            self._thread.join()
-        if self._client is not None:
-            self._client.close()
-        if self.cluster is not None:
-            self.cluster.close()
-        return False
-
-
-def _progress_bar(quiet: bool):
-    from tqdm import tqdm
-
-    bar = tqdm(total=0, unit="exp", desc="expansions", file=sys.stderr, disable=quiet, dynamic_ncols=True)
-
-    def update(p):
-        bar.total = p.total
-        bar.n = p.done
-        bar.set_postfix_str(f"pending {p.pending + p.leased}, clusters {p.clusters}"
-                            + (f", failed {p.failed}" if p.failed else ""), refresh=False)
-        bar.refresh()
-
-    update.close = bar.close  # type: ignore[attr-defined]
-    return update
-
-
 @cli.group("db")
 def db_group() -> None:
     """The database schema (Alembic migrations)."""
@@ -369,7 +166,7 @@ def db_group() -> None:
 @db_option
 def db_upgrade(db_url: str | None) -> None:
     """Create the schema, or migrate it to this code's version."""
-    from service.db import current_revision, display_url, head_revision
+    from packings.db import current_revision, display_url, head_revision
 
     engine = open_db(db_url, create=True, migrate=True)
     click.echo(f"{display_url(engine.url)}: schema {current_revision(engine)} (this code: {head_revision()})")
@@ -392,8 +189,8 @@ def db_backfill(db_url: str | None, recompute: bool) -> None:
 def _backfill(engine, recompute: bool) -> None:
     from tqdm import tqdm
 
-    from service import store
-    from service.db import sessions
+    from packings import store
+    from packings.db import sessions
 
     Session_ = sessions(engine)
     with Session_() as s:
@@ -409,7 +206,7 @@ def _backfill(engine, recompute: bool) -> None:
 @db_option
 def db_version(db_url: str | None) -> None:
     """Print the database's schema version and this code's."""
-    from service.db import connect_error, current_revision, head_revision, make_engine
+    from packings.db import connect_error, current_revision, head_revision, make_engine
 
     engine = make_engine(resolve_url(db_url))
     try:
@@ -428,25 +225,8 @@ def db_version(db_url: str | None) -> None:
 @click.option("--json", "as_json", is_flag=True, help="As JSON.")
 def status_cmd(db_url: str | None, as_json: bool) -> None:
     """Runs and their frontier (expansions pending, leased, done, failed)."""
-    from sqlalchemy import select
-
-    from service import store
-    from service.db import sessions
-    from service.models import Run
-
-    engine = open_db(db_url)
-    rows = []
-    with sessions(engine, readonly=True)() as s:
-        for run in s.execute(select(Run).order_by(Run.id)).scalars():
-            f = store.frontier(s, run.id)
-            params = json.loads(run.params)
-            rows.append({"run": run.id, "n": run.n, "status": run.status, "clusters": sum(f.values()),
-                         "pending": f.get("pending", 0), "leased": f.get("leased", 0), "done": f.get("done", 0),
-                         "failed": f.get("failed", 0), "max_break": params.get("max_break"),
-                         "min_contacts": params.get("min_contacts"), "seconds": round(run.seconds or 0.0, 1),
-                         "started": run.started_at.isoformat(timespec="seconds"),
-                         "coordinator": run.coordinator})
-    engine.dispose()
+    with _catalogue(db_url) as cat:
+        rows = cat.runs()
     if as_json:
         click.echo(json.dumps(rows))
         return
@@ -468,15 +248,10 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     contacts; fragments by lattice; adjacency matrices with several
     geometries; the smallest gaps; paths and circular paths; the fit of the
     totals to b·(n−5)!."""
-    from service.db import sessions
-    from service.stats import fit_all, format_fit, format_stats, stats
-    from service.store import counts_by_n
+    from packings.stats import format_fit, format_stats
 
-    engine = open_db(db_url)
-    with sessions(engine, readonly=True)() as s:
-        every = counts_by_n(s)
-        rows, fit = stats(s, n, every), fit_all(every)
-    engine.dispose()
+    with _catalogue(db_url) as cat:
+        rows, fit = cat.stats(n), cat.fit()
     if as_json:
         click.echo(json.dumps(rows))
         return
@@ -496,8 +271,8 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     adding the pair gives (a stored cluster: a near copy of it); (b) pre-stress margins within a factor
     of 10 of tol_psd; (c) two geometries of one contact graph within 100 tol_d.  A clean catalogue has
     (a) and (c) empty.  Exits 0 whatever it finds (it is a report)."""
-    from service.audit import audit, format_audit
-    from service.db import sessions
+    from packings.audit import audit, format_audit
+    from packings.db import sessions
 
     engine = open_db(db_url)
     try:
@@ -510,7 +285,7 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
 # --------------------------------------------------------------------------- queries: select, show, export
 
-from service import export as _export  # noqa: E402 - the query commands' formats
+from packings import export as _export  # noqa: E402 - the query commands' formats
 
 _SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
                    "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
@@ -519,10 +294,10 @@ _SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: 
 
 class _SelectionCommand(click.Command):
     """A command taking a SELECTION, whose help ends with the selection's keys (built when the help is
-    shown: they come from service.selection, which loads SQLAlchemy)."""
+    shown: they come from packings.selection, which loads SQLAlchemy)."""
 
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
-        from service.selection import describe_keys
+        from packings.selection import describe_keys
 
         self.epilog = _SELECTION_HELP + describe_keys()
         super().format_epilog(ctx, formatter)
@@ -530,32 +305,18 @@ _TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "str
                   "certificate"]
 
 
-def _query(selection: str | None, **kw):
-    """The SELECT for a selection; a bad one is a usage error (checked before the database is opened)."""
-    from service.selection import SelectionError, query
+def _check_selection(selection: str | None, **kw) -> None:
+    """A bad selection or sort key is reported before the database is opened."""
+    from packings.api import selection_query
 
-    try:
-        return query(selection, **kw)
-    except SelectionError as e:
-        raise click.UsageError(str(e)) from None
+    selection_query(selection, **kw)
 
 
-class _reading:
-    """A session on an existing database, disposed of afterwards."""
+def _catalogue(db_url: str | None):
+    """The catalogue at ``--db`` (:func:`packings.api.connect`), to use in a ``with``."""
+    from packings.api import connect
 
-    def __init__(self, db_url: str | None):
-        self.engine = open_db(db_url)
-
-    def __enter__(self):
-        from service.db import sessions
-
-        self.session = sessions(self.engine, readonly=True)()
-        return self.session
-
-    def __exit__(self, *exc):
-        self.session.close()
-        self.engine.dispose()
-        return False
+    return connect(db_url)
 
 
 def _echo_chunks(chunks) -> None:
@@ -563,10 +324,34 @@ def _echo_chunks(chunks) -> None:
         click.echo(chunk, nl=False)
 
 
-def _table_row(f: dict) -> list:
-    cert = f["certificate"]
-    return [f["id"], f["n"], f["contacts"], f["embedding"], f["singular"], f["flexes"], f["stresses"],
-            None if f["min_gap"] is None else f"{f['min_gap']:.6g}", f["lattice"], cert if len(cert) <= 16 else cert[:13] + "..."]
+TABLE_LIMIT = 20  #: rows a table shows unless --limit says otherwise (as ase db)
+
+
+def _cell(name: str, v):
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if name == "certificate" and len(v) > 16:
+        return v[:13] + "..."
+    return v
+
+
+def _table_row(f: dict, columns: list[str]) -> list:
+    return [_cell(c, f[c]) for c in columns]
+
+
+def _columns(spec: str | None) -> list[str]:
+    """The columns of ``-c``: a comma list of facts, or ``+fact,...`` to add to the default ones."""
+    if not spec:
+        return list(_TABLE_COLUMNS)
+    names = [s.strip() for s in spec.split(",") if s.strip()]
+    adding = all(s.startswith("+") for s in names)
+    if not adding and any(s.startswith("+") for s in names):
+        raise click.UsageError("give either columns (-c id,n,lattice) or columns to add (-c +margin,+found_by)")
+    names = [s.lstrip("+") for s in names]
+    unknown = [s for s in names if s not in _export.FACTS]
+    if unknown:
+        raise click.UsageError(f"unknown column {unknown[0]!r}; the columns are {', '.join(_export.FACTS)}")
+    return list(_TABLE_COLUMNS) + [s for s in names if s not in _TABLE_COLUMNS] if adding else names
 
 
 @cli.command("select", cls=_SelectionCommand)
@@ -575,28 +360,41 @@ def _table_row(f: dict) -> list:
 @click.option("--json", "as_json", is_flag=True, help="A JSON list: every fact, coords and contact_list.")
 @click.option("--csv", "as_csv", is_flag=True, help="CSV with a header line (no coordinates).")
 @click.option("--count", "as_count", is_flag=True, help="Only the number of clusters selected.")
-@click.option("--limit", type=click.IntRange(min=0), default=None, help="At most this many clusters.")
+@click.option("-L", "--limit", type=click.IntRange(min=0), default=None,
+              help=f"At most this many clusters; 0: all (default: {TABLE_LIMIT} in a table, all in JSON or CSV).")
+@click.option("-c", "--columns", default=None, metavar="COLS",
+              help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,... to add "
+                   "to the default ones.")
 @click.option("--sort", default=None, metavar="KEY", help="Sort by KEY (-KEY: descending); default n, contacts, id.")
 def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, as_count: bool, limit: int | None,
-               sort: str | None) -> None:
+               columns: str | None, sort: str | None) -> None:
     """The stored clusters that match SELECTION (default: all), as a table, JSON or CSV."""
     if as_json + as_csv + as_count > 1:
         raise click.UsageError("give at most one of --json, --csv, --count")
-    q = _query(selection, sort=sort, limit=limit)
-    with _reading(db_url) as s:
+    cols = _columns(columns)
+    table_view = not (as_json or as_csv or as_count)
+    if limit is None and table_view:
+        limit = TABLE_LIMIT
+    limit = None if limit == 0 else limit
+    _check_selection(selection, sort=sort)
+    with _catalogue(db_url) as cat:
         if as_count:
-            from sqlalchemy import func, select
-
-            click.echo(s.execute(select(func.count()).select_from(q.order_by(None).subquery())).scalar_one())
+            click.echo(cat.count(selection))
             return
-        rows = s.execute(q.execution_options(yield_per=500)).scalars()
+        rows = cat.select(selection, sort=sort, limit=limit)
         if as_json:
-            _echo_chunks(_export.to_json(_export.record(c) for c in rows))
+            _echo_chunks(_export.to_json(r.record() for r in rows))
         elif as_csv:
-            _echo_chunks(_export.to_csv(_export.facts(c) for c in rows))
+            _echo_chunks(_export.to_csv((r.facts for r in rows), columns=cols if columns else _export.FACTS))
         else:
-            table = [_table_row(_export.facts(c)) for c in rows]
-            click.echo(_export.table(_TABLE_COLUMNS, table) + f"\n{len(table)} clusters" if table else "no clusters match")
+            table = [_table_row(r.facts, cols) for r in rows]
+            if not table:
+                click.echo("no clusters match")
+                return
+            total = cat.count(selection) if limit is not None and len(table) == limit else len(table)
+            footer = (f"{total} clusters" if total == len(table) else
+                      f"{len(table)} of {total} clusters ({total - len(table)} more: --limit 0 shows all)")
+            click.echo(_export.table(cols, table) + "\n" + footer)
 
 
 @cli.command("show")
@@ -606,13 +404,8 @@ def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, 
 def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     """Cluster ID in full: every fact, the exact coordinates, the contacts, the
     paths leaving and reaching it, and the runs whose frontier holds it."""
-    from service.selection import links, query
-
-    with _reading(db_url) as s:
-        c = s.execute(query(f"id={cluster_id}")).scalar_one_or_none()
-        if c is None:
-            raise click.ClickException(f"no cluster with id {cluster_id}")
-        rec, info = _export.record(c), links(s, cluster_id)
+    with _catalogue(db_url) as cat:
+        rec, info = cat.get(cluster_id).record(), cat.links(cluster_id)
     if as_json:
         click.echo(json.dumps({**rec, **info}))
         return
@@ -643,14 +436,16 @@ def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | Non
     """Write the clusters that match SELECTION (default: all), ordered by n, contacts, id: extended XYZ
     (readable by ase.io.read), plain XYZ, or JSON with every fact, coordinates and contacts."""
     fmt = fmt or _export.format_for(output)
-    q = _query(selection, n=n)
+    _check_selection(selection)
     written = 0
-    with _reading(db_url) as s:
+    with _catalogue(db_url) as cat:
+        rows = cat.select(selection, **({} if n is None else {"n": n}))
+
         def records():
             nonlocal written
-            for c in s.execute(q.execution_options(yield_per=500)).scalars():
+            for r in rows:
                 written += 1
-                yield _export.record(c)
+                yield r.record()
 
         chunks = _export.render(fmt, records())
         if output is None:
@@ -663,17 +458,17 @@ def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | Non
     click.echo(f"wrote {written} clusters ({fmt}) to {output}")
 
 
-from service.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws
+from packings.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws
 
 cli.add_command(_plot)
 
 
 def _database_error(e: Exception) -> str | None:
-    """The one line for a database's error (service.db.DatabaseError: one a user can fix; SQLAlchemy's:
+    """The one line for a database's error (packings.db.DatabaseError: one a user can fix; SQLAlchemy's:
     e.g. the server went away mid-command, and transactions rolled back), None for any other error."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from service.db import DatabaseError, first_line
+    from packings.db import DatabaseError, first_line
 
     if isinstance(e, DatabaseError):
         return str(e)
@@ -692,6 +487,9 @@ def main(argv: list[str] | None = None) -> None:
     except click.ClickException as e:
         click.echo(f"packings: error: {e.format_message()}", err=True)
         sys.exit(e.exit_code)
+    except PackingsError as e:
+        click.echo(f"packings: error: {e}", err=True)
+        sys.exit(2 if isinstance(e, UsageError) else 1)
     except Exception as e:  # noqa: BLE001 - only the database's errors are a line; the rest is raised again
         line = _database_error(e)
         if line is None:

@@ -13,6 +13,7 @@ command) puts them back to pending when it starts.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 import uuid
@@ -22,12 +23,15 @@ from typing import Callable
 from distributed import Client, as_completed
 from sqlalchemy import Engine, select
 
-from service import store
-from service.db import sessions
-from service.models import DONE, FAILED, LEASED, PENDING, Expansion
-from service.plugin import DatabasePlugin
-from service.tasks import ExpansionsFailed, error_line, expand_task
-from workers.params import Params
+from packings import store
+from packings.db import sessions
+from packings.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
+from packings.owners import process_name
+from packings.plugin import DatabasePlugin
+from packings.tasks import ExpansionsFailed, error_line, expand_task, summary
+from packings.workers.params import Params
+
+log = logging.getLogger(__name__)
 
 HEARTBEAT_SECONDS = 10.0
 CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
@@ -104,6 +108,7 @@ class _Heartbeat(threading.Thread):
     def __init__(self, Session_, run_id: int, owner: str):
         super().__init__(name="packings-heartbeat", daemon=True)
         self.args = (Session_, run_id, owner)
+        self.missed = 0  #: beats that failed (each is retried at the next)
         self.stopped = threading.Event()
         self.start()
 
@@ -111,8 +116,9 @@ class _Heartbeat(threading.Thread):
         while not self.stopped.wait(HEARTBEAT_SECONDS):
             try:
                 store.heartbeat(*self.args)
-            except Exception:  # noqa: BLE001 - a missed beat is retried at the next one
-                pass
+            except Exception as e:  # noqa: BLE001 - a missed beat is retried at the next one
+                self.missed += 1
+                log.warning("run %d: heartbeat %d missed: %s", self.args[1], self.missed, error_line(e))
 
     def stop(self) -> None:
         self.stopped.set()
@@ -155,12 +161,12 @@ def run_enumeration(
     """Create or resume the run for (n, params) and drive it to the end.
 
     ``url`` is the database URL the workers use (they open their own engine
-    through :class:`service.plugin.DatabasePlugin`).  ``per_worker`` tasks per
+    through :class:`packings.plugin.DatabasePlugin`).  ``per_worker`` tasks per
     worker thread are kept in flight, of up to ``batch`` expansions each.
     """
     Session_ = sessions(engine)
     Reader = sessions(engine, readonly=True)
-    owner = f"{store.process_name()}:{uuid.uuid4().hex[:8]}"
+    owner = f"{process_name()}:{uuid.uuid4().hex[:8]}"
     info = store.start_run(Session_, n, params, owner)
     plugin = DatabasePlugin(url)
     client.register_plugin(plugin)
@@ -223,6 +229,6 @@ def run_enumeration(
     with Reader() as s:
         by_contacts = store.run_counts(s, info.id)
         diagnostics = store.run_diagnostics(s, info.id)
-        errors = [f"expansion {i}: {e}" for i, e in s.execute(
-            select(Expansion.id, Expansion.error).where(Expansion.run_id == info.id, Expansion.status == FAILED))]
+        errors = [f"expansion {i}: {summary(e or '')}" for i, e in s.execute(
+            select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == info.id, ExpansionRow.status == FAILED))]
     return RunResult(info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors)

@@ -19,6 +19,8 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+from typing import Callable
+from importlib import resources
 from pathlib import Path
 
 from sqlalchemy import Engine, create_engine, event, inspect, text
@@ -26,18 +28,27 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError, NoSuchModuleError, OperationalError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
+from packings.errors import PackingsError
+
 DEFAULT_URL = "sqlite:///packings.db"
 SQLITE_BUSY_TIMEOUT_MS = 120_000
 READONLY = "packings_readonly"  #: execution option: a SQLite transaction that only reads begins DEFERRED
-ALEMBIC_DIR = Path(__file__).resolve().parent.parent / "alembic"
 
 
-class DatabaseError(Exception):
+class DatabaseError(PackingsError):
     """A problem with the database a user can fix; the message is one line."""
 
 
 def default_url() -> str:
     return os.environ.get("PACKINGS_DB") or DEFAULT_URL
+
+
+def absolute(u: URL) -> URL:
+    """``u`` with a relative SQLite file path made absolute (a worker may run in another directory)."""
+    if u.get_backend_name() == "sqlite" and u.database and u.database != ":memory:" \
+            and not u.database.startswith("file:"):
+        u = u.set(database=str(Path(u.database).expanduser().resolve()))
+    return u
 
 
 def parse_url(url: str) -> URL:
@@ -164,11 +175,20 @@ def advisory_key(*parts) -> int:
 # --------------------------------------------------------------------------- schema
 
 
+def migrations_dir() -> Path:
+    """The Alembic migrations shipped inside the package (``packings/migrations``; the
+    repository's ``alembic/`` folder, which ``pyproject.toml`` maps there)."""
+    path = Path(str(resources.files("packings") / "migrations"))
+    if not (path / "env.py").is_file():
+        raise DatabaseError(f"the package's migrations are missing ({path}); reinstall packings from its wheel")
+    return path
+
+
 def alembic_config(engine: Engine | None = None):
     from alembic.config import Config
 
     cfg = Config()
-    cfg.set_main_option("script_location", str(ALEMBIC_DIR))
+    cfg.set_main_option("script_location", str(migrations_dir()))
     if engine is not None:
         cfg.set_main_option("sqlalchemy.url", engine.url.render_as_string(hide_password=False).replace("%", "%%"))
     return cfg
@@ -270,14 +290,17 @@ def open_database(url: str, create: bool = False, migrate: bool = False) -> Engi
     return engine
 
 
-def preflight(url: str) -> None:
+def preflight(url: str, check: Callable[[Engine], None] | None = None) -> None:
     """Every check of :func:`open_database` that writes nothing: the URL, the
-    connection, the schema (an empty or missing database passes)."""
-    engine = make_engine(url)
+    connection, the schema (an empty or missing database passes); then, if the
+    database has this code's schema, ``check`` on its engine (a caller's own
+    check, which must only read: connections begin as readers)."""
+    engine = make_engine(url).execution_options(**{READONLY: True})
     try:
         if _missing_sqlite_file(engine, create=True):
             return
-        check_schema(engine, create=False, allow_empty=True)
+        if check_schema(engine, create=False, allow_empty=True) is not None and check is not None:
+            check(engine)
     except SQLAlchemyError as e:
         raise connect_error(engine, e) from None
     finally:

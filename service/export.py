@@ -1,6 +1,6 @@
 """Clusters as text: records, JSON, CSV, XYZ and extended XYZ.
 
-Pure functions from cluster rows (:class:`service.models.Cluster`) to records
+Pure functions from cluster rows (:class:`packings.models.ClusterRow`) to records
 (plain dicts) and from records to text chunks, plus :func:`write_atomic`.
 
 * Coordinates are the exact float64 values of the ``coords`` blob, written with
@@ -9,9 +9,11 @@ Pure functions from cluster rows (:class:`service.models.Cluster`) to records
 * XYZ and extended XYZ name every sphere ``X`` (ASE reads it as its dummy
   element, atomic number 0).  The extended XYZ comment line carries
   ``Properties=species:S:1:pos:R:3`` and the cluster's facts as key=value
-  pairs; note that ASE turns any value that looks like a number into one, so a
-  certificate made only of digits reads back as an int there (``id`` is the
-  key to join back to the database).
+  pairs, named so that ASE's database accepts them as keys (``cluster_id`` for
+  ``id``, ``self_stresses`` for ``stresses``: :data:`ASE_NAMES`); note that ASE
+  turns any value that looks like a number into one, so a certificate made only
+  of digits reads back as an int there (``cluster_id`` is the key to join back
+  to the database).
 * In records ``contacts`` is the number of contacts (as in the database and the
   selection language) and ``contact_list`` the pairs ``[[i, j], ...]``.
 """
@@ -31,10 +33,13 @@ from typing import IO, Callable, Iterable, Iterator
 #: the scalar facts of a cluster, in the order the formats list them
 FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
          "rigid_method", "margin", "flexes", "stresses", "singular", "min_gap", "lattice", "close_packed",
-         "found_in_run", "created_at")
+         "found_in_run", "found_by", "source_id", "created_at")
 #: the facts on an extended XYZ comment line (None values are left out)
 XYZ_FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
              "rigid_method", "margin", "flexes", "stresses", "singular", "min_gap", "lattice", "close_packed")
+#: the names ASE's database reserves, and what extended XYZ and ase.Atoms.info call those facts instead
+#: (so that ``ase.db`` takes ``atoms.info`` as key-value pairs as it is)
+ASE_NAMES = {"id": "cluster_id", "stresses": "self_stresses"}
 #: facts computed from the row rather than read from a column
 _DERIVED = ("excess", "static", "close_packed", "created_at")
 SPECIES = "X"
@@ -43,7 +48,7 @@ FORMATS = ("extxyz", "xyz", "json")
 
 def facts(c) -> dict:
     """The scalar facts of a cluster row."""
-    from workers.classify import LATTICES, static_class  # here: the command line imports this module light
+    from packings.workers.classify import LATTICES, static_class  # here: the command line imports this module light
 
     out = {name: getattr(c, name) for name in FACTS if name not in _DERIVED}
     out["excess"] = c.contacts - (3 * c.n - 6)
@@ -99,8 +104,14 @@ def _xyz_value(v) -> str:
     return f'"{s}"' if not s or any(ch.isspace() or ch in "=\"'" for ch in s) else s
 
 
+def ase_info(facts: dict, names=None) -> dict:
+    """The facts (``names``, default all) that are not None, under the names ASE accepts as
+    database keys (:data:`ASE_NAMES`)."""
+    return {ASE_NAMES.get(k, k): facts[k] for k in (names or facts) if facts[k] is not None}
+
+
 def xyz_comment(r: dict, extended: bool = True) -> str:
-    pairs = [f"{k}={_xyz_value(r[k])}" for k in XYZ_FACTS if r[k] is not None]
+    pairs = [f"{k}={_xyz_value(v)}" for k, v in ase_info(r, XYZ_FACTS).items()]
     return " ".join((["Properties=species:S:1:pos:R:3"] if extended else []) + pairs)
 
 

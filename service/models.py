@@ -13,7 +13,7 @@ Conventions:
 * Contact lists and broken-contact lists are JSON text: ``[[i, j], ...]`` with
   ``i < j``, sorted.
 * Clusters are keyed by ``(n, certificate, embedding)``; ``certificate`` is the
-  portable hex key of :func:`workers.identity.certificate_key`, and
+  portable hex key of :func:`packings.workers.identity.certificate_key`, and
   ``embedding`` numbers the distinct geometries sharing one contact graph.
 """
 
@@ -38,7 +38,8 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, query_expression
 
-from workers.cluster import Cluster as CoreCluster
+from packings.owners import utcnow
+from packings.workers.cluster import Cluster as CoreCluster
 
 # Expansion statuses.
 PENDING = "pending"
@@ -47,7 +48,7 @@ DONE = "done"
 FAILED = "failed"
 
 # How a cluster was first found (clusters.found_by).
-FOUND_SEED = "seed"  #: a run's starting cluster (workers.seeds)
+FOUND_SEED = "seed"  #: a run's starting cluster (packings.workers.seeds)
 FOUND_PATH = "path"  #: the endpoint of a path from clusters.source_id
 FOUND_CATALYSIS = "catalysis"  #: a remainder of clusters.source_id (more spheres) after deleting spheres
 
@@ -55,10 +56,6 @@ FOUND_CATALYSIS = "catalysis"  #: a remainder of clusters.source_id (more sphere
 RUNNING = "running"
 COMPLETE = "complete"
 INCOMPLETE = "incomplete"  #: finished with failed expansions
-
-
-def utcnow() -> dt.datetime:
-    return dt.datetime.now(dt.timezone.utc).replace(tzinfo=None)
 
 
 class Base(DeclarativeBase):
@@ -73,7 +70,7 @@ class Run(Base):
 
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     n: Mapped[int] = mapped_column(Integer, index=True)
-    params: Mapped[str] = mapped_column(Text)  #: JSON of workers.params.Params
+    params: Mapped[str] = mapped_column(Text)  #: JSON of packings.workers.params.Params
     status: Mapped[str] = mapped_column(String(16), default=RUNNING)
     started_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
@@ -85,7 +82,7 @@ class Run(Base):
     __table_args__ = (UniqueConstraint("n", "params", name="uq_runs_n_params"),)
 
 
-class Cluster(Base):
+class ClusterRow(Base):
     """A distinct rigid cluster, shared by every run with the same n."""
 
     __tablename__ = "clusters"
@@ -93,19 +90,19 @@ class Cluster(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     n: Mapped[int] = mapped_column(Integer)
     contacts: Mapped[int] = mapped_column(Integer)  #: number of contacts m
-    certificate: Mapped[str] = mapped_column(String(200))  #: workers.identity.certificate_key
+    certificate: Mapped[str] = mapped_column(String(200))  #: packings.workers.identity.certificate_key
     embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate
     coords: Mapped[bytes] = mapped_column(LargeBinary)  #: n x 3 float64, little-endian
     coords_json: Mapped[str] = mapped_column(Text)
     contact_list: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
-    rigid_kind: Mapped[str] = mapped_column(String(32))  #: workers.rigidity kind (first-order / prestress)
+    rigid_kind: Mapped[str] = mapped_column(String(32))  #: packings.workers.rigidity kind (first-order / prestress)
     rigid_method: Mapped[str] = mapped_column(String(32))  #: which test decided
     margin: Mapped[float | None] = mapped_column(Float, nullable=True)
     flexes: Mapped[int] = mapped_column(Integer)
     stresses: Mapped[int] = mapped_column(Integer)
     singular: Mapped[bool] = mapped_column(Boolean)
     min_gap: Mapped[float | None] = mapped_column(Float, nullable=True)  #: None if every pair touches
-    #: workers.classify.lattice_type: fcc, hcp, both, random, 2d, or 'none' (not close-packed);
+    #: packings.workers.classify.lattice_type: fcc, hcp, both, random, 2d, or 'none' (not close-packed);
     #: NULL only for rows stored before revision 0002 until the backfill (``packings db upgrade``) ran
     lattice: Mapped[str | None] = mapped_column(String(16), nullable=True)
     found_in_run: Mapped[int | None] = mapped_column(ForeignKey("runs.id"), nullable=True)
@@ -117,7 +114,7 @@ class Cluster(Base):
                                                   nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     #: not a column: the number of stored clusters sharing this one's contact graph, filled in by
-    #: service.selection.query (None when the row was loaded another way)
+    #: packings.selection.query (None when the row was loaded another way)
     geometries: Mapped[int | None] = query_expression()
 
     __table_args__ = (
@@ -138,7 +135,7 @@ _CORE_LOCK = threading.Lock()
 
 def core_cluster(n: int, coords: bytes, contact_list: str) -> CoreCluster:
     """The (immutable) core cluster of a row's values, shared by every row with the same values, so
-    that what is computed from it once (its canonical form, workers.identity) is kept: a worker
+    that what is computed from it once (its canonical form, packings.workers.identity) is kept: a worker
     compares each new endpoint with the same stored rows again and again.  Keyed by the values, not
     the id, which SQLite may give again after a rollback."""
     key = (n, coords, contact_list)
@@ -165,7 +162,7 @@ def remember_core_cluster(n: int, coords: bytes, contact_list: str, c: CoreClust
             del _CORE[next(iter(_CORE))]
 
 
-class Expansion(Base):
+class ExpansionRow(Base):
     """The frontier: one row per (run, cluster) to expand."""
 
     __tablename__ = "expansions"
@@ -182,7 +179,7 @@ class Expansion(Base):
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     outcomes: Mapped[str | None] = mapped_column(Text, nullable=True)  #: JSON {outcome: count} of its attempts
     paths: Mapped[int | None] = mapped_column(Integer, nullable=True)  #: paths followed
-    seconds: Mapped[float | None] = mapped_column(Float, nullable=True)  #: time spent in workers.expand
+    seconds: Mapped[float | None] = mapped_column(Float, nullable=True)  #: time spent in packings.workers.expand
     worker: Mapped[str | None] = mapped_column(String(200), nullable=True)
 
     __table_args__ = (

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import click
 
-from service.fit import fit_factorial, predicted
+from packings.fit import fit_factorial, predicted
 
 WIDTH_IN, HEIGHT_IN, DPI = 6.4, 4.8, 150
 SIZE_PX = (960, 720)  #: (width, height) in pixels of every PNG written here
@@ -63,7 +63,7 @@ def _figure():
 def save_png(fig, path: str | os.PathLike) -> Path:
     """Write ``fig`` as a PNG of :data:`SIZE_PX` to a temporary file beside
     ``path``, then rename it over ``path``; on any failure nothing is left."""
-    from service.export import replace_file
+    from packings.export import replace_file
 
     return replace_file(path, lambda f: fig.savefig(f, format="png", dpi=DPI), binary=True)
 
@@ -100,7 +100,7 @@ def _log_ticks(axis, lo: float, hi: float) -> None:
 def plot_counts(totals: dict[int, int], path: str | os.PathLike) -> Path:
     """The number of clusters against n (log scale, one marker per n, the count
     written above it) with the fitted curve b·(n − 5)! of
-    :func:`service.fit.fit_factorial` (b in the legend)."""
+    :func:`packings.fit.fit_factorial` (b in the legend)."""
     import numpy as np
 
     totals = {int(n): int(t) for n, t in totals.items() if t and t > 0}
@@ -426,13 +426,14 @@ def _reading(db_url: str | None):
     prints for them), so the group reports them alike on its own."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from service.cli import _reading as reading
-    from service.db import DatabaseError, first_line
+    from packings.api import connect
+    from packings.db import first_line
+    from packings.errors import PackingsError
 
     try:
-        with reading(db_url) as s:
+        with connect(db_url) as cat, cat.session() as s:
             yield s
-    except DatabaseError as e:
+    except PackingsError as e:
         raise click.ClickException(str(e)) from None
     except SQLAlchemyError as e:
         raise click.ClickException(f"database: {first_line(e)}") from None
@@ -440,7 +441,7 @@ def _reading(db_url: str | None):
 
 def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
     """{n: {contacts: clusters}} of the stored clusters (only ``ns`` if given)."""
-    from service.store import counts_by_n
+    from packings.store import counts_by_n
 
     if ns is None:
         return counts_by_n(s)
@@ -454,13 +455,13 @@ def load_gaps(s, ns: set[int] | None) -> dict[int, list[float]]:
     """{n: [min_gap, ...]} of the stored clusters that have one (only ``ns`` if given)."""
     from sqlalchemy import select
 
-    from service.models import Cluster
+    from packings.models import ClusterRow
 
-    q = select(Cluster.n, Cluster.min_gap).where(Cluster.min_gap.is_not(None))
+    q = select(ClusterRow.n, ClusterRow.min_gap).where(ClusterRow.min_gap.is_not(None))
     if ns is not None:
-        q = q.where(Cluster.n.in_(sorted(ns)))
+        q = q.where(ClusterRow.n.in_(sorted(ns)))
     out: dict[int, list[float]] = {}
-    for n, gap in s.execute(q.order_by(Cluster.n, Cluster.min_gap)):
+    for n, gap in s.execute(q.order_by(ClusterRow.n, ClusterRow.min_gap)):
         out.setdefault(int(n), []).append(float(gap))
     return out
 
@@ -541,11 +542,11 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) ->
               help="The .png file to write (replaced whole), or an existing directory; default ./cluster-ID.png.")
 def cluster_cmd(cluster_id: int, db_url: str | None, color_by: str, output: str | None) -> None:
     """Cluster ID in 3D: spheres to scale, contacts as sticks, coloured by a per-sphere property."""
-    from service.models import Cluster
+    from packings.models import ClusterRow
 
     path = _output_file(output, f"cluster-{cluster_id}.png")
     with _reading(db_url) as s:
-        c = s.get(Cluster, cluster_id)
+        c = s.get(ClusterRow, cluster_id)
         if c is None:
             raise click.ClickException(f"no cluster with id {cluster_id}")
         core, n, m = c.to_core(), c.n, c.contacts

@@ -11,7 +11,7 @@ import gc
 from distributed import WorkerPlugin
 from sqlalchemy import Engine
 
-from service.db import advisory_key, display_url, make_engine, parse_url, sessions
+from packings.db import advisory_key, display_url, make_engine, parse_url, sessions
 
 
 def plugin_name(url: str) -> str:
@@ -22,13 +22,12 @@ def plugin_name(url: str) -> str:
 def prepare_process() -> float:
     """Import the tasks' modules and warm the compiled kernels up in this process; returns the warm-up's
     seconds (a few milliseconds where it was done already, e.g. in a worker forked from the fork server
-    that ran it: :mod:`service.preload`).
+    that ran it: :mod:`packings.preload`).
 
     Pays the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
     """
-    import service.tasks  # noqa: F401 - the tasks' module
-    import workers.expand  # noqa: F401 - which the tasks import when they first run
-    from workers.kernels import warm_up
+    import packings.tasks  # noqa: F401 - the tasks' module
+    from packings.workers.expand import warm_up  # the tasks import it when they first run
 
     seconds = warm_up()
     # What is loaded now lives as long as the process: keep it out of the garbage collector's full

@@ -29,15 +29,16 @@ from typing import Any, Callable, NamedTuple
 from sqlalchemy import ColumnElement, Select, and_, case, false, func, not_, select, true
 from sqlalchemy.orm import Session, aliased, with_expression
 
-from service.models import Cluster, Expansion, Run, Transition
-from workers.classify import LATTICES
-from workers.outcomes import CIRCULAR
+from packings.errors import UsageError
+from packings.models import ClusterRow, ExpansionRow, Run, Transition
+from packings.workers.classify import LATTICES
+from packings.workers.outcomes import CIRCULAR
 
 OPERATORS = ("=", "!=", "<", "<=", ">", ">=")
 EQUALITY = ("=", "!=")
 
 
-class SelectionError(ValueError):
+class SelectionError(UsageError):
     """A selection (or sort key) that cannot be read; the message is one line."""
 
 
@@ -65,15 +66,15 @@ class Key:
 
 
 def _column(name: str, type_: type, help: str, nullable: bool = False) -> Key:
-    return Key(type_, help, expr=lambda: getattr(Cluster, name), nullable=nullable)
+    return Key(type_, help, expr=lambda: getattr(ClusterRow, name), nullable=nullable)
 
 
 def _excess() -> ColumnElement:
-    return Cluster.contacts - (3 * Cluster.n - 6)
+    return ClusterRow.contacts - (3 * ClusterRow.n - 6)
 
 
 def _lattice_in(*labels: str) -> Callable[[], ColumnElement]:
-    return lambda: func.coalesce(Cluster.lattice.in_(labels), false())
+    return lambda: func.coalesce(ClusterRow.lattice.in_(labels), false())
 
 
 def _static() -> ColumnElement:
@@ -82,25 +83,25 @@ def _static() -> ColumnElement:
 
 def _geometries() -> ColumnElement:
     """How many stored clusters share this one's contact graph (itself included)."""
-    other = aliased(Cluster)
-    return (select(func.count()).where(other.n == Cluster.n, other.certificate == Cluster.certificate)
-            .correlate(Cluster).scalar_subquery())
+    other = aliased(ClusterRow)
+    return (select(func.count()).where(other.n == ClusterRow.n, other.certificate == ClusterRow.certificate)
+            .correlate(ClusterRow).scalar_subquery())
 
 
 def _paths(conds: Callable[[], tuple]) -> Callable[[], ColumnElement]:
     """The number of paths (transitions with a direction) that satisfy ``conds``, over every run."""
     return lambda: (select(func.count()).select_from(Transition).where(Transition.direction != 0, *conds())
-                    .correlate(Cluster).scalar_subquery())
+                    .correlate(ClusterRow).scalar_subquery())
 
 
-_paths_out = _paths(lambda: (Transition.source_id == Cluster.id,))
-_paths_in = _paths(lambda: (Transition.target_id == Cluster.id, Transition.source_id != Cluster.id))
-_circular = _paths(lambda: (Transition.source_id == Cluster.id, Transition.outcome == CIRCULAR))
+_paths_out = _paths(lambda: (Transition.source_id == ClusterRow.id,))
+_paths_in = _paths(lambda: (Transition.target_id == ClusterRow.id, Transition.source_id != ClusterRow.id))
+_circular = _paths(lambda: (Transition.source_id == ClusterRow.id, Transition.outcome == CIRCULAR))
 
 
 def _in_run(op: str, run_id: int) -> ColumnElement:
-    frontier = select(Expansion.cluster_id).where(Expansion.run_id == run_id)
-    return Cluster.id.in_(frontier) if op == "=" else Cluster.id.not_in(frontier)
+    frontier = select(ExpansionRow.cluster_id).where(ExpansionRow.run_id == run_id)
+    return ClusterRow.id.in_(frontier) if op == "=" else ClusterRow.id.not_in(frontier)
 
 
 KEYS: dict[str, Key] = {
@@ -238,7 +239,7 @@ def condition(term: Term) -> ColumnElement:
 
 
 def where(selection: str | list[Term] | None) -> ColumnElement:
-    """The where-clause over :class:`Cluster` of a selection (text or terms)."""
+    """The where-clause over :class:`ClusterRow` of a selection (text or terms)."""
     terms = parse(selection) if selection is None or isinstance(selection, str) else selection
     return and_(true(), *(condition(t) for t in terms))
 
@@ -246,7 +247,7 @@ def where(selection: str | list[Term] | None) -> ColumnElement:
 def order_by(sort: str | None) -> list:
     """ORDER BY for ``--sort KEY`` (``-KEY`` descending; ties by id); default n, contacts, id."""
     if not sort:
-        return [Cluster.n, Cluster.contacts, Cluster.id]
+        return [ClusterRow.n, ClusterRow.contacts, ClusterRow.id]
     name = sort.strip()
     descending = name.startswith("-")
     name = name.lstrip("-").strip()
@@ -255,16 +256,16 @@ def order_by(sort: str | None) -> list:
         sortable = ", ".join(n for n, v in KEYS.items() if v.expr is not None)
         raise SelectionError(f"cannot sort by {name}; sort keys: {sortable}")
     expr = k.expr()
-    return [(expr.desc() if descending else expr.asc()).nulls_last(), Cluster.id]
+    return [(expr.desc() if descending else expr.asc()).nulls_last(), ClusterRow.id]
 
 
 def query(selection: str | None = None, sort: str | None = None, limit: int | None = None,
           n: int | None = None) -> Select:
     """SELECT the clusters of a selection (and of ``n`` if given), in order."""
-    q = (select(Cluster).options(with_expression(Cluster.geometries, _geometries()))
+    q = (select(ClusterRow).options(with_expression(ClusterRow.geometries, _geometries()))
          .where(where(selection)).order_by(*order_by(sort)))
     if n is not None:
-        q = q.where(Cluster.n == n)
+        q = q.where(ClusterRow.n == n)
     return q if limit is None else q.limit(limit)
 
 
@@ -290,8 +291,8 @@ def links(s: Session, cluster_id: int) -> dict:
                                   .where(Transition.target_id == cluster_id, Transition.direction != 0)).one()
     runs = [{"run": r, "n": n, "run_status": rs, "expansion": es, "paths": p}
             for r, n, rs, es, p in s.execute(
-                select(Expansion.run_id, Run.n, Run.status, Expansion.status, Expansion.paths)
-                .join(Run, Run.id == Expansion.run_id)
-                .where(Expansion.cluster_id == cluster_id).order_by(Expansion.run_id))]
+                select(ExpansionRow.run_id, Run.n, Run.status, ExpansionRow.status, ExpansionRow.paths)
+                .join(Run, Run.id == ExpansionRow.run_id)
+                .where(ExpansionRow.cluster_id == cluster_id).order_by(ExpansionRow.run_id))]
     return {"paths_leaving": sum(leaving.values()), "leaving_by_outcome": leaving,
             "paths_reaching": reaching, "reached_from": sources, "runs": runs}

@@ -8,16 +8,17 @@ over every run of that n (normally there is one).
 
 from __future__ import annotations
 
+import json
 import math
 
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased
 
-from service.export import table
-from service.fit import fit_factorial
-from service.models import Cluster, Transition
-from service.store import NOT_CLOSE_PACKED, counts_by_n
-from workers.outcomes import CIRCULAR
+from packings.export import table
+from packings.fit import fit_factorial
+from packings.models import COMPLETE, ClusterRow, Run, Transition
+from packings.store import NOT_CLOSE_PACKED, counts_by_n
+from packings.workers.outcomes import CIRCULAR
 
 #: how many of the smallest gaps are listed
 SMALLEST = 10
@@ -25,42 +26,52 @@ SMALLEST = 10
 
 def _by(s: Session, n: int, *where) -> dict[int, int]:
     """Clusters of n satisfying ``where``, by number of contacts."""
-    q = (select(Cluster.contacts, func.count()).where(Cluster.n == n, *where)
-         .group_by(Cluster.contacts).order_by(Cluster.contacts))
+    q = (select(ClusterRow.contacts, func.count()).where(ClusterRow.n == n, *where)
+         .group_by(ClusterRow.contacts).order_by(ClusterRow.contacts))
     return {int(m): int(c) for m, c in s.execute(q)}
 
 
 def _lattices(s: Session, n: int) -> dict[str, int]:
-    q = select(Cluster.lattice, func.count()).where(Cluster.n == n).group_by(Cluster.lattice)
+    q = select(ClusterRow.lattice, func.count()).where(ClusterRow.n == n).group_by(ClusterRow.lattice)
     return {str(k): int(c) for k, c in s.execute(q)}
 
 
 def _multi_embedding(s: Session, n: int) -> dict[str, int]:
     """{number of geometries: number of contact graphs having that many}, for 2 or more."""
-    per_graph = (select(func.count().label("k")).where(Cluster.n == n)
-                 .group_by(Cluster.certificate).having(func.count() > 1).subquery())
+    per_graph = (select(func.count().label("k")).where(ClusterRow.n == n)
+                 .group_by(ClusterRow.certificate).having(func.count() > 1).subquery())
     q = select(per_graph.c.k, func.count()).group_by(per_graph.c.k).order_by(per_graph.c.k)
     return {str(int(k)): int(c) for k, c in s.execute(q)}
 
 
 def _paths(s: Session, n: int) -> dict:
     """Counts over the transitions that start at clusters of n."""
-    src = aliased(Cluster)
+    src = aliased(ClusterRow)
     base = select(func.count()).select_from(Transition).join(src, src.id == Transition.source_id).where(
         src.n == n, Transition.direction != 0)
     followed = s.execute(base).scalar_one()
     circular = s.execute(base.where(Transition.outcome == CIRCULAR)).scalar_one()
     reached_by_path = (select(Transition.target_id).where(Transition.direction != 0,
                                                           Transition.target_id != Transition.source_id))
-    unreached = s.execute(select(Cluster.id).where(Cluster.n == n, Cluster.id.not_in(reached_by_path))
-                          .order_by(Cluster.id)).scalars().all()
+    unreached = s.execute(select(ClusterRow.id).where(ClusterRow.n == n, ClusterRow.id.not_in(reached_by_path))
+                          .order_by(ClusterRow.id)).scalars().all()
     return {"paths": followed, "circular_paths": circular, "unreached": list(unreached)}
 
 
 def _gaps(s: Session, n: int) -> list[dict]:
-    q = (select(Cluster.id, Cluster.contacts, Cluster.min_gap).where(Cluster.n == n, Cluster.min_gap.is_not(None))
-         .order_by(Cluster.min_gap, Cluster.id).limit(SMALLEST))
+    q = (select(ClusterRow.id, ClusterRow.contacts, ClusterRow.min_gap).where(ClusterRow.n == n, ClusterRow.min_gap.is_not(None))
+         .order_by(ClusterRow.min_gap, ClusterRow.id).limit(SMALLEST))
     return [{"id": i, "contacts": m, "min_gap": g} for i, m, g in s.execute(q)]
+
+
+def _complete(s: Session, n: int) -> bool:
+    """Whether a full run of n (no --max-break cap, no --min-contacts) is complete: else the counts
+    of n are partial."""
+    for status, params in s.execute(select(Run.status, Run.params).where(Run.n == n)):
+        p = json.loads(params)
+        if status == COMPLETE and p.get("max_break") is None and p.get("min_contacts") is None:
+            return True
+    return False
 
 
 def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | None = None) -> list[dict]:
@@ -83,9 +94,10 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
         lattices.pop(NOT_CLOSE_PACKED, None)
         gaps = _gaps(s, nn)
         paths = _paths(s, nn)
-        singular = _by(s, nn, Cluster.singular.is_(True))
+        singular = _by(s, nn, ClusterRow.singular.is_(True))
         out.append({
             "n": nn,
+            "complete": _complete(s, nn),
             "total": total,
             "by_contacts": {str(m): c for m, c in by_contacts.items()},
             "hypostatic": sum(c for m, c in by_contacts.items() if m < iso),
@@ -95,7 +107,7 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
             "singular_by_contacts": {str(m): c for m, c in singular.items()},
             "close_packed": sum(lattices.values()),
             "close_packed_by_contacts": {str(m): c for m, c in _by(
-                s, nn, Cluster.lattice.is_not(None), Cluster.lattice != NOT_CLOSE_PACKED).items()},
+                s, nn, ClusterRow.lattice.is_not(None), ClusterRow.lattice != NOT_CLOSE_PACKED).items()},
             "lattice": dict(sorted(lattices.items())),
             "unclassified": unclassified,
             "multi_embedding": _multi_embedding(s, nn),
@@ -119,6 +131,8 @@ def format_stats(d: dict) -> str:
     n, iso = d["n"], 3 * d["n"] - 6
     head = f"n = {n}: {d['total']} rigid clusters ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, " \
            f"{d['hyperstatic']} hyperstatic)"
+    if not d["complete"]:
+        head = f"n = {n}: {d['total']} rigid clusters so far (partial: no full run of n = {n} is complete)"
     if d["fit"] is not None:
         head += f"; the fit b·(n−5)! with b = {d['fit']['b']:.3f} gives {d['fit']['predicted']:.0f}"
     contacts = sorted(int(m) for m in d["by_contacts"])

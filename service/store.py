@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import functools
 import json
-import os
-import socket
 import uuid
 from collections import Counter
 from dataclasses import dataclass
@@ -37,8 +35,9 @@ import numpy as np
 from sqlalchemy import Connection, bindparam, func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from service.db import advisory_key, is_postgresql
-from service.models import (
+from packings.db import advisory_key, is_postgresql
+from packings.owners import busy
+from packings.models import (
     COMPLETE,
     DONE,
     FAILED,
@@ -48,34 +47,27 @@ from service.models import (
     LEASED,
     PENDING,
     RUNNING,
-    Cluster,
-    Expansion,
+    ClusterRow,
+    ExpansionRow,
     Run,
     Transition,
     core_cluster,
     remember_core_cluster,
     utcnow,
 )
-from workers.classify import lattice_type
-from workers.cluster import Cluster as CoreCluster
-from workers.identity import certificate_key, find_match
-from workers.outcomes import CIRCULAR
-from workers.params import Params
-from workers.rigidity import Rigidity, rigidity
-from workers.seeds import seed_cluster
+from packings.workers.classify import lattice_type
+from packings.workers.cluster import Cluster as CoreCluster
+from packings.workers.identity import certificate_key, find_match
+from packings.workers.outcomes import CIRCULAR
+from packings.workers.params import Params
+from packings.workers.rigidity import Rigidity, rigidity
+from packings.workers.seeds import seed_cluster
 
 if TYPE_CHECKING:  # the coordinator, which imports this module, never loads the path-following code
-    from workers.expand import Expansion as CoreExpansion
+    from packings.workers.expand import Expansion as CoreExpansion
 
 #: clusters.lattice of a cluster that is not a close-packed fragment (NULL means not yet classified)
 NOT_CLOSE_PACKED = "none"
-
-#: a coordinator on another host whose heartbeat is older than this is taken to be gone
-HEARTBEAT_STALE_SECONDS = 120
-
-
-class RunBusy(Exception):
-    """Another live coordinator is driving this run."""
 
 
 def code_version() -> str:
@@ -83,10 +75,6 @@ def code_version() -> str:
         return metadata.version("packings")
     except metadata.PackageNotFoundError:  # pragma: no cover - running from a bare checkout
         return "unknown"
-
-
-def params_json(params: Params) -> str:
-    return json.dumps(params.to_dict(), sort_keys=True)
 
 
 def contacts_json(pairs) -> str:
@@ -107,15 +95,11 @@ def _format_contacts(pairs) -> str:
 _contacts_json = functools.lru_cache(maxsize=65536)(_format_contacts)
 
 
-def process_name() -> str:
-    return f"{socket.gethostname()}:{os.getpid()}"
-
-
 # --------------------------------------------------------------------------- statements
 
 # The statements a task runs for every expansion, built once: building one costs about as much as
 # running it on SQLite.  Core statements on the tables, so that no ORM object is made per row.
-_E, _C, _R, _T = Expansion.__table__, Cluster.__table__, Run.__table__, Transition.__table__
+_E, _C, _R, _T = ExpansionRow.__table__, ClusterRow.__table__, Run.__table__, Transition.__table__
 _TASKS = (select(_E.c.id, _E.c.status, _E.c.lease_token, _E.c.run_id, _E.c.cluster_id, _C.c.n, _C.c.coords,
                  _C.c.contact_list, _R.c.params)
           .join_from(_E, _C, _C.c.id == _E.c.cluster_id).join(_R, _R.c.id == _E.c.run_id)
@@ -251,31 +235,14 @@ class RunInfo:
     created: bool
 
 
-def _coordinator_alive(owner: str | None, heartbeat) -> bool:
-    if not owner:
-        return False
-    host, pid, *_ = owner.split(":") + ["", ""]
-    if host == socket.gethostname():
-        try:
-            os.kill(int(pid), 0)
-        except (ValueError, ProcessLookupError):
-            return False
-        except PermissionError:
-            return True
-        return True
-    if heartbeat is None:
-        return False
-    return (utcnow() - heartbeat).total_seconds() < HEARTBEAT_STALE_SECONDS
-
-
 def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> RunInfo:
     """Create the run for (n, params), or resume it; then take it over.
 
-    A new run is seeded with one rigid cluster (workers.seeds).  Resuming puts
+    A new run is seeded with one rigid cluster (packings.workers.seeds).  Resuming puts
     back to pending every expansion leased by a coordinator that is gone.
-    Raises :class:`RunBusy` if a live coordinator holds the run.
+    Raises :class:`packings.owners.RunBusy` if a live coordinator holds the run.
     """
-    pj = params_json(params)
+    pj = params.to_json()
     with Session_.begin() as s:
         run = s.execute(select(Run).where(Run.n == n, Run.params == pj).with_for_update()).scalar_one_or_none()
         created = run is None
@@ -288,9 +255,8 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
             lock_certificates(s, [(n, certificate_key(seed))])
             cid, _ = insert_or_match(s, seed, rig, run.id, params.tol_d, found_by=FOUND_SEED, source_id=None)
             ensure_expansions(s, run.id, [cid])
-        elif run.coordinator and run.coordinator != owner and _coordinator_alive(run.coordinator, run.heartbeat_at):
-            raise RunBusy(f"run {run.id} (n = {n}) is being driven by coordinator {run.coordinator}; "
-                          "wait for it to finish or stop it first")
+        elif (held := busy(run.id, n, run.coordinator, run.heartbeat_at, owner)) is not None:
+            raise held
         _unlease(s, run.id)
         run.coordinator = owner
         run.heartbeat_at = utcnow()
@@ -321,15 +287,15 @@ def finish_run(Session_: sessionmaker, run_id: int, owner: str, seconds: float) 
 def abandon(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> None:
     """An interrupted coordinator puts its leases back and lets the run go."""
     with Session_.begin() as s:
-        _unlease(s, run_id, Expansion.lease_owner == owner)
+        _unlease(s, run_id, ExpansionRow.lease_owner == owner)
         _let_go(s.get(Run, run_id), owner, seconds)
 
 
 def _unlease(s: Session, run_id: int, *where) -> None:
     """Put the run's leased expansions (those matching ``where``) back to pending."""
     s.execute(
-        update(Expansion)
-        .where(Expansion.run_id == run_id, Expansion.status == LEASED, *where)
+        update(ExpansionRow)
+        .where(ExpansionRow.run_id == run_id, ExpansionRow.status == LEASED, *where)
         .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
     )
 
@@ -350,9 +316,9 @@ def claim(Session_: sessionmaker, run_id: int, owner: str, k: int) -> list[tuple
         return []
     with Session_.begin() as s:
         q = (
-            select(Expansion)
-            .where(Expansion.run_id == run_id, Expansion.status == PENDING)
-            .order_by(Expansion.id)
+            select(ExpansionRow)
+            .where(ExpansionRow.run_id == run_id, ExpansionRow.status == PENDING)
+            .order_by(ExpansionRow.id)
             .limit(k)
             .with_for_update(skip_locked=True)
         )
@@ -375,10 +341,10 @@ def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, m
     Returns the new status, or None if the lease was no longer this token's.
     """
     with Session_.begin() as s:
-        e = s.execute(select(Expansion).where(Expansion.id == expansion_id).with_for_update()).scalar_one()
+        e = s.execute(select(ExpansionRow).where(ExpansionRow.id == expansion_id).with_for_update()).scalar_one()
         if e.status != LEASED or e.lease_token != token:
             return None
-        e.error = error[:4000]
+        e.error = error[-16000:]  # a traceback's end says most
         e.lease_owner = e.lease_token = e.leased_at = None
         e.status = FAILED if e.attempts >= max_attempts else PENDING
         if e.status == FAILED:
@@ -388,7 +354,7 @@ def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, m
 
 def frontier(s: Session, run_id: int) -> dict[str, int]:
     rows = s.execute(
-        select(Expansion.status, func.count()).where(Expansion.run_id == run_id).group_by(Expansion.status)
+        select(ExpansionRow.status, func.count()).where(ExpansionRow.run_id == run_id).group_by(ExpansionRow.status)
     ).all()
     return {status: count for status, count in rows}
 
@@ -432,8 +398,8 @@ def _params(params_text: str) -> Params:
 
 
 def distinct_endpoints(ex: CoreExpansion) -> tuple[list[tuple[CoreCluster, Rigidity, str]], dict[int, int]]:
-    """The distinct rigid endpoints of an expansion (:meth:`workers.expand.Expansion.distinct`, told
-    apart by :func:`workers.expand.expand`), each once with its certificate, and for each rigid
+    """The distinct rigid endpoints of an expansion (:meth:`packings.workers.expand.Expansion.distinct`, told
+    apart by :func:`packings.workers.expand.expand`), each once with its certificate, and for each rigid
     endpoint's index which of them it is."""
     first = ex.distinct()
     position = {i: k for k, i in enumerate(first)}
@@ -446,7 +412,7 @@ def distinct_endpoints(ex: CoreExpansion) -> tuple[list[tuple[CoreCluster, Rigid
 @dataclass(frozen=True)
 class Finished:
     """An expansion computed by a task, to be written back: the task, its lease token, the result and
-    the seconds :func:`workers.expand.expand` took."""
+    the seconds :func:`packings.workers.expand.expand` took."""
 
     task: Task
     token: str
@@ -551,9 +517,9 @@ def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, 
     last_id = 0
     while True:
         with Session_.begin() as s:
-            q = select(Cluster).where(Cluster.id > last_id).order_by(Cluster.id).limit(batch)
+            q = select(ClusterRow).where(ClusterRow.id > last_id).order_by(ClusterRow.id).limit(batch)
             if not recompute:
-                q = q.where(Cluster.lattice.is_(None))
+                q = q.where(ClusterRow.lattice.is_(None))
             rows = s.execute(q).scalars().all()
             if not rows:
                 return done
@@ -570,8 +536,8 @@ def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, 
 
 def to_backfill(s: Session, recompute: bool = False) -> int:
     """Rows that :func:`backfill` would update: those whose facts are missing, or all."""
-    q = select(func.count()).select_from(Cluster)
-    return s.execute(q if recompute else q.where(Cluster.lattice.is_(None))).scalar_one()
+    q = select(func.count()).select_from(ClusterRow)
+    return s.execute(q if recompute else q.where(ClusterRow.lattice.is_(None))).scalar_one()
 
 
 # --------------------------------------------------------------------------- reading
@@ -580,11 +546,11 @@ def to_backfill(s: Session, recompute: bool = False) -> int:
 def run_counts(s: Session, run_id: int) -> dict[int, int]:
     """Clusters reached by the run, by number of contacts."""
     rows = s.execute(
-        select(Cluster.contacts, func.count())
-        .join(Expansion, Expansion.cluster_id == Cluster.id)
-        .where(Expansion.run_id == run_id)
-        .group_by(Cluster.contacts)
-        .order_by(Cluster.contacts)
+        select(ClusterRow.contacts, func.count())
+        .join(ExpansionRow, ExpansionRow.cluster_id == ClusterRow.id)
+        .where(ExpansionRow.run_id == run_id)
+        .group_by(ClusterRow.contacts)
+        .order_by(ClusterRow.contacts)
     ).all()
     return {int(m): int(c) for m, c in rows}
 
@@ -594,7 +560,7 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
     total: Counter = Counter()
     paths = 0
     for outcomes, p in s.execute(
-        select(Expansion.outcomes, Expansion.paths).where(Expansion.run_id == run_id, Expansion.status == DONE)
+        select(ExpansionRow.outcomes, ExpansionRow.paths).where(ExpansionRow.run_id == run_id, ExpansionRow.status == DONE)
     ):
         total.update(json.loads(outcomes))
         paths += p or 0
@@ -611,10 +577,10 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
 
 def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:
     """All stored clusters: {n: {contacts: count}}."""
-    q = select(Cluster.n, Cluster.contacts, func.count()).group_by(Cluster.n, Cluster.contacts)
+    q = select(ClusterRow.n, ClusterRow.contacts, func.count()).group_by(ClusterRow.n, ClusterRow.contacts)
     if n is not None:
-        q = q.where(Cluster.n == n)
+        q = q.where(ClusterRow.n == n)
     out: dict[int, dict[int, int]] = {}
-    for nn, m, c in s.execute(q.order_by(Cluster.n, Cluster.contacts)):
+    for nn, m, c in s.execute(q.order_by(ClusterRow.n, ClusterRow.contacts)):
         out.setdefault(int(nn), {})[int(m)] = int(c)
     return out

@@ -3,6 +3,6 @@
 Every function here is a pure function of numpy arrays and a :class:`Params`.
 """
 
-from workers.params import DEFAULT, Params
+from packings.workers.params import DEFAULT, Params
 
 __all__ = ["Params", "DEFAULT"]

@@ -1,8 +1,8 @@
-"""Compiled (numba) implementations of the hot loop of :mod:`workers.kernels` and :mod:`workers.paths`.
+"""Compiled (numba) implementations of the hot loop of :mod:`packings.workers.kernels` and :mod:`packings.workers.paths`.
 
-Nothing outside :mod:`workers.kernels` and :mod:`workers.paths` should import this
-module: :mod:`workers.kernels` is the interface, and selects between these
-functions and the plain numpy reference (``workers.kernels.set_backend``).
+Nothing outside :mod:`packings.workers.kernels` and :mod:`packings.workers.paths` should import this
+module: :mod:`packings.workers.kernels` is the interface, and selects between these
+functions and the plain numpy reference (``packings.workers.kernels.set_backend``).
 
 Numerics (docs/method.md, "Following a path"), exactly as in the numpy reference up to round-off:
 
@@ -19,7 +19,7 @@ Numerics (docs/method.md, "Following a path"), exactly as in the numpy reference
   1 / (||M^{-1}||_1 ||M^{-1}||_inf) for the comparison matrix M of L (two
   O(m^2) triangular solves) and at least 1 / ||L^{-1}||_F^2 (O(m^3), tried
   only when the first bound is too weak).  The guard is (100 tol_n)^2
-  (``workers.kernels.guard_threshold``).
+  (``packings.workers.kernels.guard_threshold``).
 * Newton steps use the normal equations only where the guard certifies
   J J^T, and otherwise the same LAPACK least-squares solve as the reference.
   Convergence is always judged on the residual itself, and a projection that
@@ -44,7 +44,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-# Status codes returned by follow_steps (mirrored in workers.paths).
+# Status codes returned by follow_steps (mirrored in packings.workers.paths).
 ST_HIT = 0  #: an approaching pair is within 1 + tol_a0: xn and the hit mask are the endpoint's input
 ST_NEED_SVD = 1  #: xn is projected and checked; the guard failed there, so its tangent (and first-step dimension) needs the SVD
 ST_PROJECTION_FAILED = 2
@@ -52,7 +52,7 @@ ST_SHORTENS = 3
 ST_DIMENSION_CHANGED = 4  #: the projected tangent vanished (returned steps already counts this step)
 ST_TOO_LONG = 5
 
-# Status codes of newton (mirrored in workers.kernels).
+# Status codes of newton (mirrored in packings.workers.kernels).
 NEWTON_OK = 0
 NEWTON_FAILED = 1
 
@@ -408,7 +408,7 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
 
 @numba.njit(**_JIT)
 def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall):
-    """The iteration of workers.kernels.project_numpy; returns (x, status, iterations, sum f^2, normal steps).
+    """The iteration of packings.workers.kernels.project_numpy; returns (x, status, iterations, sum f^2, normal steps).
 
     ``stall`` > 0: fail once sum f^2 has not gone below its smallest value so far for
     that many consecutive iterations (before convergence); 0: never.
@@ -485,7 +485,7 @@ def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard
 
 @numba.njit(**_JIT)
 def newton(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, stall=0):
-    """Newton projection, the same iteration as workers.kernels.project (see there).
+    """Newton projection, the same iteration as packings.workers.kernels.project (see there).
 
     ``A`` (e x 3n, zero in pinned columns) and ``b`` are the extra linear rows
     (e = 0 for none); ``stall`` as in _newton_core.  Returns (x, status,
@@ -566,7 +566,7 @@ def follow_steps(
     guard,
     stop_on_dimension_change,
 ):
-    """The stepping loop of workers.paths.follow_path, until Python is needed.
+    """The stepping loop of packings.workers.paths.follow_path, until Python is needed.
 
     Mirrors the reference loop step for step.  At each projected point the rank
     guard either certifies that R_f has full row rank, and the tangent is the

@@ -6,7 +6,7 @@ near contact left out (docs/method.md, "The endpoint").  Genuine clusters can
 have small gaps too (at n = 13 down to about 6e-5), so each near pair is tested:
 the cluster is projected onto its contacts and the pair(s), and the result, if it
 is rigid, is looked up among the stored clusters by the caller
-(:mod:`service.audit`).
+(:mod:`packings.audit`).
 """
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers import kernels
-from workers.cluster import Cluster, Contact, pair_distances
-from workers.params import Params
-from workers.paths import close_pairs
-from workers.rigidity import Rigidity, contact_triangle, rigidity
+from packings.workers import kernels
+from packings.workers.cluster import Cluster, Contact, pair_distances
+from packings.workers.params import Params
+from packings.workers.paths import close_pairs, overlaps
+from packings.workers.rigidity import Rigidity, contact_triangle, rigidity
 
 RIGID = "rigid"  #: projected onto the added contacts, no overlap, and rigid
 NOT_RIGID = "not-rigid"  #: projected, no overlap, but the rigidity test fails (floppy or undecided)
@@ -60,7 +60,7 @@ class Added:
     ``overlap`` and ``not-rigid``), ``rigidity`` when there was no overlap.
     ``moved`` is the largest coordinate difference between the cluster and the
     projected one after the optimal alignment (the measure of
-    :func:`workers.identity.geometry_distance`, with the labels kept).
+    :func:`packings.workers.identity.geometry_distance`, with the labels kept).
     """
 
     pairs: tuple[Contact, ...]
@@ -73,11 +73,11 @@ class Added:
 def with_contacts_added(cluster: Cluster, pairs, params: Params) -> Added:
     """Project ``cluster`` onto its contacts and ``pairs`` and say what it becomes.
 
-    As a path's endpoint is treated (:func:`workers.paths.close_pairs`: polished projection,
+    As a path's endpoint is treated (:func:`packings.workers.paths.close_pairs`: polished projection,
     adjacency with tol_a and projection onto every contact, an overlapping point returned as
     it is), but with no bound on how far the spheres move, so that the audit can say how far
     the cluster it stands for is; the endpoint rule accepts it only within tol_a0
-    (``moved``, compared by :mod:`service.audit`).  An overlap (a pair closer than
+    (``moved``, compared by :mod:`packings.audit`).  An overlap (a pair closer than
     1 - tol_a) is rejected, and the rest is given the rigidity test.
     """
     pairs = tuple(sorted((min(int(i), int(j)), max(int(i), int(j))) for i, j in pairs))
@@ -93,7 +93,7 @@ def with_contacts_added(cluster: Cluster, pairs, params: Params) -> Added:
     coords = closed[0].reshape(-1, 3)
     new = Cluster(coords, closed[1])
     moved = _moved(cluster.coords, coords)
-    if new.min_distance() < 1.0 - params.tol_a:
+    if overlaps(closed[0], params):
         return Added(pairs, OVERLAP, new, None, moved)
     rig = rigidity(coords, new.contacts, params)
     return Added(pairs, RIGID if rig.rigid else NOT_RIGID, new, rig, moved)

@@ -21,13 +21,13 @@ their contacts hold to the Newton tolerance) and every set D of k spheres:
 3. a remainder whose contacts hold no triangle is skipped (nothing to pin: ``no-triangle``);
 4. otherwise the endpoint rule of a path decides (docs/method.md, "The endpoint"): pairs within
    tol_a0 of touching that close to a rigid cluster within tol_a0 make the remainder that cluster
-   (:func:`workers.paths.resolve_near_pairs`), else the remainder is kept when the rigidity test
-   with its isolation probe calls it rigid (:func:`workers.paths.endpoint_rigidity`); and only
+   (:func:`packings.workers.paths.resolve_near_pairs`), else the remainder is kept when the rigidity test
+   with its isolation probe calls it rigid (:func:`packings.workers.paths.endpoint_rigidity`); and only
    with at least ``params.min_contacts`` contacts if that is set.
 
 The remainder's coordinates are not projected again: deleting spheres deletes equations, so
 the parent's point still solves the remainder's.  Its contacts, measured again from the
-coordinates with :func:`workers.cluster.contacts_from_coords` (``params.tol_a``), must be the
+coordinates with :func:`packings.workers.cluster.contacts_from_coords` (``params.tol_a``), must be the
 inherited ones; they always are (pair distances do not change when other spheres are
 deleted), and a remainder where they differ is rejected (``contacts-differ``) rather than
 stored with contacts its geometry does not have.
@@ -42,12 +42,12 @@ from typing import Iterator
 
 import numpy as np
 
-from workers import kernels
-from workers.cluster import Cluster, contacts_from_coords
-from workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
-from workers.params import Params
-from workers.paths import endpoint_rigidity, resolve_near_pairs
-from workers.rigidity import Rigidity, contact_triangle
+from packings.workers import kernels
+from packings.workers.cluster import Cluster, contacts_from_coords
+from packings.workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
+from packings.workers.params import Params
+from packings.workers.paths import endpoint_rigidity, resolve_near_pairs
+from packings.workers.rigidity import Rigidity, contact_triangle
 
 NOT_RIGID = "not-rigid"  #: the rigidity test says floppy or undecided
 FEW_CONTACTS = "few-contacts"  #: a sphere of the remainder has fewer than three contacts: not rigid

@@ -103,7 +103,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.cluster import Cluster, cross3, normalise_contacts, pair_distances
+from packings.workers.cluster import Cluster, cross3, normalise_contacts, pair_distances
 
 __all__ = ["STATIC", "LATTICES", "static_class", "lattice_type", "describe"]
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.params import DEFAULT, Params
+from packings.workers.params import DEFAULT, Params
 
 Contact = tuple[int, int]
 

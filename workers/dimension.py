@@ -6,9 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers import kernels
-from workers.params import Params
-from workers.rigidity import Rigidity, rigidity_from_null_spaces
+from packings.workers import kernels
+from packings.workers.params import Params
+from packings.workers.rigidity import Rigidity, rigidity_from_null_spaces
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ def solution_dimension(
 def _probe(x, v, step, edges, free, params: Params) -> np.ndarray | None:
     """Displacement x' - x to the solution set from x + step v, or None if it is rejected."""
     x0 = x + step * v
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
+    kw = params.newton()
     attempts = [(None, 0)]
     if orthogonal_may_be_accepted(x0, edges, step, float(np.linalg.norm(v[free])), params):
         attempts.insert(0, ((v[free][None, :], np.array([v[free] @ x0[free]])), params.probe_stall))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from itertools import combinations
@@ -9,11 +10,11 @@ from typing import Iterator
 
 import numpy as np
 
-from workers import kernels
-from workers.cluster import Cluster
-from workers.dimension import solution_dimension
-from workers.identity import ClusterIndex, certificate, same_geometry
-from workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
+from packings.workers import kernels
+from packings.workers.cluster import Cluster
+from packings.workers.dimension import solution_dimension
+from packings.workers.identity import ClusterIndex, certificate, same_geometry
+from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
     BELOW_MIN_CONTACTS,
     CIRCULAR,
     DIMENSION_CHANGED,
@@ -22,9 +23,9 @@ from workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond
     NOT_1D,
     RIGID,
 )
-from workers.params import Params
-from workers.paths import PathEnd, follow_path
-from workers.rigidity import Rigidity, contact_triangle
+from packings.workers.params import Params
+from packings.workers.paths import PathEnd, follow_path
+from packings.workers.rigidity import Rigidity, contact_triangle
 
 
 @dataclass(frozen=True)
@@ -111,7 +112,7 @@ def cluster_rank(cluster: Cluster, params: Params) -> int:
 
 @dataclass(frozen=True)
 class PathStart:
-    """One path to follow: the arguments of :func:`workers.paths.follow_path` and what they came from."""
+    """One path to follow: the arguments of :func:`packings.workers.paths.follow_path` and what they came from."""
 
     broken_contacts: tuple[tuple[int, int], ...]  #: the broken subset B
     direction: int  #: +1 or -1 relative to the tangent basis vector
@@ -210,3 +211,40 @@ def _classify(source: Cluster, cert: bytes, broken, sign: int, end: PathEnd, par
         elif params.min_contacts is not None and c.m < params.min_contacts:
             outcome = BELOW_MIN_CONTACTS
     return Endpoint(broken, sign, outcome, 1, end.steps, c, end.rigidity, end.new_contacts, end.first_step_dim)
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's on-disk cache) every compiled kernel; returns the seconds taken.
+
+    Runs each kernel once on a small cluster (a path of the 6-sphere
+    polytetrahedron with one contact broken, a projection with an extra linear
+    row, the rank certificate), so that the first real path does not pay for
+    compilation.  Call it once per process (e.g. per Dask worker).  It lives here, above
+    every module whose kernels it runs, not in :mod:`kernels`, the lowest layer.  Does nothing
+    (returns 0.0) when the numpy backend is selected.
+    """
+    if kernels.get_backend() != "numba":
+        return 0.0
+    from packings.workers.seeds import seed_cluster
+
+    start = time.perf_counter()
+    params = Params()
+    c = seed_cluster(6, params)
+    edges = c.edges()
+    keep, broken = edges[:-1], edges[-1:]
+    tri = contact_triangle(keep)
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(c.n, tri)
+    kernels.residual(x, edges)
+    kernels.rigidity_matrix(x, edges)
+    kernels.pair_distances_flat(x, edges)
+    dim = solution_dimension(x, keep, free, params)
+    kw = params.newton()
+    v = dim.tangents[:, 0]
+    kernels.project(x + params.ds * v, keep, free, extra=(v[free][None, :], np.array([v[free] @ x[free]])), **kw)
+    kernels.project(x, edges, free, polish=True, **kw)
+    kernels.regular_flexes(x, edges, free, params.tol_n)
+    for s in (1.0, -1.0):
+        follow_path(x, keep, broken, s * v, free, params)
+    same_geometry(c, Cluster(c.coords[::-1] + 1.0, tuple((c.n - 1 - j, c.n - 1 - i) for i, j in c.contacts)), params.tol_d)
+    return time.perf_counter() - start

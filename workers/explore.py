@@ -1,4 +1,4 @@
-"""In-memory enumeration: a small loop over :func:`workers.expand.expand`.
+"""In-memory enumeration: a small loop over :func:`packings.workers.expand.expand`.
 
 This is the reference loop the service distributes; it keeps everything in
 memory and is meant for small n, tests, and checking the service against.
@@ -11,12 +11,12 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Callable
 
-from workers.cluster import Cluster
-from workers.expand import Expansion, expand
-from workers.identity import ClusterIndex
-from workers.params import Params
-from workers.paths import RIGID
-from workers.seeds import seed_cluster
+from packings.workers.cluster import Cluster
+from packings.workers.expand import Expansion, expand
+from packings.workers.identity import ClusterIndex
+from packings.workers.params import Params
+from packings.workers.paths import RIGID
+from packings.workers.seeds import seed_cluster
 
 
 @dataclass

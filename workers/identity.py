@@ -5,7 +5,7 @@ and, for some isomorphism between them, their sphere centres agree within
 ``tol_d`` after an optimal rigid alignment that may include a reflection
 (Holmes-Cerfon, SIAM Review 2016: mirror images count as one cluster).
 
-Everything here is a pure function of :class:`~workers.cluster.Cluster`
+Everything here is a pure function of :class:`~packings.workers.cluster.Cluster`
 objects; :class:`ClusterIndex` is a small in-memory store built on top.
 
 pynauty conventions (checked empirically with pynauty 2.8.8.1, see the tests):
@@ -32,8 +32,8 @@ from typing import Iterable, Iterator
 import numpy as np
 import pynauty
 
-from workers import kernels
-from workers.cluster import Cluster, pair_distances
+from packings.workers import kernels
+from packings.workers.cluster import Cluster, pair_distances
 
 __all__ = [
     "certificate",

@@ -22,9 +22,9 @@ Backends
 --------
 Two implementations of the hot loop run behind this interface:
 
-* ``"numba"`` (the default): compiled kernels in :mod:`workers._compiled`.  Newton
+* ``"numba"`` (the default): compiled kernels in :mod:`packings.workers._compiled`.  Newton
   steps solve the normal equations by Cholesky, and the whole stepping loop of
-  :func:`workers.paths.follow_path` runs compiled.  It returns to Python at the
+  :func:`packings.workers.paths.follow_path` runs compiled.  It returns to Python at the
   endpoint, and at any point where a rank guard cannot prove that the pinned
   rigidity matrix has full row rank with every singular value at least
   ``GUARD_FACTOR * tol_n``: such steps (and the dimension test after a first
@@ -36,8 +36,8 @@ Select with :func:`set_backend` (process-wide), temporarily with the context
 manager :func:`backend`, or for a whole process with the environment variable
 ``PACKINGS_KERNELS=numpy`` (read at import).  If numba cannot be imported the
 numpy backend is used.  :func:`null_spaces` is the SVD in both backends.  Call
-:func:`warm_up` once per process to compile (or load from numba's cache) every
-kernel before the first path.
+:func:`packings.workers.expand.warm_up` once per process to compile (or load from
+numba's cache) every kernel before the first path.
 """
 
 from __future__ import annotations
@@ -45,14 +45,13 @@ from __future__ import annotations
 import contextlib
 import importlib.util
 import os
-import time
 from dataclasses import dataclass
 from typing import Iterator
 
 import numpy as np
 
-from workers.cluster import cross3
-from workers.params import DEFAULT
+from packings.workers.cluster import cross3
+from packings.workers.params import DEFAULT
 
 BACKENDS = ("numba", "numpy")
 
@@ -61,7 +60,7 @@ BACKENDS = ("numba", "numpy")
 #: of R_f is at least GUARD_FACTOR * tol_n: far from the SVD's zero threshold tol_n.
 GUARD_FACTOR = 100.0
 
-#: workers._compiled, imported when the compiled backend is first used (:func:`_numba`): importing
+#: packings.workers._compiled, imported when the compiled backend is first used (:func:`_numba`): importing
 #: numba takes a quarter of a second, which a process that never follows a path (the coordinator,
 #: the query commands) need not pay
 _compiled = None
@@ -73,10 +72,10 @@ def numba_available() -> bool:
 
 
 def _numba():
-    """:mod:`workers._compiled`, imported on first use."""
+    """:mod:`packings.workers._compiled`, imported on first use."""
     global _compiled
     if _compiled is None:
-        from workers import _compiled as module
+        from packings.workers import _compiled as module
 
         _compiled = module
     return _compiled
@@ -252,7 +251,7 @@ def project(
     point that does not satisfy the tolerance.  With ``stall`` > 0 the iteration
     gives up (ok=False) as soon as sum f^2 has not gone below its smallest value
     so far for ``stall`` consecutive iterations (used by the dimension test's
-    probes, :func:`workers.dimension.solution_dimension`); 0 never gives up early.
+    probes, :func:`packings.workers.dimension.solution_dimension`); 0 never gives up early.
 
     With ``polish`` (used for clusters that are kept), iteration goes on after
     convergence for as long as each step at least halves sum f^2, so that the
@@ -503,44 +502,3 @@ def aligned_max_error(x: np.ndarray, y: np.ndarray) -> float:
     norm ||x R - y|| (both already centred): the orthogonal Procrustes problem, by the SVD of x^T y."""
     u, _, vt = np.linalg.svd(x.T @ y)
     return float(np.max(np.abs(x @ (u @ vt) - y)))
-
-
-def warm_up() -> float:
-    """Compile (or load from numba's on-disk cache) every compiled kernel; returns the seconds taken.
-
-    Runs each kernel once on a small cluster (a path of the 6-sphere
-    polytetrahedron with one contact broken, a projection with an extra linear
-    row, the rank certificate), so that the first real path does not pay for
-    compilation.  Call it once per process (e.g. per Dask worker).  Does nothing
-    (returns 0.0) when the numpy backend is selected.
-    """
-    if _backend != "numba":
-        return 0.0
-    from workers.cluster import Cluster
-    from workers.dimension import solution_dimension
-    from workers.identity import same_geometry
-    from workers.paths import follow_path
-    from workers.rigidity import contact_triangle
-    from workers.seeds import seed_cluster
-
-    start = time.perf_counter()
-    params = DEFAULT
-    c = seed_cluster(6, params)
-    edges = c.edges()
-    keep, broken = edges[:-1], edges[-1:]
-    tri = contact_triangle(keep)
-    x = to_frame(c.coords, tri).ravel()
-    free = free_coordinates(c.n, tri)
-    residual(x, edges)
-    rigidity_matrix(x, edges)
-    pair_distances_flat(x, edges)
-    dim = solution_dimension(x, keep, free, params)
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
-    v = dim.tangents[:, 0]
-    project(x + params.ds * v, keep, free, extra=(v[free][None, :], np.array([v[free] @ x[free]])), **kw)
-    project(x, edges, free, polish=True, **kw)
-    regular_flexes(x, edges, free, params.tol_n)
-    for s in (1.0, -1.0):
-        follow_path(x, keep, broken, s * v, free, params)
-    same_geometry(c, Cluster(c.coords[::-1] + 1.0, tuple((c.n - 1 - j, c.n - 1 - i) for i, j in c.contacts)), params.tol_d)
-    return time.perf_counter() - start

@@ -5,7 +5,7 @@ Plain names in a module of their own, so that the service can name them without 
 numerical code (and its compiled kernels).
 """
 
-# Outcomes of one path (workers.paths).
+# Outcomes of one path (packings.workers.paths).
 RIGID = "rigid"  #: ended at a rigid cluster
 FLOPPY = "floppy"  #: ended where new contacts form but the cluster is not rigid
 UNDECIDED_END = "undecided"  #: ended at a cluster the pre-stress test could not decide
@@ -15,7 +15,7 @@ SHORTENS = "shortens"  #: the direction shortens a broken contact (the spheres w
 OVERLAP = "overlap"  #: the projected endpoint has overlapping spheres
 TOO_LONG = "too-long"  #: max_path_steps reached without a new contact
 
-# Outcomes of one (broken subset, direction) beyond those of a path (workers.expand).
+# Outcomes of one (broken subset, direction) beyond those of a path (packings.workers.expand).
 CIRCULAR = "circular"  #: the path came back to the cluster it left
 NOT_1D = "not-1d"  #: removing the subset leaves a solution set of dimension != 1 (no path)
 NO_DIRECTION = "no-direction"  #: no tangent direction lengthens every broken contact

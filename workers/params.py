@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass, field, replace
 
 
@@ -29,14 +30,14 @@ class Params:
     newton_max_iter: int = 200  #: Newton iterations before a projection is reported as failed
     #: the dimension test's probe first projects with its correction orthogonal to the probe
     #: direction; that projection is given up once its residual has not improved for this many
-    #: iterations (0: it runs the full newton_max_iter), see workers.dimension.solution_dimension
+    #: iterations (0: it runs the full newton_max_iter), see packings.workers.dimension.solution_dimension
     probe_stall: int = 10
     max_path_steps: int = 3000  #: steps along one path before it is abandoned
     #: largest number of contacts broken at once; None (the default, as in the paper for every n <= 14)
-    #: breaks up to m - rank(R) + 1, a cap is for restricted runs (n >= 15), see workers.expand.break_sizes
+    #: breaks up to m - rank(R) + 1, a cap is for restricted runs (n >= 15), see packings.workers.expand.break_sizes
     max_break: int | None = None
     #: stop a path whose set is more than one-dimensional after its first step (the paper's rule);
-    #: by default such a path goes on and is counted (see workers.paths.follow_path)
+    #: by default such a path goes on and is counted (see packings.workers.paths.follow_path)
     stop_on_dimension_change: bool = False
     min_contacts: int | None = None  #: keep only rigid clusters with at least this many contacts
 
@@ -52,6 +53,14 @@ class Params:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def newton(self, **extra) -> dict:
+        """The Newton projection's settings (packings.workers.kernels.project), with ``extra`` ones."""
+        return dict(tol=self.tol, dx_max=self.dx_max, max_iter=self.newton_max_iter, tol_n=self.tol_n, **extra)
+
+    def to_json(self) -> str:
+        """The parameters as JSON with sorted keys: a run's ``params`` column, which tells runs apart."""
+        return json.dumps(self.to_dict(), sort_keys=True)
 
     @classmethod
     def from_dict(cls, d: dict) -> "Params":

@@ -8,10 +8,10 @@ from itertools import combinations
 
 import numpy as np
 
-from workers import kernels
-from workers.cluster import contacts_from_coords, pair_distances
-from workers.dimension import solution_dimension
-from workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
+from packings.workers import kernels
+from packings.workers.cluster import contacts_from_coords, pair_distances
+from packings.workers.dimension import solution_dimension
+from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
     FLOPPY,
     OVERLAP,
@@ -21,11 +21,11 @@ from workers.outcomes import (  # noqa: F401 - the outcomes of a path, named her
     TOO_LONG,
     UNDECIDED_END,
 )
-from workers.params import Params
-from workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces, rigidity_without_stress
+from packings.workers.params import Params
+from packings.workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces, rigidity_without_stress
 
 try:  # numba is a dependency; without it (or with a broken install) the reference still runs
-    from workers import _compiled
+    from packings.workers import _compiled
 except ImportError:  # pragma: no cover
     _compiled = None
 
@@ -135,7 +135,7 @@ def _svd_tangent(xn, keep, free, t, params: Params, first: bool) -> tuple[np.nda
 def _follow_numpy(x, keep, broken, tangent, free, params: Params) -> PathEnd:
     """The reference loop of :func:`follow_path`: one Python iteration per step, an SVD at every step."""
     n = x.size // 3
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
+    kw = params.newton()
     pairs, broken_idx = _broken_pairs(n, keep, broken)
     d_prev = kernels.pair_distances_flat(x, pairs)
     t = tangent / np.linalg.norm(tangent)
@@ -193,7 +193,7 @@ _COMPILED_OUTCOMES = {
 
 
 def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
-    """:func:`follow_path` with the stepping loop compiled (workers._compiled.follow_steps).
+    """:func:`follow_path` with the stepping loop compiled (packings.workers._compiled.follow_steps).
 
     The compiled loop runs the same steps as :func:`_follow_numpy` and returns
     here only to end the path or when its rank guard cannot certify that R(xn)
@@ -242,11 +242,6 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
             return PathEnd(TOO_LONG, steps, first_step_dim=first_dim)
 
 
-def _newton(params: Params) -> dict:
-    """The Newton projection's settings (workers.kernels.project) from the run's parameters."""
-    return dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n)
-
-
 def max_move(a: np.ndarray, b: np.ndarray) -> float:
     """The largest displacement of a sphere between two flat coordinate vectors of one frame."""
     d = (np.asarray(a) - np.asarray(b)).reshape(-1, 3)
@@ -272,7 +267,7 @@ def approach_contact(x0: np.ndarray, x1: np.ndarray, keep: np.ndarray, pairs: np
     projected distances are resolved.  None when the gap stops decreasing before a bracket is
     found (the pairs pass by without touching), a projection fails, or it does not converge.
     """
-    kw = _newton(params)
+    kw = params.newton()
     watched = hit.copy()
     d0 = kernels.pair_distances_flat(x0, pairs)
     d1 = kernels.pair_distances_flat(x1, pairs)
@@ -326,7 +321,7 @@ def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.nd
     converged to another solution of the equations, not the one at x.  A point where two
     spheres overlap is returned as it is, for the caller to reject.
     """
-    kw = _newton(params)
+    kw = params.newton()
     pr = None
     for r in range(max(1, len(extra))):
         for drop in combinations(range(len(extra)), r):
@@ -343,7 +338,7 @@ def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.nd
     constrained = {(int(i), int(j)) for i, j in cons}
     for _ in range(3):
         contacts = contacts_from_coords(pr.x.reshape(-1, 3), params.tol_a)
-        if _overlaps(pr.x, params):  # an overlapping pair is no contact to project onto: the caller rejects it
+        if overlaps(pr.x, params):  # an overlapping pair is no contact to project onto: the caller rejects it
             return pr.x, contacts
         if set(contacts) <= constrained:
             return _refined(pr, cons, free, x, params), contacts
@@ -362,7 +357,7 @@ _ROUND_OFF = 1e-28
 
 def _refined(pr: kernels.Projection, edges: np.ndarray, free: np.ndarray, x0: np.ndarray, params: Params) -> np.ndarray:
     """A polished projection's point, refined along its flexes where it is singular
-    (:func:`workers.kernels.refine_singular`) so that two copies of one singular cluster agree far
+    (:func:`packings.workers.kernels.refine_singular`) so that two copies of one singular cluster agree far
     below tol_d; kept as polished if the refinement would move a sphere further than tol_a0 from x0."""
     if pr.residual <= _ROUND_OFF:
         return pr.x
@@ -399,7 +394,7 @@ def resolve_near_pairs(x: np.ndarray, contacts, free: np.ndarray, params: Params
     if not near.size:
         return None
     alt = close_pairs(x, np.array(contacts, dtype=np.int64), near, free, params)
-    if alt is None or _overlaps(alt[0], params):
+    if alt is None or overlaps(alt[0], params):
         return None
     rig = endpoint_rigidity(alt[0], alt[1], free, params)
     return (alt[0], alt[1], rig) if rig.rigid else None
@@ -419,7 +414,7 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
     """
     new_t = tuple((int(i), int(j)) for i, j in pairs[hit])
     closed = close_pairs(x_hit, keep, pairs[hit], free, params)
-    if closed is None or _overlaps(closed[0], params):
+    if closed is None or overlaps(closed[0], params):
         y = approach_contact(x_prev, x_hit, keep, pairs, hit, free, params)
         if y is None:
             return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
@@ -433,7 +428,7 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
         xr, cr, rig = resolved
         return PathEnd(RIGID, steps, xr.reshape(-1, 3), cr, rig, _formed(cr, keep))
     coords = xe.reshape(-1, 3)
-    if _overlaps(xe, params):
+    if overlaps(xe, params):
         return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
     rig = endpoint_rigidity(xe, contacts, free, params)
     outcome = RIGID if rig.rigid else (UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
@@ -446,7 +441,8 @@ def _formed(contacts, keep) -> tuple[tuple[int, int], ...]:
     return tuple(c for c in contacts if c not in kept)
 
 
-def _overlaps(x: np.ndarray, params: Params) -> bool:
+def overlaps(x: np.ndarray, params: Params) -> bool:
+    """Whether two spheres of ``x`` (flat) overlap: a pair closer than 1 - tol_a."""
     dist = pair_distances(x.reshape(-1, 3))
     np.fill_diagonal(dist, np.inf)
     return bool(dist.min() < 1.0 - params.tol_a)
@@ -455,7 +451,7 @@ def _overlaps(x: np.ndarray, params: Params) -> bool:
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
     """The rigidity test of an endpoint (x flat, in the pinned frame of ``free``): without the SVD
     where the compiled kernels certify full row rank, and with the isolation probe for a
-    pre-stress verdict (workers.rigidity.rigidity_from_null_spaces)."""
+    pre-stress verdict (packings.workers.rigidity.rigidity_from_null_spaces)."""
     edges = np.array(contacts, dtype=np.int64)
     flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
     if flexes is not None:  # certified full row rank: what the SVD would find, without it

@@ -8,8 +8,8 @@ from functools import lru_cache
 import numpy as np
 import scipy.sparse as sp
 
-from workers import kernels
-from workers.params import Params
+from packings.workers import kernels
+from packings.workers.params import Params
 
 FIRST_ORDER = "first-order"  #: V empty
 PRESTRESS = "prestress"  #: V non-empty, some stress combination makes Q definite
@@ -192,8 +192,7 @@ def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray
     the point lies on a curve of singular points, at which the coordinates are accurate only to
     about sqrt(|f|) and the computed margin is noise (docs/method.md, "The endpoint").
     """
-    kw = dict(tol=params.tol, dx_max=params.dx_max, max_iter=params.newton_max_iter, tol_n=params.tol_n,
-              stall=params.probe_stall)
+    kw = params.newton(stall=params.probe_stall)
     for j in range(V.shape[1]):
         v = V[:, j]
         vf = v[free]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers import kernels
-from workers.cluster import Cluster
-from workers.params import DEFAULT, Params
-from workers.rigidity import rigidity
+from packings.workers import kernels
+from packings.workers.cluster import Cluster
+from packings.workers.params import DEFAULT, Params
+from packings.workers.rigidity import rigidity
 
 
 def triangles(contacts) -> list[tuple[int, int, int]]:

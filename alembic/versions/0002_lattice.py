@@ -4,7 +4,7 @@ Revision ID: 0002
 Revises: 0001
 Create Date: 2026-11-21 12:00:00
 
-The column holds workers.classify's label (fcc, hcp, both, random, 2d) or
+The column holds packings.workers.classify's label (fcc, hcp, both, random, 2d) or
 'none'; it is NULL for clusters stored before this revision until
 ``packings db upgrade`` (which runs the backfill) or ``packings db backfill``
 computes it.

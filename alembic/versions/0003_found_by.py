@@ -6,7 +6,7 @@ Create Date: 2026-11-23 10:00:00
 
 found_by is 'seed' (the starting cluster of a run), 'path' (the endpoint of a path from
 source_id, the cluster whose expansion found it) or 'catalysis' (a remainder of source_id, a
-cluster of more spheres, after deleting spheres: service.catalysis).
+cluster of more spheres, after deleting spheres: packings.catalysis).
 
 Rows stored before this revision are backfilled from the expansions and transitions: the
 cluster of a run's first expansion, if that run stored it, is the run's seed ('seed', no source;
@@ -32,7 +32,7 @@ depends_on: Union[str, Sequence[str], None] = None
 def upgrade() -> None:
     # Plain ALTER TABLE ... ADD COLUMN on both backends: SQLite adds a column with an inline REFERENCES
     # (and a NOT NULL column with a default) in place, where batch mode would rebuild the table, which
-    # with foreign keys on (service.db) cannot be dropped while expansions and transitions refer to it.
+    # with foreign keys on (packings.db) cannot be dropped while expansions and transitions refer to it.
     op.add_column('clusters', sa.Column('found_by', sa.String(length=16), nullable=False, server_default='path'))
     if op.get_bind().dialect.name == "sqlite":  # Alembic adds no constraint to a SQLite table in place
         op.execute("ALTER TABLE clusters ADD COLUMN source_id INTEGER "

@@ -22,7 +22,7 @@ _pg_problem: list[str] = []
 def _pg_admin_engine():
     from sqlalchemy import create_engine
 
-    from service.db import parse_url
+    from packings.db import parse_url
 
     return create_engine(parse_url(PG_ADMIN), isolation_level="AUTOCOMMIT")
 
@@ -50,7 +50,7 @@ def pg_database():
     skips (or fails, under PACKINGS_REQUIRE_PG=1) without a server."""
     from sqlalchemy import text
 
-    from service.db import parse_url
+    from packings.db import parse_url
 
     problem = _pg_available()
     if problem:
@@ -93,7 +93,7 @@ def db_url(request):
 @pytest.fixture
 def engine(db_url):
     """An open engine on a fresh database at the schema's head."""
-    from service.db import open_database
+    from packings.db import open_database
 
     eng = open_database(db_url, create=True)
     yield eng
@@ -103,10 +103,10 @@ def engine(db_url):
 def fill_database(engine, n: int, params=None, owner: str = "test:0:inline") -> int:
     """Run the whole enumeration of n in this process (no Dask), through the
     same store functions the service uses; returns the run id."""
-    from service import store
-    from service.db import sessions
-    from service.tasks import run_expansion
-    from workers.params import Params
+    from packings import store
+    from packings.db import sessions
+    from packings.tasks import run_expansion
+    from packings.workers.params import Params
 
     Session_ = sessions(engine)
     info = store.start_run(Session_, n, params or Params(), owner)

@@ -1,4 +1,4 @@
-"""``packings audit`` (service.audit) on both backends: a clean catalogue, a junk near copy, close
+"""``packings audit`` (packings.audit) on both backends: a clean catalogue, a junk near copy, close
 geometries of one contact graph, small pre-stress margins."""
 
 from __future__ import annotations
@@ -7,16 +7,16 @@ import json
 
 import pytest
 
-from service.audit import audit, format_audit
-from service.db import sessions
+from packings.audit import audit, format_audit
+from packings.db import sessions
 from tests.service.querydb import filled_catalog
 from tests.service.test_query_cli import ok, one_line_error, run
 from tests.workers.test_audit import near_misses, two_geometries
-from workers.audit import RIGID, near_pairs, with_contacts_added
-from workers.cluster import Cluster as CoreCluster
-from workers.identity import certificate_key, geometry_distance
-from workers.params import DEFAULT, Params
-from workers.rigidity import PRESTRESS, Rigidity, rigidity
+from packings.workers.audit import RIGID, near_pairs, with_contacts_added
+from packings.workers.cluster import Cluster as CoreCluster
+from packings.workers.identity import certificate_key, geometry_distance
+from packings.workers.params import DEFAULT, Params
+from packings.workers.rigidity import PRESTRESS, Rigidity, rigidity
 
 catalog = filled_catalog(7, 8)
 
@@ -27,7 +27,7 @@ def url(engine) -> str:
 
 def store(engine, clusters, rig=None) -> list[int]:
     """Store clusters as a finished expansion does (store.insert_or_match), with their rigidity (or ``rig``)."""
-    from service import store as st
+    from packings import store as st
 
     ids = []
     with sessions(engine).begin() as s:
@@ -67,7 +67,7 @@ def test_an_enumerated_catalogue_audits_clean(catalog):
 
 
 def test_a_junk_near_copy_is_reported_with_the_cluster_it_copies(engine):
-    """The two n = 12 near misses (stored as clusters before workers.paths._endpoint re-projected) and
+    """The two n = 12 near misses (stored as clusters before packings.workers.paths._endpoint re-projected) and
     the cluster they passed by: each near miss is in list (a), each of its near pairs alone and both
     together giving that stored cluster; the real cluster is not in it."""
     junk = [m["cluster"] for m in near_misses()]
@@ -132,7 +132,7 @@ def test_two_geometries_of_one_graph_1e4_apart_are_reported(engine):
 def test_small_prestress_margins_against_the_runs_tol_psd(engine):
     """List (b) holds the pre-stress clusters whose stored margin is below 10 tol_psd, tol_psd read from
     the run of that n; first-order rigid clusters are never in it."""
-    from service import store as st
+    from packings import store as st
 
     real = real_of(near_misses()[0]["cluster"])
     small, large = (Rigidity(True, PRESTRESS, 1, 1, "single-flex", margin) for margin in (5e-5, 2e-4))

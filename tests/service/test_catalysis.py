@@ -1,4 +1,4 @@
-"""Catalysis in the database (service.catalysis) and `packings catalyse`."""
+"""Catalysis in the database (packings.catalysis) and `packings catalyse`."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy import select, text
 
-from service import store
-from service.catalysis import NoParents, catalyse
-from service.db import sessions
-from service.models import COMPLETE, DONE, FOUND_CATALYSIS, PENDING, RUNNING, Cluster, Expansion, Run
+from packings import store
+from packings.catalysis import NoParents, catalyse
+from packings.db import sessions
+from packings.models import COMPLETE, DONE, FOUND_CATALYSIS, PENDING, RUNNING, ClusterRow, ExpansionRow, Run
 from tests.service.conftest import fill_database
 from tests.service.test_db import cli, one_line_error
-from workers.cluster import Cluster as Core
-from workers.params import Params
-from workers.rigidity import rigidity
+from packings.workers.cluster import Cluster as Core
+from packings.workers.params import Params
+from packings.workers.rigidity import rigidity
 
 DATA = Path(__file__).parent.parent / "data"
 
@@ -31,13 +31,13 @@ def test_catalysis_of_8_from_9_finds_nothing_new(engine):
     fill_database(engine, 9)
     S = sessions(engine)
     with S() as s:
-        before = s.execute(select(Cluster.id).order_by(Cluster.id)).scalars().all()
+        before = s.execute(select(ClusterRow.id).order_by(ClusterRow.id)).scalars().all()
     r = catalyse(S, 8, Params())
     assert (r.run_id, r.parents, r.remainders) == (run8, 52, 52 * 9)
     assert r.rigid == r.already_stored > 0
     assert r.new == [] and r.expansions_added == 0 and not r.run_reopened
     with S() as s:
-        assert s.execute(select(Cluster.id).order_by(Cluster.id)).scalars().all() == before
+        assert s.execute(select(ClusterRow.id).order_by(ClusterRow.id)).scalars().all() == before
         assert s.get(Run, run8).status == COMPLETE
 
 
@@ -60,7 +60,7 @@ def _complete_after_the_seed(engine, n: int) -> int:
     S = sessions(engine)
     info = store.start_run(S, n, Params(), "test:0:seed")
     with S.begin() as s:
-        s.execute(Expansion.__table__.update().where(Expansion.run_id == info.id).values(status=DONE, outcomes="{}", paths=0))
+        s.execute(ExpansionRow.__table__.update().where(ExpansionRow.run_id == info.id).values(status=DONE, outcomes="{}", paths=0))
     assert store.finish_run(S, info.id, "test:0:seed", 0.0) == COMPLETE
     return info.id
 
@@ -78,11 +78,11 @@ def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_the
     new = r.new[0]
     assert new.contacts == 12 and r.expansions_added == 1
     with S() as s:
-        row = s.get(Cluster, new.id)
+        row = s.get(ClusterRow, new.id)
         assert (row.found_by, row.source_id, row.found_in_run) == (FOUND_CATALYSIS, new.parent_id, run6)
-        assert s.get(Cluster, new.parent_id).n == 7
+        assert s.get(ClusterRow, new.parent_id).n == 7
         assert s.get(Run, run6).status == RUNNING
-        exp = s.execute(select(Expansion).where(Expansion.cluster_id == new.id)).scalar_one()
+        exp = s.execute(select(ExpansionRow).where(ExpansionRow.cluster_id == new.id)).scalar_one()
         assert (exp.run_id, exp.status) == (run6, PENDING)
     again = catalyse(S, 6, Params())  # idempotent: everything is stored now
     assert again.new == [] and again.expansions_added == 0
@@ -92,7 +92,7 @@ def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_the
     assert "`packings catalyse 6`" in r.stdout
     with S() as s:
         assert s.get(Run, run6).status == COMPLETE
-        exp = s.execute(select(Expansion).where(Expansion.cluster_id == new.id)).scalar_one()
+        exp = s.execute(select(ExpansionRow).where(ExpansionRow.cluster_id == new.id)).scalar_one()
         assert exp.status == DONE and exp.paths > 0
 
 
@@ -132,7 +132,7 @@ def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):
     lost = [f for f in r.new if tuple(f.deleted) == tuple(data["deleted"])]
     assert len(lost) == 1 and (lost[0].contacts, lost[0].lattice, lost[0].parent_id) == (26, "hcp", pid)
     with S() as s:
-        row = s.get(Cluster, lost[0].id)
+        row = s.get(ClusterRow, lost[0].id)
         assert (row.n, row.found_by, row.source_id, row.lattice) == (11, FOUND_CATALYSIS, pid, "hcp")
         assert row.certificate == data["certificate"]
         assert s.execute(text("SELECT count(*) FROM expansions WHERE cluster_id = :i"), {"i": row.id}).scalar() == 1

@@ -6,7 +6,7 @@ import sys
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=600,
+    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True, timeout=600,
                           cwd=cwd)
 
 

@@ -8,12 +8,12 @@ import sys
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
-from service.db import DatabaseError, current_revision, head_revision, make_engine, open_database, parse_url
-from service.models import Base
+from packings.db import DatabaseError, current_revision, head_revision, make_engine, open_database, parse_url
+from packings.models import Base
 
 
 def cli(*args, cwd=None, env=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True,
                           timeout=600, cwd=cwd, env=env)
 
 
@@ -79,7 +79,7 @@ def test_older_and_unknown_schemas_are_refused_with_the_fix(engine):
     line = one_line_error(r)
     assert "does not know" in line and "upgrade packings" in line
     # pretend the database is at a revision older than head
-    import service.db as db
+    import packings.db as db
 
     real = db.known_revisions
     db.known_revisions = lambda: real() | {"ffffffff"}
@@ -139,8 +139,8 @@ def test_sqlite_readers_do_not_wait_for_a_writer(sqlite_url):
     """Writers begin IMMEDIATE (one at a time); readonly sessions begin DEFERRED and read a snapshot."""
     import threading
 
-    from service.db import sessions
-    from service.models import Run
+    from packings.db import sessions
+    from packings.models import Run
 
     eng = open_database(sqlite_url, create=True)
     writer = sessions(eng)
@@ -173,10 +173,10 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     Either way the connection's busy timeout is the configured one afterwards."""
     import threading
 
-    import service.db
+    import packings.db
     from sqlalchemy.exc import OperationalError
 
-    from service.db import sessions
+    from packings.db import sessions
 
     eng = open_database(sqlite_url, create=True)
     holder = make_engine(sqlite_url)
@@ -197,11 +197,11 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     with S.begin() as s:
         s.execute(text("SELECT 1"))
         order.append("writer begins")
-        assert s.execute(text("PRAGMA busy_timeout")).scalar() == service.db.SQLITE_BUSY_TIMEOUT_MS
+        assert s.execute(text("PRAGMA busy_timeout")).scalar() == packings.db.SQLITE_BUSY_TIMEOUT_MS
     t.join(30)
     assert order == ["holder commits", "writer begins"]
 
-    monkeypatch.setattr(service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
+    monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
     taken.clear()
     release.clear()
     t = threading.Thread(target=hold)
@@ -222,7 +222,7 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
 def _migrate(engine, revision: str, down: bool = False) -> None:
     from alembic import command
 
-    from service.db import alembic_config
+    from packings.db import alembic_config
 
     cfg = alembic_config(engine)
     with engine.begin() as conn:

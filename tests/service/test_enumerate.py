@@ -17,26 +17,26 @@ import psutil
 import pytest
 from sqlalchemy import func, select
 
-from service.db import make_engine, sessions
-from service.models import LEASED, PENDING, Cluster, Expansion
-from workers.identity import ClusterIndex
-from workers.params import Params
+from packings.db import make_engine, sessions
+from packings.models import LEASED, PENDING, ClusterRow, ExpansionRow
+from packings.workers.identity import ClusterIndex
+from packings.workers.params import Params
 
 
 def packings(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True,
                           timeout=1800, **kw)
 
 
 def start(*args):
-    return subprocess.Popen([sys.executable, "-m", "service.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "packings.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
 @pytest.fixture(scope="module")
 def reference9():
-    """The uninterrupted in-memory enumeration of n = 9 (workers.explore)."""
-    from workers.explore import explore
+    """The uninterrupted in-memory enumeration of n = 9 (packings.workers.explore)."""
+    from packings.workers.explore import explore
 
     return list(explore(9).clusters)
 
@@ -46,10 +46,10 @@ def assert_same_clusters(url: str, n: int, reference) -> None:
     reference cluster (same certificate and geometry), no duplicates."""
     engine = make_engine(url)
     with sessions(engine)() as s:
-        rows = s.execute(select(Cluster).where(Cluster.n == n)).scalars().all()
+        rows = s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars().all()
         stored = [r.to_core() for r in rows]
         keys = [(r.certificate, r.embedding) for r in rows]
-        frontier = dict(s.execute(select(Expansion.status, func.count()).group_by(Expansion.status)).all())
+        frontier = dict(s.execute(select(ExpansionRow.status, func.count()).group_by(ExpansionRow.status)).all())
     engine.dispose()
     assert len(set(keys)) == len(keys)
     assert frontier.get(LEASED, 0) == 0 and frontier.get(PENDING, 0) == 0
@@ -68,7 +68,7 @@ def done_count(url: str) -> int:
     engine = make_engine(url)
     try:
         with sessions(engine)() as s:
-            return s.execute(select(func.count()).select_from(Expansion).where(Expansion.status == "done")).scalar()
+            return s.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == "done")).scalar()
     except Exception:  # noqa: BLE001 - the schema may not exist yet
         return 0
     finally:
@@ -113,8 +113,8 @@ def test_enumerate_prints_the_table_the_dashboard_and_progress(sqlite_url):
 
 @pytest.fixture(scope="module")
 def reference10():
-    """The serial in-memory enumeration of n = 10 (workers.explore): one order of discovery."""
-    from workers.explore import explore
+    """The serial in-memory enumeration of n = 10 (packings.workers.explore): one order of discovery."""
+    from packings.workers.explore import explore
 
     return list(explore(10).clusters)
 
@@ -167,7 +167,7 @@ def test_killing_the_coordinator_mid_run_then_resuming(db_url, reference9):
     assert 10 <= done_count(db_url) < 52
     engine = make_engine(db_url)
     with sessions(engine)() as s:
-        leased = s.execute(select(func.count()).select_from(Expansion).where(Expansion.status == LEASED)).scalar()
+        leased = s.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == LEASED)).scalar()
     engine.dispose()
     assert leased > 0  # the dead coordinator left leases behind
     r = packings("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet")
@@ -198,6 +198,22 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _wait_until_listening(port: int, timeout: float = 120.0) -> None:
+    """A `dask scheduler` just launched takes seconds to listen (longer on a loaded machine)."""
+    import socket
+    import time
+
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1):
+                return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+
+
 def test_joining_an_existing_dask_cluster(db_url, paper_counts):
     """The README's many-machine recipe on one machine: `dask scheduler`, `dask worker`, `--scheduler`."""
     import os
@@ -208,6 +224,7 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
                                "--dashboard-address", f"127.0.0.1:{dash}"], stderr=subprocess.DEVNULL)]
     try:
+        _wait_until_listening(port)  # as an operator starts the scheduler before pointing anything at it
         procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads", "1"],
                                       stderr=subprocess.DEVNULL))
         r = packings("db", "upgrade", "--db", db_url)
@@ -220,7 +237,7 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
         # the workers wrote the results themselves: every expansion names a worker of that cluster
         engine = make_engine(db_url)
         with sessions(engine)() as s:
-            workers = {w for (w,) in s.execute(select(Expansion.worker))}
+            workers = {w for (w,) in s.execute(select(ExpansionRow.worker))}
         engine.dispose()
         assert workers and all(w.startswith("tcp://127.0.0.1:") for w in workers)
     finally:
@@ -237,13 +254,13 @@ def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatc
     """A task that always fails is tried max_attempts times, then the run ends incomplete with its error."""
     from distributed import Client, LocalCluster
 
-    import service.tasks
-    from service.coordinator import run_enumeration
+    import packings.tasks
+    from packings.coordinator import run_enumeration
 
     def broken(cluster, params):
         raise FloatingPointError("injected failure")
 
-    monkeypatch.setattr(service.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
+    monkeypatch.setattr(packings.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
@@ -252,8 +269,11 @@ def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatc
     assert result.errors == ["expansion 1: FloatingPointError: injected failure"]
     assert result.diagnostics["failed_tasks"] == 1
     with sessions(engine)() as s:
-        e = s.get(Expansion, 1)
+        e = s.get(ExpansionRow, 1)
         assert e.status == "failed" and e.attempts == 2 and e.lease_token is None
+        # the database keeps the whole traceback, down to the function that raised
+        assert e.error.startswith("Traceback (most recent call last)") and "in broken" in e.error
+        assert e.error.splitlines()[-1] == "FloatingPointError: injected failure"
 
 
 def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkeypatch):
@@ -261,17 +281,17 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
     marked failed; the others of its task are written back, and the run reaches everything else."""
     from distributed import Client, LocalCluster
 
-    import service.coordinator
-    import service.tasks
-    from service.coordinator import run_enumeration
-    from workers.explore import explore
-    from workers.identity import same_geometry
+    import packings.coordinator
+    import packings.tasks
+    from packings.coordinator import run_enumeration
+    from packings.workers.explore import explore
+    from packings.workers.identity import same_geometry
 
     params = Params()
     victim = explore(8).clusters[3]
-    real_expand, real_task = service.tasks.expand, service.coordinator.expand_task
+    real_expand, real_task = packings.tasks.expand, packings.coordinator.expand_task
     batches: list[list[int]] = []
-    monkeypatch.setattr(service.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
+    monkeypatch.setattr(packings.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
 
     def failing(cluster, p):
         if same_geometry(cluster, victim, p.tol_d):
@@ -279,18 +299,18 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
         return real_expand(cluster, p)
 
     def recording(expansions, plugin):
-        service.tasks.seen_batches.append([eid for eid, _ in expansions])
+        packings.tasks.seen_batches.append([eid for eid, _ in expansions])
         return real_task(expansions, plugin)
 
-    monkeypatch.setattr(service.tasks, "expand", failing)
-    monkeypatch.setattr(service.coordinator, "expand_task", recording)
+    monkeypatch.setattr(packings.tasks, "expand", failing)
+    monkeypatch.setattr(packings.coordinator, "expand_task", recording)
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
         result = run_enumeration(engine, url, 8, params, client, max_attempts=2, per_worker=1, batch=4)
     assert result.status == "incomplete"
     with sessions(engine)() as s:
-        rows = s.execute(select(Expansion, Cluster).join(Cluster, Cluster.id == Expansion.cluster_id)).all()
+        rows = s.execute(select(ExpansionRow, ClusterRow).join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)).all()
     failed = [(e, c) for e, c in rows if e.status == "failed"]
     assert len(failed) == 1 and same_geometry(failed[0][1].to_core(), victim, params.tol_d)
     e = failed[0][0]
@@ -302,7 +322,7 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
 
 
 def test_claimed_expansions_are_shared_out_evenly():
-    from service.coordinator import _shares
+    from packings.coordinator import _shares
 
     claimed = [(i, f"t{i}") for i in range(11)]
     parts = _shares(claimed, 4)
@@ -316,7 +336,7 @@ def test_the_last_expansions_of_a_run_go_out_in_small_tasks():
     """While the frontier is large a task takes ``batch`` expansions; once a claim takes all that is
     pending, what it took is spread over as many tasks as the workers hold, so that one worker does not
     hold them all in one task while another has none."""
-    from service.coordinator import _task_count
+    from packings.coordinator import _task_count
 
     assert _task_count(32, 4, 8, 8) == 4  # a full claim: the tasks wanted, eight each
     assert _task_count(20, 4, 8, 8) == 8  # the frontier ran out: spread over the capacity
@@ -330,9 +350,10 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
 
     from click.testing import CliRunner
 
-    import service.cli
-    import service.coordinator
-    from service.coordinator import RunResult
+    import packings.cli
+    import packings.coordinator
+    import packings.dask_cluster
+    from packings.coordinator import RunResult
 
     seen = {}
 
@@ -340,9 +361,10 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
         seen["max_attempts"] = max_attempts
         return RunResult(1, n, "complete", {}, {}, 0.0, False)
 
-    monkeypatch.setattr(service.coordinator, "run_enumeration", fake_run)
-    monkeypatch.setattr(service.cli, "_dask_client", lambda *a, **kw: nullcontext(SimpleNamespace(client=None)))
-    r = CliRunner().invoke(service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
+    monkeypatch.setattr(packings.coordinator, "run_enumeration", fake_run)
+    monkeypatch.setattr(packings.dask_cluster, "dask_client",
+                        lambda *a, **kw: nullcontext(SimpleNamespace(client=None)))
+    r = CliRunner().invoke(packings.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
 
@@ -352,13 +374,13 @@ def test_each_worker_compiles_the_kernels_when_it_joins(engine):
     before any task runs, so no task pays for compilation."""
     from distributed import Client, LocalCluster
 
-    from service.plugin import DatabasePlugin
+    from packings.plugin import DatabasePlugin
 
     url = engine.url.render_as_string(hide_password=False)
     plugin = DatabasePlugin(url)
 
     def compiled(dask_worker):
-        import workers._compiled as c
+        import packings.workers._compiled as c
 
         return dask_worker.plugins[plugin.name].warm_up_seconds, len(c.newton.signatures), len(c.residual.signatures)
 
@@ -377,8 +399,8 @@ def test_a_local_cluster_sets_its_workers_up_as_they_start(engine):
     frozen what it loaded out of the garbage collector's way before it joins and any task runs."""
     import gc
 
-    import service.cli
-    from service.plugin import DatabasePlugin
+    import packings.dask_cluster
+    from packings.plugin import DatabasePlugin
 
     plugin = DatabasePlugin(engine.url.render_as_string(hide_password=False))
 
@@ -386,7 +408,7 @@ def test_a_local_cluster_sets_its_workers_up_as_they_start(engine):
         p = dask_worker.plugins.get(plugin.name)
         return p is not None and p.engine is not None, getattr(p, "warm_up_seconds", 0.0), gc.get_freeze_count()
 
-    with service.cli._dask_client(None, 2, True, plugins=(plugin,)) as local:
+    with packings.dask_cluster.dask_client(None, 2, True, plugins=(plugin,)) as local:
         seen = local.client.run(state)
     assert len(seen) == 2
     for has_engine, warm_up_seconds, frozen in seen.values():
@@ -397,7 +419,7 @@ def _worker_origin():
     """What a worker process tells of how it started (run in it)."""
     import os
 
-    preload = sys.modules.get("service.preload")
+    preload = sys.modules.get("packings.preload")
     return (os.getppid(), preload is not None, getattr(preload, "warm_up_seconds", 0.0),
             os.environ.get("OMP_NUM_THREADS"), os.environ.get("MALLOC_TRIM_THRESHOLD_"))
 
@@ -417,16 +439,16 @@ def fresh_dask_config(monkeypatch):
                     reason="this platform has no fork server: local workers are spawned")
 def test_a_local_clusters_workers_are_forked_warm_from_one_fork_server(engine, fresh_dask_config):
     """The local cluster's workers are forked from one fork server that imported the tasks' modules and
-    warmed the kernels up before (service.preload), not spawned by this process to import it all each
+    warmed the kernels up before (packings.preload), not spawned by this process to import it all each
     again; they have the environment Dask gives new worker processes (one BLAS thread, malloc trim)."""
     import os
 
-    import service.cli
-    from service.plugin import DatabasePlugin
+    import packings.dask_cluster
+    from packings.plugin import DatabasePlugin
 
-    fresh_dask_config.delenv(service.cli.METHOD_ENV, raising=False)
+    fresh_dask_config.delenv(packings.dask_cluster.METHOD_ENV, raising=False)
     plugin = DatabasePlugin(engine.url.render_as_string(hide_password=False))
-    with service.cli._dask_client(None, 2, True, plugins=(plugin,)) as local:
+    with packings.dask_cluster.dask_client(None, 2, True, plugins=(plugin,)) as local:
         seen = local.client.run(_worker_origin)
     assert len(seen) == 2
     parents = {parent for parent, *_ in seen.values()}
@@ -443,12 +465,12 @@ def test_a_chosen_start_method_is_kept(engine, fresh_dask_config):
 
     import dask
 
-    import service.cli
+    import packings.dask_cluster
 
-    fresh_dask_config.setenv(service.cli.METHOD_ENV, "spawn")
+    fresh_dask_config.setenv(packings.dask_cluster.METHOD_ENV, "spawn")
     dask.config.refresh()
-    assert service.cli.start_fork_server() is False
-    with service.cli._dask_client(None, 1, True) as local:
+    assert packings.dask_cluster.start_fork_server() is False
+    with packings.dask_cluster.dask_client(None, 1, True) as local:
         seen = local.client.run(_worker_origin)
     ((parent, preloaded, *_),) = seen.values()
     assert parent == os.getpid() and not preloaded
@@ -457,8 +479,8 @@ def test_a_chosen_start_method_is_kept(engine, fresh_dask_config):
 def test_the_command_line_starts_the_workers_before_loading_the_kernels():
     """What ``packings enumerate`` imports before it starts its local cluster (the command line and the
     worker plugin) leaves out the numerical code: the workers start while it is loaded."""
-    code = ("import sys, service.cli, service.plugin; "
-            "print(sorted(m for m in ('numba', 'workers.expand', 'workers.kernels', 'service.store') if m in sys.modules))")
+    code = ("import sys, packings.cli, packings.plugin; "
+            "print(sorted(m for m in ('numba', 'packings.workers.expand', 'packings.workers.kernels', 'packings.store') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -466,7 +488,7 @@ def test_the_command_line_starts_the_workers_before_loading_the_kernels():
 def test_the_command_line_loads_light_so_that_the_fork_server_starts_first():
     """Importing the command line loads none of SQLAlchemy, numpy, Dask (0.3 s in all): `packings
     enumerate` starts its workers' fork server before it loads them, and the commands load what they use."""
-    code = ("import sys, service.cli; "
+    code = ("import sys, packings.cli; "
             "print(sorted(m for m in ('sqlalchemy', 'numpy', 'dask', 'distributed') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
@@ -478,15 +500,15 @@ def test_the_coordinator_never_loads_the_path_following_code(tmp_path):
     second of a run's start-up, on the cores the workers need)."""
     code = (
         "import sys\n"
-        "from service import coordinator, store\n"
-        "from service.db import open_database, sessions\n"
-        "from workers.params import Params\n"
+        "from packings import coordinator, store\n"
+        "from packings.db import open_database, sessions\n"
+        "from packings.workers.params import Params\n"
         f"S = sessions(open_database('sqlite:///{tmp_path / 'c.db'}', create=True))\n"
         "info = store.start_run(S, 8, Params(), 'here:1')\n"
         "assert store.claim(S, info.id, 'here:1', 8)\n"
         "with S() as s:\n"
         "    store.run_counts(s, info.id), store.run_diagnostics(s, info.id)\n"
-        "print(sorted(m for m in ('numba', 'workers._compiled', 'workers.paths', 'workers.expand') if m in sys.modules))\n"
+        "print(sorted(m for m in ('numba', 'packings.workers._compiled', 'packings.workers.paths', 'packings.workers.expand') if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
@@ -498,14 +520,14 @@ def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
     cluster of ``packings enumerate`` starts its workers without it, unless the variable asks."""
     import dask
 
-    import service.cli
+    import packings.dask_cluster
 
-    monkeypatch.delenv(service.cli.PROFILE_ENV, raising=False)
+    monkeypatch.delenv(packings.dask_cluster.PROFILE_ENV, raising=False)
     if env is not None:
-        monkeypatch.setenv(service.cli.PROFILE_ENV, env)
+        monkeypatch.setenv(packings.dask_cluster.PROFILE_ENV, env)
     dask.config.refresh()  # read the environment as a new process would
     try:
-        with service.cli._dask_client(None, 1, True) as local:
+        with packings.dask_cluster.dask_client(None, 1, True) as local:
             seen = local.client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
     finally:
         monkeypatch.undo()

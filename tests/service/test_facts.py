@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from sqlalchemy import select, text
 
-from service.models import Cluster, Transition
+from packings.models import ClusterRow, Transition
 from tests.service.querydb import filled_catalog
 from tests.service.test_query_cli import ok, one_line_error, run, run_many
-from workers.classify import lattice_type, static_class
-from workers.cluster import Cluster as CoreCluster
-from workers.params import DEFAULT
+from packings.workers.classify import lattice_type, static_class
+from packings.workers.cluster import Cluster as CoreCluster
+from packings.workers.params import DEFAULT
 
 catalog = filled_catalog(7, 8)
 
@@ -63,9 +63,9 @@ CONSTRUCTED = {"fcc": cuboctahedron, "hcp": anticuboctahedron, "none": pentagona
 
 def store_clusters(engine, clusters) -> list[int]:
     """Store clusters the way a finished expansion does (store.insert_or_match)."""
-    from service import store
-    from service.db import sessions
-    from workers.rigidity import rigidity
+    from packings import store
+    from packings.db import sessions
+    from packings.workers.rigidity import rigidity
 
     Session_ = sessions(engine)
     ids = []
@@ -124,8 +124,8 @@ def test_two_geometries_of_one_contact_graph_are_counted(engine):
     matrix with 2 geometries."""
     from pathlib import Path
 
-    from workers.identity import certificate_key, same_geometry
-    from workers.rigidity import rigidity
+    from packings.workers.identity import certificate_key, same_geometry
+    from packings.workers.rigidity import rigidity
 
     data = json.loads((Path(__file__).parents[1] / "data" / "n11_two_geometries.json").read_text())
     a, b = (CoreCluster(np.array(c["coords"]), tuple(map(tuple, c["contacts"]))) for c in data["clusters"])
@@ -149,10 +149,10 @@ def test_two_geometries_of_one_contact_graph_are_counted(engine):
 
 @pytest.fixture(scope="module")
 def rows(catalog):
-    from service.db import sessions
+    from packings.db import sessions
 
     with sessions(catalog.engine)() as s:
-        clusters = s.execute(select(Cluster).order_by(Cluster.id)).scalars().all()
+        clusters = s.execute(select(ClusterRow).order_by(ClusterRow.id)).scalars().all()
         transitions = s.execute(select(Transition)).scalars().all()
         s.expunge_all()
     return clusters, transitions
@@ -232,7 +232,7 @@ def test_path_keys_agree_with_the_transitions(catalog, rows):
 def test_upgrade_from_0001_backfills_the_facts(db_url):
     from alembic import command
 
-    from service.db import alembic_config, head_revision, open_database
+    from packings.db import alembic_config, head_revision, open_database
 
     engine = open_database(db_url, create=True)
     ids = store_clusters(engine, [cuboctahedron(), pentagonal_bipyramid()])

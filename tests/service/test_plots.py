@@ -1,4 +1,4 @@
-"""Figures (service.plots): the pure figure functions on synthetic data, and
+"""Figures (packings.plots): the pure figure functions on synthetic data, and
 ``packings plot ...`` on a filled catalogue (SQLite and PostgreSQL)."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from click.testing import CliRunner
 from PIL import Image
 from sqlalchemy import select
 
-from service.models import Cluster
-from service.plots import (
+from packings.models import ClusterRow
+from packings.plots import (
     SIZE_PX,
     best_view,
     plot,
@@ -171,7 +171,7 @@ def _busy(fig):
 
 
 def test_importing_the_commands_does_not_load_matplotlib():
-    code = "import sys, service.plots; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
+    code = "import sys, packings.plots; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 
@@ -229,10 +229,10 @@ def test_all(catalog, tmp_path):
 
 
 def test_cluster_color_by(catalog, tmp_path, monkeypatch):
-    from service.db import sessions
+    from packings.db import sessions
 
     with sessions(catalog.engine, readonly=True)() as s:
-        cid = s.execute(select(Cluster.id).where(Cluster.n == 8).order_by(Cluster.id)).scalars().first()
+        cid = s.execute(select(ClusterRow.id).where(ClusterRow.n == 8).order_by(ClusterRow.id)).scalars().first()
     pictures = {}
     for by in ("degree", "height", "distance"):
         path = tmp_path / f"{by}.png"
@@ -255,7 +255,7 @@ def test_cluster_color_by(catalog, tmp_path, monkeypatch):
 
 
 def test_no_clusters(tmp_path):
-    from service.db import open_database
+    from packings.db import open_database
 
     url = f"sqlite:///{tmp_path / 'empty.db'}"
     open_database(url, create=True).dispose()
@@ -301,7 +301,7 @@ def test_bad_database(tmp_path):
 
 def test_errors_through_packings_main(catalog, tmp_path, monkeypatch, capsys):
     """Once registered under ``packings``, errors are the usual one line ``packings: error: ...``."""
-    import service.cli as cli_module
+    import packings.cli as cli_module
 
     group = click.Group("packings", commands={**cli_module.cli.commands, "plot": plot})
     monkeypatch.setattr(cli_module, "cli", group)

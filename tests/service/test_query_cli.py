@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from sqlalchemy import func, select
 
-from service.models import Cluster, Transition
+from packings.models import ClusterRow, Transition
 from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7, 8)
@@ -23,7 +23,7 @@ TABLE_HEADER = ["id", "n", "contacts", "embedding", "singular", "flexes", "stres
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=120,
+    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True, timeout=120,
                           cwd=cwd)
 
 
@@ -50,10 +50,10 @@ def one_line_error(r, *words):
 @pytest.fixture(scope="module")
 def stored(catalog):
     """{id: (row, exact coordinates)} of every stored cluster."""
-    from service.db import sessions
+    from packings.db import sessions
 
     with sessions(catalog.engine)() as s:
-        rows = s.execute(select(Cluster).order_by(Cluster.n, Cluster.contacts, Cluster.id)).scalars().all()
+        rows = s.execute(select(ClusterRow).order_by(ClusterRow.n, ClusterRow.contacts, ClusterRow.id)).scalars().all()
     return {c.id: (c, c.to_core().coords) for c in rows}
 
 
@@ -78,6 +78,32 @@ def test_select_table(catalog, stored):
     assert out[-1] == "18 clusters"
     out = ok("select", "n=8,contacts<18", "--db", catalog.url)
     assert out.strip() == "no clusters match"
+
+
+def test_select_table_limits_and_columns_as_ase_db(catalog, stored, monkeypatch):
+    out = ok("select", "--limit", "5", "--db", catalog.url).splitlines()
+    assert [int(line.split()[0]) for line in out[1:-1]] == list(stored)[:5]
+    assert out[-1] == "5 of 18 clusters (13 more: --limit 0 shows all)"
+    out = ok("select", "--limit", "0", "--db", catalog.url).splitlines()
+    assert len(out) == 1 + 18 + 1 and out[-1] == "18 clusters"
+    out = ok("select", "n=7", "-c", "id,lattice,found_by", "--db", catalog.url).splitlines()
+    assert out[0].split() == ["id", "lattice", "found_by"] and {line.split()[2] for line in out[1:-1]} <= {"seed", "path"}
+    out = ok("select", "n=7", "-c", "+margin,+found_by", "--db", catalog.url).splitlines()
+    assert out[0].split() == TABLE_HEADER + ["margin", "found_by"]
+    csv_out = ok("select", "n=7", "--csv", "-c", "id,n", "--db", catalog.url).splitlines()
+    assert csv_out[0] == "id,n" and len(csv_out) == 1 + 5
+    r = run_many(["select", "-c", "id,colour", "--db", catalog.url])[0]
+    one_line_error(r, "unknown column 'colour'")
+    # the default limit of a table (not of JSON or CSV), in this process so that it can be made small
+    from click.testing import CliRunner
+
+    import packings.cli
+
+    monkeypatch.setattr(packings.cli, "TABLE_LIMIT", 7)
+    table = CliRunner().invoke(packings.cli.cli, ["select", "--db", catalog.url]).output.splitlines()
+    assert len(table) == 1 + 7 + 1 and table[-1].startswith("7 of 18 clusters")
+    as_json = CliRunner().invoke(packings.cli.cli, ["select", "--json", "--db", catalog.url]).output
+    assert len(json.loads(as_json)) == 18
 
 
 def test_select_count(catalog):
@@ -137,7 +163,7 @@ def test_select_errors_are_one_line(tmp_path):
 
 
 def test_show(catalog, stored):
-    from service.db import sessions
+    from packings.db import sessions
 
     cid = next(i for i, (c, _) in stored.items() if c.n == 8)
     c, x = stored[cid]
@@ -179,18 +205,41 @@ def test_export_extxyz_reads_in_ase(catalog, stored, tmp_path):
     out = ok("export", "--format", "extxyz", "-o", str(path), "--db", catalog.url)
     assert out.strip() == f"wrote 18 clusters (extxyz) to {path}"
     frames = ase.io.read(path, index=":")
-    assert [a.info["id"] for a in frames] == list(stored)
+    assert [a.info["cluster_id"] for a in frames] == list(stored)
     for atoms in frames:
-        c, x = stored[int(atoms.info["id"])]
+        c, x = stored[int(atoms.info["cluster_id"])]
         assert np.array_equal(atoms.positions, x)
         assert len(atoms) == c.n and set(atoms.get_chemical_symbols()) == {"X"}
         assert (atoms.info["n"], atoms.info["contacts"], atoms.info["embedding"]) == (c.n, c.contacts, c.embedding)
-        assert (atoms.info["singular"], atoms.info["flexes"], atoms.info["stresses"]) == \
+        assert (atoms.info["singular"], atoms.info["flexes"], atoms.info["self_stresses"]) == \
             (c.singular, c.flexes, c.stresses)
         assert atoms.info["min_gap"] == c.min_gap
         cert = atoms.info["certificate"]  # ASE reads a value made only of digits as a number
         assert cert == c.certificate if isinstance(cert, str) else int(c.certificate) == cert
     assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left
+
+
+def test_export_extxyz_goes_into_an_ase_database(catalog, stored, tmp_path):
+    """What `ase db` users do: the facts an extended XYZ frame carries are accepted as key-value pairs
+    of ASE's database as they are, and `ase db` selects on them."""
+    import ase.db
+    import ase.io
+
+    path = tmp_path / "clusters.extxyz"
+    ok("export", "n=8", "-o", str(path), "--db", catalog.url)
+    with ase.db.connect(tmp_path / "ase.db") as db:
+        for atoms in ase.io.read(path, index=":"):
+            db.write(atoms, key_value_pairs=atoms.info)
+    r = subprocess.run([sys.executable, "-m", "ase", "db", str(tmp_path / "ase.db"), "contacts=18,n=8",
+                        "-c", "cluster_id,self_stresses", "--limit", "0"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    ids = sorted(i for i, (c, _) in stored.items() if c.n == 8 and c.contacts == 18)
+    cells = [line.split("|") for line in r.stdout.splitlines()[1:] if "|" in line]
+    shown = sorted(int(c[0]) for c in cells if c[0].strip().isdigit())  # the cluster_id column
+    assert shown == ids and ids
+    r = subprocess.run([sys.executable, "-m", "ase", "convert", str(path), str(tmp_path / "converted.db")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
 
 
 def test_export_extxyz_to_stdout_is_exact(catalog, stored):
@@ -199,7 +248,7 @@ def test_export_extxyz_to_stdout_is_exact(catalog, stored):
     for comment, species, x in frames:
         facts = dict(kv.split("=", 1) for kv in comment.split())
         assert facts["Properties"] == "species:S:1:pos:R:3"
-        c, stored_x = stored[int(facts["id"])]
+        c, stored_x = stored[int(facts["cluster_id"])]
         assert facts["certificate"] == c.certificate and facts["singular"] == "TF"[not c.singular]
         assert float(facts["min_gap"]) == c.min_gap
         assert species == ["X"] * c.n
@@ -211,7 +260,7 @@ def test_export_xyz_is_exact(catalog, stored, tmp_path):
     ok("export", "--n", "8", "-o", str(path), "--db", catalog.url)
     frames = read_xyz(path.read_text())
     ids = [i for i, (c, _) in stored.items() if c.n == 8]
-    assert [int(dict(kv.split("=", 1) for kv in f[0].split())["id"]) for f in frames] == ids
+    assert [int(dict(kv.split("=", 1) for kv in f[0].split())["cluster_id"]) for f in frames] == ids
     for (comment, species, x), i in zip(frames, ids):
         assert "Properties" not in comment
         assert species == ["X"] * 8 and np.array_equal(x, stored[i][1])

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from sqlalchemy import select
 
-from service import selection as sel
-from service.models import Cluster, Expansion, Transition
-from service.selection import SelectionError, Term, parse
+from packings import selection as sel
+from packings.models import ClusterRow, ExpansionRow, Transition
+from packings.selection import SelectionError, Term, parse
 from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7)
@@ -118,7 +118,7 @@ def test_describe_keys_names_every_key_and_alias():
 
 
 def test_a_new_key_is_one_registry_entry(monkeypatch):
-    monkeypatch.setitem(sel.KEYS, "stacking", sel.Key(str, "test key", expr=lambda: Cluster.rigid_kind))
+    monkeypatch.setitem(sel.KEYS, "stacking", sel.Key(str, "test key", expr=lambda: ClusterRow.rigid_kind))
     assert parse("stacking=fcc") == [Term("stacking", "=", "fcc")]
     assert "stacking" in sel.describe_keys()
     assert "rigid_kind" in str(sel.where("stacking=fcc"))
@@ -143,16 +143,16 @@ SYNTHETIC = [
 @pytest.fixture(scope="module")
 def rows(catalog):
     """Every cluster row, after adding the synthetic ones (once per backend)."""
-    from service.db import sessions
+    from packings.db import sessions
 
     rng = np.random.default_rng(1)
     with sessions(catalog.engine).begin() as s:
         for values in SYNTHETIC:
             x = rng.random((values["n"], 3))
-            s.add(Cluster(**values, coords=x.astype("<f8").tobytes(), coords_json=json.dumps(x.tolist()),
+            s.add(ClusterRow(**values, coords=x.astype("<f8").tobytes(), coords_json=json.dumps(x.tolist()),
                           contact_list="[[0, 1]]", found_in_run=None, found_by="seed"))
     with sessions(catalog.engine)() as s:
-        return s.execute(select(Cluster).order_by(Cluster.id)).scalars().all()
+        return s.execute(select(ClusterRow).order_by(ClusterRow.id)).scalars().all()
 
 
 @pytest.fixture(scope="module")
@@ -160,10 +160,10 @@ def frontier(catalog, rows):
     """Run 1's frontier (``ids``) and, counted here from the transitions, the paths leaving each
     cluster (``out``), reaching it from another (``into``), circular (``circ``), and the geometries
     of each contact graph (``geom``)."""
-    from service.db import sessions
+    from packings.db import sessions
 
     with sessions(catalog.engine)() as s:
-        ids = set(s.execute(select(Expansion.cluster_id).where(Expansion.run_id == catalog.runs[7])).scalars())
+        ids = set(s.execute(select(ExpansionRow.cluster_id).where(ExpansionRow.run_id == catalog.runs[7])).scalars())
         moving = s.execute(select(Transition.source_id, Transition.target_id, Transition.outcome)
                            .where(Transition.direction != 0)).all()
     return SimpleNamespace(
@@ -245,12 +245,12 @@ CASES = {
 
 @pytest.mark.parametrize("text", list(CASES))
 def test_selection_selects_exactly_the_matching_rows(catalog, rows, frontier, text):
-    from service.db import sessions
+    from packings.db import sessions
 
     assert catalog.runs[7] == 1  # the cases name run 1
     expected = [c.id for c in rows if CASES[text](c, frontier)]
     with sessions(catalog.engine)() as s:
-        got = s.execute(select(Cluster.id).where(sel.where(text)).order_by(Cluster.id)).scalars().all()
+        got = s.execute(select(ClusterRow.id).where(sel.where(text)).order_by(ClusterRow.id)).scalars().all()
     assert got == expected
 
 
@@ -273,7 +273,7 @@ def test_the_data_tells_keys_apart(rows, frontier):
 
 
 def test_certificate_of_a_stored_cluster(catalog, rows):
-    from service.db import sessions
+    from packings.db import sessions
 
     target = rows[2]
     with sessions(catalog.engine)() as s:
@@ -289,7 +289,7 @@ def test_certificate_of_a_stored_cluster(catalog, rows):
     ("-margin", lambda c: (c.margin is None, -(c.margin or 0.0), c.id)),
 ])
 def test_sort_and_limit(catalog, rows, sort, key):
-    from service.db import sessions
+    from packings.db import sessions
 
     expected = [c.id for c in sorted(rows, key=key)]
     with sessions(catalog.engine)() as s:

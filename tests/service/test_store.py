@@ -5,18 +5,18 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import socket
-import subprocess
-import sys
+import time
 
 import numpy as np
 import pytest
 from sqlalchemy import func, select
 
-from service import store
-from service.db import make_engine, sessions
-from service.models import DONE, FAILED, LEASED, PENDING, Cluster, Expansion, Run, Transition
-from service.tasks import run_expansion
-from workers.params import Params
+from packings import store
+from packings.owners import RunBusy
+from packings.db import make_engine, sessions
+from packings.models import DONE, FAILED, LEASED, PENDING, ClusterRow, ExpansionRow, Run, Transition
+from packings.tasks import run_expansion
+from packings.workers.params import Params
 
 OWNER = f"{socket.gethostname()}:{os.getpid()}:test"
 
@@ -25,7 +25,7 @@ def snapshot(engine) -> dict:
     """Every row of every table, for comparing database states exactly."""
     out = {}
     with sessions(engine)() as s:
-        for model in (Run, Cluster, Expansion, Transition):
+        for model in (Run, ClusterRow, ExpansionRow, Transition):
             cols = [c for c in model.__table__.columns if c.name not in ("heartbeat_at",)]
             out[model.__tablename__] = sorted(tuple(r) for r in s.execute(select(*cols)).all())
     return out
@@ -43,18 +43,18 @@ def test_a_new_run_holds_the_seed_and_one_pending_expansion(run8):
     assert info.created
     with S() as s:
         assert store.frontier(s, info.id) == {PENDING: 1}
-        c = s.execute(select(Cluster)).scalar_one()
+        c = s.execute(select(ClusterRow)).scalar_one()
         assert c.n == 8 and c.contacts == 18 and c.embedding == 0 and not c.singular
         core = c.to_core()
         assert core.coords.dtype == np.float64 and core.m == 18
 
 
 def test_coordinates_read_back_bit_exactly(run8):
-    from workers.seeds import seed_cluster
+    from packings.workers.seeds import seed_cluster
 
     S, _ = run8
     with S() as s:
-        c = s.execute(select(Cluster)).scalar_one()
+        c = s.execute(select(ClusterRow)).scalar_one()
         assert np.array_equal(c.to_core().coords, seed_cluster(8).coords)
         import json
 
@@ -66,7 +66,7 @@ def test_claim_leases_with_fresh_tokens(run8):
     [(eid, token)] = store.claim(S, info.id, OWNER, 5)
     assert store.claim(S, info.id, OWNER, 5) == []
     with S() as s:
-        e = s.get(Expansion, eid)
+        e = s.get(ExpansionRow, eid)
         assert e.status == LEASED and e.lease_token == token and e.attempts == 1 and e.lease_owner == OWNER
 
 
@@ -81,8 +81,8 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
     assert snapshot(engine) == after_once
     # also the write-back itself, given a result computed before the first write landed: its inserts
     # are rolled back when the lease turns out to be gone
-    from workers.expand import expand
-    from workers.seeds import seed_cluster
+    from packings.workers.expand import expand
+    from packings.workers.seeds import seed_cluster
 
     seed = seed_cluster(8, Params())
     task = store.Task(eid, info.id, 1, seed, Params())
@@ -93,11 +93,11 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
 def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
     """Workers read their task with read-only sessions: on SQLite those begin DEFERRED, so a task is
     read while another worker holds the write lock (a write session would wait for it)."""
-    import service.db
+    import packings.db
     from sqlalchemy.exc import OperationalError
 
-    monkeypatch.setattr(service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
-    engine = service.db.open_database(sqlite_url, create=True)
+    monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
+    engine = packings.db.open_database(sqlite_url, create=True)
     S = sessions(engine)
     info = store.start_run(S, 8, Params(), OWNER)
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
@@ -134,7 +134,7 @@ def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
 
 def _two_finished(S, info) -> list:
     """Two expansions of the run, leased and expanded, not yet written back (as a task holds them)."""
-    from service.tasks import run_loaded
+    from packings.tasks import run_loaded
 
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
     run_expansion(S, eid, token)  # the seed: the clusters it reaches become pending
@@ -168,7 +168,7 @@ def test_a_tasks_expansions_are_written_back_together_or_not_at_all(run8, engine
     summaries = store.record_expansions(S, [first, second], "w")
     assert [s["expansion"] for s in summaries] == [first.task.expansion_id, second.task.expansion_id]
     with S() as s:
-        assert {s.get(Expansion, f.task.expansion_id).status for f in (first, second)} == {DONE}
+        assert {s.get(ExpansionRow, f.task.expansion_id).status for f in (first, second)} == {DONE}
         sources = set(s.execute(select(Transition.source_id)).scalars())
     assert {first.task.cluster_id, second.task.cluster_id} <= sources
 
@@ -178,12 +178,12 @@ def test_a_stale_expansion_is_left_out_of_its_tasks_write_back(run8, engine):
     S, info = run8
     live, stale = _two_finished(S, info)
     with S.begin() as s:
-        s.get(Expansion, stale.task.expansion_id).lease_token = "another-task"
+        s.get(ExpansionRow, stale.task.expansion_id).lease_token = "another-task"
     summaries = store.record_expansions(S, [live, stale], "w")
     assert summaries[1] is None and summaries[0]["expansion"] == live.task.expansion_id
     with S() as s:
-        assert s.get(Expansion, live.task.expansion_id).status == DONE
-        e = s.get(Expansion, stale.task.expansion_id)
+        assert s.get(ExpansionRow, live.task.expansion_id).status == DONE
+        e = s.get(ExpansionRow, stale.task.expansion_id)
         assert e.status == LEASED and e.lease_token == "another-task" and e.outcomes is None
         sources = set(s.execute(select(Transition.source_id)).scalars())
     assert live.task.cluster_id in sources and stale.task.cluster_id not in sources
@@ -210,7 +210,7 @@ def test_a_result_for_a_lease_given_to_another_is_rejected(run8, engine):
 
 def test_a_live_coordinator_keeps_its_run(run8):
     S, info = run8
-    with pytest.raises(store.RunBusy, match="being driven"):
+    with pytest.raises(RunBusy, match="being driven"):
         store.start_run(S, 8, Params(), f"{socket.gethostname()}:{os.getpid()}:other")
 
 
@@ -222,7 +222,7 @@ def test_failed_tasks_are_retried_then_marked_failed(run8):
         assert status == (FAILED if attempt == 3 else PENDING)
     assert store.claim(S, info.id, OWNER, 1) == []
     with S() as s:
-        e = s.get(Expansion, eid)
+        e = s.get(ExpansionRow, eid)
         assert e.status == FAILED and e.attempts == 3 and e.error == "ValueError: boom 3"
     assert store.finish_run(S, info.id, OWNER, 1.0) == "incomplete"
     assert store.release(S, eid, token, "late", 3) is None  # no longer leased: ignored
@@ -241,15 +241,15 @@ def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
         n_rigid = s.execute(select(func.count()).select_from(Transition).where(Transition.outcome == "rigid",
                                                                                   Transition.target_id.is_(None))).scalar()
         assert n_rigid == 0
-        assert s.execute(select(func.count()).select_from(Cluster).where(Cluster.n == 8)).scalar() == 13
+        assert s.execute(select(func.count()).select_from(ClusterRow).where(ClusterRow.n == 8)).scalar() == 13
     assert paper_counts["totals"]["8"] == 13
 
 
 def _insert_all(url: str, clusters: list[dict], seed: int, barrier) -> list[tuple[int, bool]]:
     """One process: insert every cluster (relabelled, rotated, in its own order), one transaction each."""
-    from workers.cluster import Cluster as Core
-    from workers.identity import certificate_key
-    from workers.rigidity import rigidity
+    from packings.workers.cluster import Cluster as Core
+    from packings.workers.identity import certificate_key
+    from packings.workers.rigidity import rigidity
 
     rng = np.random.default_rng(seed)
     engine = make_engine(url)
@@ -273,7 +273,7 @@ def _insert_all(url: str, clusters: list[dict], seed: int, barrier) -> list[tupl
 
 def test_concurrent_inserts_of_overlapping_clusters_make_no_duplicates(engine):
     """Several processes insert the same 13 clusters (each relabelled and moved) at once."""
-    from workers.explore import explore
+    from packings.workers.explore import explore
 
     clusters = [c.to_dict() for c in explore(8).clusters]
     url = engine.url.render_as_string(hide_password=False)
@@ -284,7 +284,7 @@ def test_concurrent_inserts_of_overlapping_clusters_make_no_duplicates(engine):
         with ctx.Pool(k) as pool:
             results = pool.starmap(_insert_all, [(url, clusters, seed, barrier) for seed in range(k)])
     with sessions(engine)() as s:
-        rows = s.execute(select(Cluster.certificate, Cluster.embedding)).all()
+        rows = s.execute(select(ClusterRow.certificate, ClusterRow.embedding)).all()
     assert len(rows) == 13 and len(set(rows)) == 13
     new = [is_new for r in results for _, is_new in r]
     assert sum(new) == 13 and len(new) == 13 * k
@@ -295,7 +295,7 @@ def test_the_coordinator_heartbeat_runs_on_its_own(run8, monkeypatch):
     """The run's heartbeat advances while the coordinator waits for long tasks."""
     import time
 
-    from service import coordinator
+    from packings import coordinator
 
     S, info = run8
     monkeypatch.setattr(coordinator, "HEARTBEAT_SECONDS", 0.05)
@@ -321,11 +321,11 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
     second = fill_database(engine, 8, params=other)
     assert second != first
     with sessions(engine)() as s:
-        assert s.execute(select(func.count()).select_from(Cluster)).scalar_one() == 13
+        assert s.execute(select(func.count()).select_from(ClusterRow)).scalar_one() == 13
         for run in (first, second):
             assert store.frontier(s, run) == {DONE: 13}
             assert store.run_counts(s, run) == {18: 13}
-        found = dict(s.execute(select(Cluster.found_in_run, func.count()).group_by(Cluster.found_in_run)).all())
+        found = dict(s.execute(select(ClusterRow.found_in_run, func.count()).group_by(ClusterRow.found_in_run)).all())
         assert found == {first: 13}
         assert s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == second)).scalar_one() \
             == s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == first)).scalar_one()
@@ -336,7 +336,7 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
     value of a row's tuple in its column, in the order of TRANSITION_COLUMNS."""
     S, info = run8
     with S() as s:
-        seed = s.execute(select(Cluster.id)).scalar_one()
+        seed = s.execute(select(ClusterRow.id)).scalar_one()
     rows = [(info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]"),
             (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]")]
     with engine.begin() as conn:
@@ -351,13 +351,13 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
 def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, monkeypatch):
     """A row inserted from a cluster is read back (stored_with) as that very cluster, so what was computed
     from it (its canonical form) is not computed again; the clusters kept are bounded."""
-    import service.models as models
-    from workers.expand import expand
-    from workers.identity import certificate_key
+    import packings.models as models
+    from packings.workers.expand import expand
+    from packings.workers.identity import certificate_key
 
     S, info = run8
     with S() as s:
-        seed = s.execute(select(Cluster)).scalar_one().to_core()
+        seed = s.execute(select(ClusterRow)).scalar_one().to_core()
     ex = expand(seed, Params())
     new = [ex.endpoints[i].cluster for i in ex.distinct()]
     with engine.begin() as conn:
@@ -382,3 +382,38 @@ def test_contacts_are_written_as_json_writes_them(pairs):
 
     assert store.contacts_json(pairs) == json.dumps([[int(i), int(j)] for i, j in pairs])
     assert store.contacts_json(pairs) == store.contacts_json(pairs)  # a second time, from the cache
+
+
+def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
+    """The coordinator's heartbeat thread goes on after a failed beat, and says so in the log."""
+    import logging
+
+    import packings.coordinator as coordinator
+
+    def failing(*args):
+        raise RuntimeError("database is locked")
+
+    monkeypatch.setattr(coordinator, "HEARTBEAT_SECONDS", 0.01)
+    monkeypatch.setattr(coordinator.store, "heartbeat", failing)
+    with caplog.at_level(logging.WARNING, logger="packings.coordinator"):
+        beat = coordinator._Heartbeat(None, 7, "here:1")
+        for _ in range(500):
+            if beat.missed >= 2:
+                break
+            time.sleep(0.01)
+        beat.stop()
+    assert beat.missed >= 2 and beat.is_alive() is False
+    assert any("run 7: heartbeat 1 missed" in r.getMessage() and "database is locked" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_a_stored_traceback_has_a_one_line_summary():
+    from packings.tasks import error_text, summary
+
+    try:
+        raise ValueError("boom\nsecond line of the message")
+    except ValueError as exc:
+        text = error_text(exc)
+    assert text.startswith("Traceback (most recent call last)") and "test_a_stored_traceback" in text
+    assert summary(text) == "ValueError: boom"
+    assert summary("KilledWorker: lost\ndetails") == "KilledWorker: lost" and summary("") == ""

@@ -1,4 +1,4 @@
-"""Tests of workers.audit (near pairs, adding them as contacts) and workers.identity.geometry_distance."""
+"""Tests of packings.workers.audit (near pairs, adding them as contacts) and packings.workers.identity.geometry_distance."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from workers import kernels
-from workers.audit import (
+from packings.workers import kernels
+from packings.workers.audit import (
     DOES_NOT_PROJECT,
     NOT_RIGID,
     OVERLAP,
@@ -20,9 +20,9 @@ from workers.audit import (
     what_adding_gives,
     with_contacts_added,
 )
-from workers.cluster import Cluster
-from workers.identity import certificate, geometry_distance, same_geometry
-from workers.params import DEFAULT
+from packings.workers.cluster import Cluster
+from packings.workers.identity import certificate, geometry_distance, same_geometry
+from packings.workers.params import DEFAULT
 from tests.workers.test_identity import CLUSTERS, SETTINGS, chain, names, octahedron, seeds, tetrahedron_coords, \
     transformed
 
@@ -30,7 +30,7 @@ DATA = Path(__file__).parents[1] / "data"
 
 
 def near_misses() -> list[dict]:
-    """The two n = 12 path endpoints stored as clusters before workers.paths._endpoint re-projected
+    """The two n = 12 path endpoints stored as clusters before packings.workers.paths._endpoint re-projected
     (tests/data/n12_near_miss.json), as Clusters with their record."""
     data = json.loads((DATA / "n12_near_miss.json").read_text())
     return [{**m, "cluster": Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))}

@@ -1,4 +1,4 @@
-"""workers.catalysis: the rigid remainders of a cluster after deleting spheres."""
+"""packings.workers.catalysis: the rigid remainders of a cluster after deleting spheres."""
 
 import json
 from collections import Counter
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers.catalysis import (
+from packings.workers.catalysis import (
     CONTACTS_DIFFER,
     FEW_CONTACTS,
     NOT_RIGID,
@@ -20,12 +20,12 @@ from workers.catalysis import (
     rigid_remainders,
     sub_cluster,
 )
-from workers.cluster import Cluster, contacts_from_coords
-from workers.identity import certificate_key
-from workers.outcomes import BELOW_MIN_CONTACTS, RIGID
-from workers.params import Params
-from workers.rigidity import rigidity
-from workers.seeds import seed_cluster
+from packings.workers.cluster import Cluster, contacts_from_coords
+from packings.workers.identity import certificate_key
+from packings.workers.outcomes import BELOW_MIN_CONTACTS, RIGID
+from packings.workers.params import Params
+from packings.workers.rigidity import rigidity
+from packings.workers.seeds import seed_cluster
 
 P = Params()
 DATA = Path(__file__).parent.parent / "data"
@@ -98,7 +98,7 @@ def test_every_deleted_set_is_tried_once():
 
 @pytest.mark.parametrize("name", sorted(N10))
 def test_the_verdicts_are_the_rigidity_tests(name):
-    """Rigid remainders are what workers.rigidity.rigidity calls rigid, and so are no others: the shortcut
+    """Rigid remainders are what packings.workers.rigidity.rigidity calls rigid, and so are no others: the shortcut
     for a sphere of fewer than three contacts and the SVD-free certificate change nothing."""
     for k in (1, 2):
         for r in remainders(N10[name], k, P):
@@ -176,9 +176,9 @@ def test_the_lost_cluster_of_11_is_a_remainder_of_its_parent_of_12_and_no_path_l
     describes it, breaking either of two of its contacts, or both, leaves it rigid (dimension 0) and
     breaking any other contact leaves two degrees of freedom, any other pair three: no subset leaves a
     one-dimensional set, so no path leaves it, and none can arrive (a path's reverse would leave it)."""
-    from workers.classify import lattice_type
-    from workers.expand import expand
-    from workers.outcomes import NOT_1D
+    from packings.workers.classify import lattice_type
+    from packings.workers.expand import expand
+    from packings.workers.outcomes import NOT_1D
 
     data = json.loads((DATA / "n11_catalysis.json").read_text())
     parent = Cluster(np.array(data["parent"]["coords"]), tuple(map(tuple, data["parent"]["contacts"])))

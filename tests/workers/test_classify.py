@@ -1,4 +1,4 @@
-"""workers.classify: static class, close-packed lattice type, describe()."""
+"""packings.workers.classify: static class, close-packed lattice type, describe()."""
 
 import itertools
 
@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers.classify import LATTICES, STATIC, describe, lattice_type, static_class
-from workers.cluster import contacts_from_coords, pair_distances
-from workers.seeds import seed_cluster
+from packings.workers.classify import LATTICES, STATIC, describe, lattice_type, static_class
+from packings.workers.cluster import contacts_from_coords, pair_distances
+from packings.workers.seeds import seed_cluster
 
 S3 = np.sqrt(3.0)
 LAYER = np.sqrt(2.0 / 3.0)
@@ -263,7 +263,7 @@ def test_layers_with_a_gap(top, height, expected):
 )
 def test_stacking_rules(layers, labels, expected):
     """The label-sequence rules on their own (one sphere per layer, in a fixed frame)."""
-    from workers.classify import _stacking
+    from packings.workers.classify import _stacking
 
     k = np.array([int(c) for c in layers] * 2)
     lab = np.array(["ABC".index(c) for c in labels] * 2)
@@ -339,8 +339,8 @@ def test_brute_force_agrees_on_constructions(name):
 
 
 def test_brute_force_agrees_on_enumerated_clusters_n8():
-    from workers.explore import explore
-    from workers.params import Params
+    from packings.workers.explore import explore
+    from packings.workers.params import Params
 
     cat = explore(8, Params())
     labels = []
@@ -440,7 +440,7 @@ def test_the_distance_prefilter_rejects_only_what_the_frames_reject(name, seed, 
     """The cheap rejection (a pair distance farther than 2 tol from every sqrt(k/3)) never changes the
     answer: constructed clusters moved by up to 3 tol (so that some stay close-packed and some do not),
     with and without it."""
-    import workers.classify as classify
+    import packings.workers.classify as classify
 
     build, _, n = KNOWN[name]
     x = build()
@@ -459,7 +459,7 @@ def test_the_distance_prefilter_rejects_only_what_the_frames_reject(name, seed, 
 
 
 def test_the_distance_prefilter_passes_close_packed_and_catches_others():
-    import workers.classify as classify
+    import packings.workers.classify as classify
 
     for name, (build, expected, _) in KNOWN.items():
         if expected is not None:

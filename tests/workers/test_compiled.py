@@ -1,4 +1,4 @@
-"""The compiled (numba) kernels against the numpy reference (workers.kernels backends).
+"""The compiled (numba) kernels against the numpy reference (packings.workers.kernels backends).
 
 (a) Following the same paths with both backends gives the same results.
 (b) The compiled residual, rigidity matrix, Newton projection, tangent
@@ -19,15 +19,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers import _compiled, kernels
-from workers import paths as paths_module
-from workers.cluster import Cluster
-from workers.expand import expand, path_starts
-from workers.identity import certificate, same_geometry
-from workers.params import Params
-from workers.paths import RIGID, PROJECTION_FAILED, UNDECIDED_END, follow_path
-from workers.rigidity import contact_triangle
-from workers.seeds import seed_cluster
+from packings.workers import _compiled, kernels
+from packings.workers.expand import warm_up
+from packings.workers import paths as paths_module
+from packings.workers.cluster import Cluster
+from packings.workers.expand import expand, path_starts
+from packings.workers.identity import certificate, same_geometry
+from packings.workers.params import Params
+from packings.workers.paths import RIGID, PROJECTION_FAILED, UNDECIDED_END, follow_path
+from packings.workers.rigidity import contact_triangle
+from packings.workers.seeds import seed_cluster
 
 P = Params()
 ROOT = Path(__file__).parents[2]
@@ -319,7 +320,7 @@ def test_numpy_backend_can_be_selected(monkeypatch):
     p = path_starts(seed_cluster(7), P)[0]
     end = follow_path(p.x, p.keep, p.broken, p.tangent, p.free, P)
     assert end.steps > 0
-    assert kernels.warm_up() == 0.0
+    assert warm_up() == 0.0
 
 
 def test_backend_context_manager_restores_the_previous_backend():
@@ -344,7 +345,7 @@ def test_environment_variable_selects_the_backend(value, expected):
     if value is not None:
         env["PACKINGS_KERNELS"] = value
     out = subprocess.run(
-        [sys.executable, "-c", "from workers import kernels; print(kernels.get_backend())"],
+        [sys.executable, "-c", "from packings.workers import kernels; print(kernels.get_backend())"],
         cwd=ROOT,
         env=env,
         capture_output=True,
@@ -356,6 +357,6 @@ def test_environment_variable_selects_the_backend(value, expected):
 
 def test_warm_up_compiles_and_reports_seconds():
     kernels.set_backend("numba")
-    seconds = kernels.warm_up()
+    seconds = warm_up()
     assert isinstance(seconds, float) and seconds >= 0.0
-    assert kernels.warm_up() < 5.0  # everything is compiled (or cached) now
+    assert warm_up() < 5.0  # everything is compiled (or cached) now

@@ -2,8 +2,8 @@
 
 import pytest
 
-from workers.explore import explore
-from workers.params import Params
+from packings.workers.explore import explore
+from packings.workers.params import Params
 
 
 def _expected(paper_counts, n):
@@ -25,7 +25,7 @@ def test_counts_n10_match_paper(paper_counts):
     cat = explore(10, Params())
     assert cat.by_contacts() == _expected(paper_counts, 10)
     # the hypostatic cluster is singular: one of the clusters reached through a singular cluster's pair breaks
-    from workers.rigidity import rigidity
+    from packings.workers.rigidity import rigidity
 
     (hypo,) = [c for c in cat.clusters if c.m == 23]
     r = rigidity(hypo.coords, hypo.contacts, Params())
@@ -33,7 +33,7 @@ def test_counts_n10_match_paper(paper_counts):
 
 
 def test_every_cluster_is_rigid_and_valid():
-    from workers.rigidity import rigidity
+    from packings.workers.rigidity import rigidity
 
     cat = explore(7, Params())
     for c in cat.clusters:

@@ -6,12 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from workers import dimension, kernels
-from workers.cluster import Cluster
-from workers.dimension import solution_dimension
-from workers.params import Params
-from workers.rigidity import contact_triangle
-from workers.seeds import seed_cluster
+from packings.workers import dimension, kernels
+from packings.workers.cluster import Cluster
+from packings.workers.dimension import solution_dimension
+from packings.workers.params import Params
+from packings.workers.rigidity import contact_triangle
+from packings.workers.seeds import seed_cluster
 
 P = Params()
 FIXTURES = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())

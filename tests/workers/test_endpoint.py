@@ -16,13 +16,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.workers.test_identity import transformed
-from workers import kernels
-from workers.cluster import Cluster
-from workers.expand import path_starts
-from workers.identity import certificate, same_geometry
-from workers.params import DEFAULT as P
-from workers.paths import FLOPPY, PROJECTION_FAILED, RIGID, UNDECIDED_END, close_pairs, near_pairs, resolve_near_pairs
-from workers.rigidity import contact_triangle, on_a_curve, rigidity
+from packings.workers import kernels
+from packings.workers.cluster import Cluster
+from packings.workers.expand import path_starts
+from packings.workers.identity import certificate, same_geometry
+from packings.workers.params import DEFAULT as P
+from packings.workers.paths import FLOPPY, PROJECTION_FAILED, RIGID, UNDECIDED_END, close_pairs, near_pairs, resolve_near_pairs
+from packings.workers.rigidity import contact_triangle, on_a_curve, rigidity
 
 DATA = json.loads((Path(__file__).parents[1] / "data" / "n12_junk.json").read_text())
 FAR, NEAR_COPY, ON_A_CURVE = DATA["paths"]
@@ -159,7 +159,7 @@ def test_refining_a_regular_cluster_leaves_it_where_it_is():
 
 
 def test_a_prestress_margin_the_coordinates_do_not_resolve_is_undecided():
-    from workers.rigidity import UNDECIDED, margin_uncertainty
+    from packings.workers.rigidity import UNDECIDED, margin_uncertainty
 
     for row in DATA["unresolved"]["clusters"]:
         c = cluster(row)

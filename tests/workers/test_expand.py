@@ -6,12 +6,12 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers.cluster import Cluster
-from workers.expand import CIRCULAR, NOT_1D, break_sizes, expand
-from workers.identity import certificate_hex
-from workers.params import Params
-from workers.paths import RIGID
-from workers.seeds import seed_cluster
+from packings.workers.cluster import Cluster
+from packings.workers.expand import CIRCULAR, NOT_1D, break_sizes, expand
+from packings.workers.identity import certificate_hex
+from packings.workers.params import Params
+from packings.workers.paths import RIGID
+from packings.workers.seeds import seed_cluster
 
 P = Params()
 
@@ -74,8 +74,8 @@ def test_expand_invariant_under_rotation_reflection_relabelling(seed, reflect):
 def test_the_endpoints_that_are_one_cluster_point_at_the_first_of_them():
     """Many paths from one cluster end at the same cluster: expand tells them apart once, and the
     write-back compares each distinct one only with the stored clusters."""
-    from workers.explore import explore
-    from workers.identity import same_geometry
+    from packings.workers.explore import explore
+    from packings.workers.identity import same_geometry
 
     c = max(explore(9).clusters, key=lambda c: c.m)  # a hyperstatic cluster: pairs broken, many paths
     ex = expand(c, P)
@@ -134,7 +134,7 @@ def test_paths_that_widen_after_the_first_step_stop_only_when_asked():
     import json
     from pathlib import Path
 
-    from workers.paths import DIMENSION_CHANGED
+    from packings.workers.paths import DIMENSION_CHANGED
 
     d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
     c = Cluster.from_dict(d["n10_m24_prestress"])
@@ -155,16 +155,16 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
     """Two path endpoints of one n = 12 contact graph, each with a pair within tol_a of touching that
     was not projected onto (stored before as two of 74 distinct "rigid" clusters): the endpoint is
     projected with every contact, so both hold all of them to the Newton tolerance and are one cluster.
-    (It fails without the re-projection in workers.paths._endpoint.)"""
+    (It fails without the re-projection in packings.workers.paths._endpoint.)"""
     import json
     from pathlib import Path
 
-    from workers import kernels
-    from workers.cluster import Cluster
-    from workers.identity import same_geometry
-    from workers.params import DEFAULT
-    from workers.paths import close_pairs, endpoint_rigidity
-    from workers.rigidity import contact_triangle
+    from packings.workers import kernels
+    from packings.workers.cluster import Cluster
+    from packings.workers.identity import same_geometry
+    from packings.workers.params import DEFAULT
+    from packings.workers.paths import close_pairs, endpoint_rigidity
+    from packings.workers.rigidity import contact_triangle
 
     data = json.loads((Path(__file__).parents[1] / "data" / "n12_near_miss.json").read_text())
     ends = []

@@ -1,4 +1,4 @@
-"""Tests of workers.identity: certificates, canonical labelling, automorphisms, geometry."""
+"""Tests of packings.workers.identity: certificates, canonical labelling, automorphisms, geometry."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers import kernels
-from workers.cluster import Cluster
-from workers.identity import (
+from packings.workers import kernels
+from packings.workers.cluster import Cluster
+from packings.workers.identity import (
     ClusterIndex,
     automorphisms,
     canonical_labelling,
@@ -21,8 +21,8 @@ from workers.identity import (
     find_match,
     same_geometry,
 )
-from workers.params import DEFAULT
-from workers.seeds import seed_cluster
+from packings.workers.params import DEFAULT
+from packings.workers.seeds import seed_cluster
 
 TOL_D = DEFAULT.tol_d
 H_TET = np.sqrt(2.0 / 3.0)  # height of a unit tetrahedron above a face
@@ -406,7 +406,7 @@ def test_cluster_index() -> None:
 
 def test_certificate_key_is_portable_and_equivalent_to_the_certificate():
     """The key is built from the canonical adjacency, so it agrees with certificate equality."""
-    from workers.identity import certificate_key
+    from packings.workers.identity import certificate_key
 
     rng = np.random.default_rng(7)
     base = seed_cluster(8)

@@ -5,10 +5,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers import kernels
-from workers.params import Params
-from workers.rigidity import contact_triangle
-from workers.seeds import seed_cluster
+from packings.workers import kernels
+from packings.workers.params import Params
+from packings.workers.rigidity import contact_triangle
+from packings.workers.seeds import seed_cluster
 
 P = Params()
 

@@ -8,12 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from workers import kernels
-from workers.cluster import Cluster
-from workers.dimension import solution_dimension
-from workers.params import Params
-from workers.rigidity import FIRST_ORDER, FLOPPY, PRESTRESS, UNDECIDED, contact_triangle, prestress_test, rigidity, sdp_margin
-from workers.seeds import seed_cluster
+from packings.workers import kernels
+from packings.workers.cluster import Cluster
+from packings.workers.dimension import solution_dimension
+from packings.workers.params import Params
+from packings.workers.rigidity import FIRST_ORDER, FLOPPY, PRESTRESS, UNDECIDED, contact_triangle, prestress_test, rigidity, sdp_margin
+from packings.workers.seeds import seed_cluster
 
 P = Params()
 FIXTURES = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from workers.cluster import pair_distances
-from workers.params import Params
-from workers.rigidity import rigidity
-from workers.seeds import seed_cluster
+from packings.workers.cluster import pair_distances
+from packings.workers.params import Params
+from packings.workers.rigidity import rigidity
+from packings.workers.seeds import seed_cluster
 
 
 @pytest.mark.parametrize("n", range(4, 16))

@@ -1,0 +1,370 @@
+"""The Python API, the way ``ase.db.connect`` works: :func:`connect` opens a
+catalogue, :func:`enumerate` runs or resumes a run.
+
+    import packings
+    cat = packings.connect("sqlite:///packings.db")
+    for row in cat.select("n=10,contacts=24", sort="-min_gap", limit=3):
+        print(row.id, row.lattice, row.min_gap, row.coords.shape)
+    atoms = cat.get(1).to_atoms()
+
+The command line (:mod:`packings.cli`) is a thin layer over this module: the
+selection language is :mod:`packings.selection`'s, the facts of a cluster are
+:mod:`packings.export`'s, and the errors a user can cause are
+:mod:`packings.errors`' (one line each), whichever way the catalogue is used.
+
+Loading this module is light (no SQLAlchemy, numpy or Dask until a function
+runs): ``import packings`` must stay cheap for every Dask worker.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from typing import TYPE_CHECKING, Any, Callable, Iterator
+
+from packings.errors import NotFound, UsageError
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from packings.coordinator import RunResult
+
+MAX_N = 24  #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
+
+
+def check_n(n: int) -> None:
+    """Refuse an n that cannot be enumerated (:class:`UsageError`)."""
+    if not isinstance(n, int) or isinstance(n, bool):
+        raise UsageError(f"n must be an integer (got {n!r})")
+    if n < 4:
+        raise UsageError(f"n must be at least 4 (got {n}): smaller clusters have no contact triangle to pin")
+    if n > MAX_N:
+        raise UsageError(f"n = {n} is too large: at most {MAX_N} (the number of clusters grows like (n-5)!)")
+
+
+def resolve_url(url: str | None) -> str:
+    """The database URL to use: ``url``, else ``$PACKINGS_DB``, else ``sqlite:///packings.db``; a bare
+    file name ending in .db is a SQLite file, and a relative SQLite path is made absolute (workers may
+    run in another directory)."""
+    from packings.db import absolute, default_url, parse_url
+
+    return absolute(parse_url(url or default_url())).render_as_string(hide_password=False)
+
+
+# --------------------------------------------------------------------------- rows
+
+
+class Row:
+    """One stored cluster.
+
+    Its facts (:data:`packings.export.FACTS`: ``id``, ``n``, ``embedding``,
+    ``lattice``, ``min_gap``, ``singular``, ...) are attributes and the dict
+    :attr:`facts`.  ``coords`` is the ``(n, 3)`` float64 array of the centres
+    (unit: the sphere diameter), bit for bit as stored; ``contacts`` is the
+    ``(m, 2)`` int array of contact pairs, so the number of contacts is
+    ``len(row.contacts)`` (also ``row.facts["contacts"]``).
+    """
+
+    __slots__ = ("facts", "coords", "contacts")
+
+    def __init__(self, facts: dict, coords: np.ndarray, contacts: np.ndarray):
+        self.facts, self.coords, self.contacts = facts, coords, contacts
+
+    @classmethod
+    def from_model(cls, c) -> Row:
+        """The row of a :class:`packings.models.ClusterRow`."""
+        import numpy as np
+
+        from packings.export import facts
+
+        coords = np.frombuffer(c.coords, dtype="<f8").reshape(c.n, 3).astype(np.float64)
+        contacts = np.array(json.loads(c.contact_list), dtype=np.int64).reshape(-1, 2)
+        return cls(facts(c), coords, contacts)
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self.facts[name]
+        except KeyError:
+            raise AttributeError(f"a cluster row has no fact {name!r}") from None
+
+    def __dir__(self):
+        return [*super().__dir__(), *self.facts]
+
+    def __repr__(self) -> str:
+        return (f"<Row {self.facts['id']}: n={self.facts['n']}, {len(self.contacts)} contacts, "
+                f"embedding {self.facts['embedding']}>")
+
+    def record(self) -> dict:
+        """Facts, ``coords`` (lists of floats) and ``contact_list`` (pairs): a JSON record, as
+        ``packings select --json`` prints it."""
+        return {**self.facts, "coords": self.coords.tolist(), "contact_list": self.contacts.tolist()}
+
+    def to_atoms(self):
+        """The cluster as an :class:`ase.Atoms` (every sphere the dummy element ``X``), with its facts in
+        ``info`` (those that are not None; ``id`` and ``stresses``, which ASE's database reserves, as
+        ``cluster_id`` and ``self_stresses``) and the contact pairs in ``info["contact_pairs"]``."""
+        try:
+            from ase import Atoms
+        except ImportError:
+            raise ImportError("Row.to_atoms() needs ASE, which is not installed: pip install ase") from None
+        from packings.export import ase_info
+
+        info = ase_info(self.facts)
+        info["contact_pairs"] = self.contacts.copy()
+        return Atoms(symbols=["X"] * len(self.coords), positions=self.coords.copy(), info=info)
+
+
+# --------------------------------------------------------------------------- the catalogue
+
+
+def connect(url: str | None = None, *, create: bool = False) -> Catalogue:
+    """The catalogue in the database at ``url`` (default: ``$PACKINGS_DB``, else
+    ``sqlite:///packings.db``; a bare ``name.db`` is a SQLite file).
+
+    A database that is missing or empty is refused unless ``create`` (then an empty
+    catalogue is made), and one with another schema is refused with the command that
+    migrates it: :class:`packings.errors.PackingsError`, one line, nothing written.
+    """
+    return Catalogue(url, create=create)
+
+
+def _value_text(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return "none" if v is None else str(v)
+
+
+def selection_query(selection: str | None, equalities: dict | None = None, **kw):
+    """The SELECT of a selection and ``key=value`` equalities, with ``sort``/``limit`` as
+    :func:`packings.selection.query`; a bad one raises :class:`packings.errors.UsageError` (no database
+    is needed to check it)."""
+    from packings.selection import parse, parse_term, query
+
+    terms = parse(selection) + [parse_term(f"{k}={_value_text(v)}") for k, v in (equalities or {}).items()]
+    return query(terms, **kw)
+
+
+class Catalogue:
+    """A connection to a packings database (:func:`connect`).  Use it as a context manager, or call
+    :meth:`close`; every method reads in its own transaction, so a catalogue may be read while a run
+    writes to it."""
+
+    def __init__(self, url: str | None = None, *, create: bool = False):
+        from packings.db import open_database
+
+        self.url = resolve_url(url)
+        self.engine = open_database(self.url, create=create)
+
+    def __repr__(self) -> str:
+        from packings.db import display_url
+
+        return f"<packings catalogue {display_url(self.engine.url)}>"
+
+    def __enter__(self) -> Catalogue:
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    def session(self):
+        """A read-only SQLAlchemy session on the database, for queries of your own (the tables are
+        :mod:`packings.models`'; ``with cat.session() as s: ...``)."""
+        from packings.db import sessions
+
+        return sessions(self.engine, readonly=True)()
+
+    def select(self, selection: str | None = "", *, sort: str | None = None, limit: int | None = None,
+               **equalities) -> Iterator[Row]:
+        """The clusters that match ``selection`` (the command line's language, e.g. ``"n=10,contacts<24,
+        singular"``) and every ``key=value`` given, as :class:`Row` objects, ordered by ``sort`` (a key,
+        ``-key`` for descending; default n, contacts, id), at most ``limit`` of them (None: all).  A bad
+        selection raises :class:`packings.errors.UsageError` here, not when the rows are read."""
+        if limit is not None and limit < 0:
+            raise UsageError(f"limit must be at least 0 (got {limit})")
+        q = selection_query(selection, equalities, sort=sort, limit=limit)
+        return self._rows(q)
+
+    def _rows(self, q) -> Iterator[Row]:
+        with self.session() as s:
+            for c in s.execute(q.execution_options(yield_per=500)).scalars():
+                yield Row.from_model(c)
+
+    def count(self, selection: str | None = "", **equalities) -> int:
+        """How many clusters match (as :meth:`select`)."""
+        from sqlalchemy import func, select
+
+        q = selection_query(selection, equalities)
+        with self.session() as s:
+            return s.execute(select(func.count()).select_from(q.order_by(None).subquery())).scalar_one()
+
+    def get(self, id: int) -> Row:
+        """Cluster ``id``; :class:`packings.errors.NotFound` (a KeyError) if there is none."""
+        rows = list(self.select(f"id={int(id)}"))
+        if not rows:
+            raise NotFound(f"no cluster with id {id}")
+        return rows[0]
+
+    def links(self, id: int) -> dict:
+        """What the database holds about cluster ``id`` besides its row: the paths leaving it (by
+        outcome), the paths reaching it and from how many clusters, and the runs whose frontier holds it."""
+        from packings.selection import links
+
+        self.get(id)
+        with self.session() as s:
+            return links(s, int(id))
+
+    def transitions(self, id: int, *, reaching: bool = False) -> list[dict]:
+        """The paths followed from cluster ``id`` (or, if ``reaching``, those that ended at it), one dict
+        each: ``id``, ``run``, ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1
+        along the path's tangent, 0 if no path was followed), ``outcome``, ``target`` (the cluster
+        reached, None if none is stored) and ``steps``."""
+        from sqlalchemy import select
+
+        from packings.models import Transition as T
+
+        self.get(id)
+        where = T.target_id == int(id) if reaching else T.source_id == int(id)
+        with self.session() as s:
+            return [{"id": t.id, "run": t.run_id, "source": t.source_id, "broken": json.loads(t.broken),
+                     "direction": t.direction, "outcome": t.outcome, "target": t.target_id, "steps": t.steps}
+                    for t in s.execute(select(T).where(where).order_by(T.id)).scalars()]
+
+    def stats(self, n: int | None = None) -> list[dict]:
+        """What the catalogue holds, one dict per n (all n, or only ``n``): what ``packings stats --json``
+        prints."""
+        from packings.stats import stats
+        from packings.store import counts_by_n
+
+        with self.session() as s:
+            return stats(s, n, counts_by_n(s))
+
+    def fit(self) -> dict | None:
+        """The fit of the totals of the complete runs to b·(n−5)! (None with fewer than two n)."""
+        from packings.stats import fit_all
+        from packings.store import counts_by_n
+
+        with self.session() as s:
+            return fit_all(counts_by_n(s))
+
+    def runs(self) -> list[dict]:
+        """Every run with its frontier, one dict each: what ``packings status --json`` prints.  A run
+        marked running whose coordinator is gone is shown as ``interrupted``."""
+        from sqlalchemy import select
+
+        from packings import store
+        from packings.models import RUNNING, Run
+        from packings.owners import coordinator_alive
+
+        out = []
+        with self.session() as s:
+            for run in s.execute(select(Run).order_by(Run.id)).scalars():
+                f = store.frontier(s, run.id)
+                params = json.loads(run.params)
+                status = run.status
+                if status == RUNNING and not coordinator_alive(run.coordinator, run.heartbeat_at):
+                    status = "interrupted"  # no live coordinator drives it: the same command resumes it
+                out.append({"run": run.id, "n": run.n, "status": status, "clusters": sum(f.values()),
+                            "pending": f.get("pending", 0), "leased": f.get("leased", 0),
+                            "done": f.get("done", 0), "failed": f.get("failed", 0),
+                            "max_break": params.get("max_break"), "min_contacts": params.get("min_contacts"),
+                            "seconds": round(run.seconds or 0.0, 1),
+                            "started": run.started_at.isoformat(timespec="seconds"),
+                            "coordinator": run.coordinator})
+        return out
+
+
+# --------------------------------------------------------------------------- running
+
+
+def _progress_bar(show: bool) -> Callable:
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit="exp", desc="expansions", file=sys.stderr, disable=not show, dynamic_ncols=True)
+
+    def update(p):
+        bar.total = p.total
+        bar.n = p.done
+        bar.set_postfix_str(f"pending {p.pending + p.leased}, clusters {p.clusters}"
+                            + (f", failed {p.failed}" if p.failed else ""), refresh=False)
+        bar.refresh()
+
+    update.close = bar.close  # type: ignore[attr-defined]
+    return update
+
+
+def _refuse_busy_run(engine, n: int, params) -> None:
+    """Raise :class:`packings.owners.RunBusy` if a live coordinator holds the run for (n, params).  A
+    text query on the runs table: neither the models nor the store are loaded before the cluster
+    starts (the store's import alone takes half a second)."""
+    from sqlalchemy import DateTime, Integer, String, column, text
+
+    from packings.owners import busy
+
+    q = text("SELECT id, coordinator, heartbeat_at FROM runs WHERE n = :n AND params = :params").columns(
+        column("id", Integer), column("coordinator", String), column("heartbeat_at", DateTime))
+    with engine.connect() as conn:
+        row = conn.execute(q, {"n": n, "params": params.to_json()}).first()
+    if row is not None and (held := busy(row.id, n, row.coordinator, row.heartbeat_at)) is not None:
+        raise held
+
+
+def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
+              max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
+              progress: bool = True) -> RunResult:
+    """Enumerate the rigid clusters of ``n`` spheres into the database at ``url`` (as :func:`connect`;
+    created if need be), or resume the run with the same n and parameters, and return its result:
+    ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,
+    ``resumed``, ``errors`` (:class:`packings.coordinator.RunResult`).
+
+    The work runs on a new local Dask cluster of ``workers`` processes (default: one per core), or on
+    the existing one whose scheduler is at ``scheduler`` (e.g. ``"tcp://host:8786"``).  ``max_break``
+    caps the number of contacts broken at once (default: none); ``min_contacts`` keeps only clusters
+    with at least that many contacts.  ``progress`` shows a progress bar on standard error.
+    """
+    from packings.dask_cluster import dask_client, start_fork_server
+    from packings.workers.params import Params
+
+    check_n(n)
+    if workers is not None and scheduler is not None:
+        raise UsageError("give either workers (a local cluster) or scheduler (an existing one), not both")
+    if workers is not None and not 1 <= workers <= 512:
+        raise UsageError(f"workers must be between 1 and 512 (got {workers})")
+    if max_break is not None and not 1 <= max_break <= 10:
+        raise UsageError(f"max_break must be between 1 and 10 (got {max_break})")
+    if not 1 <= max_attempts <= 100:
+        raise UsageError(f"max_attempts must be between 1 and 100 (got {max_attempts})")
+    if scheduler is None:
+        start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
+    params = Params(max_break=max_break, min_contacts=min_contacts)
+    url = resolve_url(url)
+    from packings.db import open_database, preflight
+
+    # a bad URL, server or schema, or a run that another live coordinator holds, is reported before any
+    # Dask cluster starts
+    preflight(url, check=lambda engine: _refuse_busy_run(engine, n, params))
+    from packings.plugin import DatabasePlugin
+
+    # a local cluster starts in the background, its workers warming up with the database plugin, while the
+    # database is opened here; .client waits for it
+    with dask_client(scheduler, workers, not progress, plugins=(DatabasePlugin(url),)) as dask:
+        if scheduler:
+            dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
+        engine = open_database(url, create=True)
+        try:
+            from packings.coordinator import run_enumeration
+
+            if scheduler and engine.dialect.name == "sqlite":
+                print("packings: warning: SQLite with a scheduler works only if every worker sees this file "
+                      f"({engine.url.database}); use PostgreSQL for many machines", file=sys.stderr)
+            bar = _progress_bar(progress)
+            try:
+                return run_enumeration(engine, url, n, params, dask.client, on_progress=bar if progress else None,
+                                       max_attempts=max_attempts)
+            finally:
+                bar.close()
+        finally:
+            engine.dispose()

@@ -1,0 +1,159 @@
+"""The Dask side of ``packings enumerate``: the fork server that a local cluster's
+worker processes are forked from, and the connection to a local cluster or an
+existing scheduler, made in the background while the caller opens the database.
+
+Loading this module is light (no Dask, SQLAlchemy or numpy until a function runs):
+the command line imports it before it starts the fork server.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import threading
+from pathlib import Path
+
+from packings.errors import SchedulerError
+
+#: the modules that the fork server of a local cluster's workers loads before it forks them
+FORK_SERVER_PRELOAD = ("distributed", "packings.preload")
+#: setting this environment variable (spawn, fork, forkserver) chooses how Dask starts local workers
+METHOD_ENV = "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD"
+
+
+def start_fork_server() -> bool:
+    """Start the process that a local cluster's worker processes are forked from; returns whether they
+    will be (it may have been started already: then this does nothing more).
+
+    It starts at once and loads, in the background, what every worker needs (:mod:`packings.preload`:
+    Dask, SQLAlchemy, the numerical code, the compiled kernels, warmed up) once, while this process
+    checks and opens the database and starts the scheduler.  Each worker forked from it joins within a
+    few hundredths of a second of being asked for, where a worker spawned afresh (Dask's default)
+    imports and loads all of it itself: 1.3 s of CPU per worker, on cores the command's own start-up
+    needs too.
+
+    Dask's environment for new worker processes (``distributed.nanny.pre-spawn-environ``: one BLAS
+    thread, ``MALLOC_TRIM_THRESHOLD_``, and the hash seed that its nanny sets) is set before the server
+    starts, so that the forked workers have it as spawned ones would.  Nothing is done where the
+    platform has no fork server, nor when the user chose another start method (:data:`METHOD_ENV`, or
+    ``distributed.worker.multiprocessing-method`` in Dask's configuration).
+    """
+    import multiprocessing
+    from multiprocessing import forkserver
+
+    import dask
+
+    _load_distributed_defaults()
+    method = dask.config.get("distributed.worker.multiprocessing-method")
+    chosen = METHOD_ENV in os.environ or method != "spawn"
+    if (chosen and method != "forkserver") or "forkserver" not in multiprocessing.get_all_start_methods():
+        return False
+    env = {k: str(v) for k, v in (dask.config.get("distributed.nanny.pre-spawn-environ") or {}).items()}
+    if env.get("PYTHONHASHSEED") in (None, "0"):
+        env["PYTHONHASHSEED"] = "6640"  # as Dask's nanny does, so that every worker hashes alike
+    os.environ.update(env)
+    multiprocessing.set_forkserver_preload(list(FORK_SERVER_PRELOAD))  # if it is not running yet
+    forkserver.ensure_running()  # starts it (if need be) and returns; a worker's start waits for its preload
+    dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
+    return True
+
+
+def _load_distributed_defaults() -> None:
+    """Dask's configuration with distributed's defaults, as ``import distributed`` sets them, but without
+    the import (0.3 s, which the fork server's start would wait for): from its ``distributed.yaml``."""
+    import importlib.util
+
+    import dask
+    import yaml
+
+    if "distributed" in sys.modules:
+        return
+    spec = importlib.util.find_spec("distributed")
+    path = Path(spec.origin).with_name("distributed.yaml") if spec and spec.origin else None
+    if path is None or not path.is_file():
+        import distributed  # noqa: F401 - which sets them
+
+        return
+    dask.config.update_defaults(yaml.safe_load(path.read_text()))
+
+
+#: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
+PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
+
+
+class dask_client:
+    """A Client on a new LocalCluster, or on an existing scheduler; errors become one line.
+
+    The connection is made in the background from ``__enter__`` on, so that the caller can do its own
+    work meanwhile (a local cluster takes a second or two: its scheduler and dashboard start, its worker
+    processes are forked from the fork server (:func:`start_fork_server`) once that has loaded what they
+    need, and run ``plugins``' setup before it is up); :attr:`client` waits for it.
+    """
+
+    def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool, plugins=()):
+        self.scheduler, self.n_workers, self.quiet, self.plugins = scheduler, n_workers, quiet, tuple(plugins)
+        self.cluster = self._client = self._error = self._thread = None
+        self._announced = False
+
+    def __enter__(self) -> "dask_client":
+        self._thread = threading.Thread(target=self._connect_or_fail, name="packings-dask-start", daemon=True)
+        self._thread.start()
+        return self
+
+    def _connect_or_fail(self) -> None:
+        try:
+            self._connect()
+        except BaseException as e:  # noqa: BLE001 - raised again by .client, in the caller's thread
+            self._error = e
+
+    def _connect(self) -> None:
+        import dask
+        from distributed import Client, LocalCluster
+
+        for name in ("distributed", "bokeh", "tornado"):
+            logging.getLogger(name).setLevel(logging.ERROR)
+        if self.scheduler:
+            try:
+                self._client = Client(self.scheduler, timeout="10s")
+            except (OSError, TimeoutError, ValueError) as e:
+                raise SchedulerError(f"cannot reach the Dask scheduler at {self.scheduler}: "
+                                     f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+        else:
+            k = self.n_workers or os.cpu_count() or 1
+            if PROFILE_ENV not in os.environ:
+                # Dask's statistical profiler samples each worker's stack every 10 ms: 8 % of a run's time
+                # at n = 11 (the dashboard's Profile page is empty without it; the variable turns it back on)
+                dask.config.set({"distributed.worker.profile.enabled": False})
+            start_fork_server()  # if `packings enumerate` has not yet
+            # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
+            self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                        dashboard_address="127.0.0.1:8787", silence_logs=logging.ERROR,
+                                        plugins=self.plugins)
+            self._client = Client(self.cluster)
+
+    @property
+    def client(self):
+        """The Client, once connected (waits); a failure to connect is raised here."""
+        return self.wait()
+
+    def wait(self):
+        """:attr:`client`."""
+        if self._thread.is_alive():
+            self._thread.join()
+        if self._error is not None:
+            raise self._error
+        if not (self.quiet or self._announced):
+            where = self.scheduler or f"local cluster, {len(self._client.nthreads())} worker processes"
+            print(f"dask: {where}; dashboard {self._client.dashboard_link}", file=sys.stderr, flush=True)
+            self._announced = True
+        return self._client
+
+    def __exit__(self, *exc):
+        if self._thread is not None:
+            self._thread.join()
+        if self._client is not None:
+            self._client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+        return False

@@ -1,0 +1,21 @@
+"""The errors a user can cause and fix.  Each message is one line, which the
+command line prints as ``packings: error: ...`` and the Python API raises as is."""
+
+
+class PackingsError(Exception):
+    """An error a user can cause and fix; its message is one line naming the problem and the fix."""
+
+
+class UsageError(PackingsError, ValueError):
+    """A bad argument: an n out of range, options that exclude each other, a bad selection."""
+
+
+class SchedulerError(PackingsError):
+    """The Dask scheduler given does not answer."""
+
+
+class NotFound(PackingsError, KeyError):
+    """No stored cluster has the id asked for."""
+
+    def __str__(self) -> str:  # KeyError's str() is the repr of its argument
+        return str(self.args[0]) if self.args else ""
