@@ -35,7 +35,7 @@ import numpy as np
 from sqlalchemy import Connection, bindparam, func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from packings.db import advisory_key, is_postgresql
+from packings.db import READONLY, advisory_key, is_postgresql
 from packings.owners import busy
 from packings.models import (
     COMPLETE,
@@ -129,13 +129,10 @@ def lattice_value(c: CoreCluster) -> str:
 
 
 def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
-    """Column values of a cluster row (all but id, embedding, the run and the lattice).
-
-    Every fact of a cluster is computed here or, the lattice, by
-    :func:`insert_or_match` when the row is inserted (most endpoints are
-    clusters stored already), once (see :func:`backfill` for rows stored by an
-    older version).
-    """
+    """Column values of a new cluster row: every fact of it (all but id, embedding, the run that found
+    it and how).  The write-back computes them before it takes the write lock, for the endpoints that
+    match no stored cluster then (:func:`unstored_values`); see :func:`backfill` for rows stored by an
+    older version."""
     gap = c.min_gap()
     return {
         "n": c.n,
@@ -151,6 +148,7 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
         "stresses": rig.stresses,
         "singular": rig.singular,
         "min_gap": gap if np.isfinite(gap) else None,
+        "lattice": lattice_value(c),
     }
 
 
@@ -184,14 +182,16 @@ def stored_with(session: Session | Connection, n: int, certificates) -> dict[str
 
 
 def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
-                    rows: list[Stored] | None = None, *, found_by: str, source_id: int | None) -> tuple[int, bool]:
+                    rows: list[Stored] | None = None, *, found_by: str, source_id: int | None,
+                    values: dict | None = None) -> tuple[int, bool]:
     """The id of the stored cluster equal to ``c`` (same certificate, same
     geometry within ``tol_d``), inserting it if there is none.  The caller
     holds the certificate's lock (:func:`lock_certificates`).  ``rows`` are the
     stored clusters with its certificate (:func:`stored_with`; a row inserted
     here is appended to it) if the caller has them already.  The row's values
-    (:func:`cluster_values`, the lattice) are computed only if it is inserted:
-    most endpoints are clusters stored already.  ``found_by`` and ``source_id``
+    are ``values`` (:func:`cluster_values`, computed by the caller before it
+    took the lock) or, if None, computed here, only if it is inserted: most
+    endpoints are clusters stored already.  ``found_by`` and ``source_id``
     (models.FOUND_*: how it was found, and from which cluster) are written only
     if it is inserted: a cluster keeps how it was first found."""
     if rows is None:
@@ -202,9 +202,10 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
         if k is not None:
             return rows[k].id, False
     embedding = (rows[-1].embedding + 1) if rows else 0
-    values = cluster_values(c, rig)
+    if values is None:
+        values = cluster_values(c, rig)
     result = session.execute(_INSERT_CLUSTER, {
-        **values, "lattice": lattice_value(c), "embedding": embedding, "found_in_run": run_id,
+        **values, "embedding": embedding, "found_in_run": run_id,
         "found_by": found_by, "source_id": source_id})
     cid = int(result.inserted_primary_key[0])
     remember_core_cluster(c.n, values["coords"], values["contact_list"], c)  # read back as c, labelled already
@@ -409,6 +410,30 @@ def distinct_endpoints(ex: CoreExpansion) -> tuple[list[tuple[CoreCluster, Rigid
     return distinct, which
 
 
+def unstored_values(engine, expansions: list[tuple[float, list]]) -> dict[tuple[int, int], dict]:
+    """:func:`cluster_values` of each distinct endpoint that matches no stored cluster, keyed by
+    (expansion, endpoint) positions in ``expansions`` (each: ``tol_d`` and :func:`distinct_endpoints`'
+    list).  Computed from a read before the write-back's transaction, which then holds the write lock
+    for SQL and the geometric match only: a cluster stored by another in between leaves a value
+    unused, and the rare endpoint that lacks one has it computed in the transaction."""
+    wanted: dict[int, set[str]] = {}
+    for _, distinct in expansions:
+        for c, _, cert in distinct:
+            wanted.setdefault(c.n, set()).add(cert)
+    stored: dict[tuple[int, str], list[Stored]] = {}
+    if wanted:
+        with engine.connect().execution_options(**{READONLY: True}) as conn, conn.begin():
+            for n, certs in sorted(wanted.items()):
+                stored.update(((n, cert), rows) for cert, rows in stored_with(conn, n, certs).items())
+    out = {}
+    for k, (tol_d, distinct) in enumerate(expansions):
+        for j, (c, rig, cert) in enumerate(distinct):
+            rows = stored[(c.n, cert)]
+            if not rows or find_match(c, [r.cluster for r in rows], tol_d) is None:
+                out[(k, j)] = cluster_values(c, rig)
+    return out
+
+
 @dataclass(frozen=True)
 class Finished:
     """An expansion computed by a task, to be written back: the task, its lease token, the result and
@@ -444,10 +469,12 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         outcomes = dict(sorted(f.expansion.outcomes().items()))
         outcomes["widened_paths"] = f.expansion.widened_paths
         prepared.append((f, distinct, which, json.dumps(outcomes)))
+    engine = Session_.kw["bind"]
+    values = unstored_values(engine, [(f.task.params.tol_d, distinct) for f, distinct, _, _ in prepared])
     summaries: list[dict | None] = [None] * len(finished)
     # Core statements only, on a connection of the sessions' engine: cheaper than a session, and the
     # same transaction rules (SQLite: BEGIN IMMEDIATE).
-    with Session_.kw["bind"].begin() as s:
+    with engine.begin() as s:
         # First: each done, if its lease is still its token's (PostgreSQL: this also locks the row).  Nothing
         # of it is seen by others before the commit, and all of it is rolled back if anything below fails.
         live = []
@@ -471,10 +498,10 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         for k, f, distinct, which in live:
             task, ex = f.task, f.expansion
             ids, new_clusters = [], 0
-            for c, rig, cert in distinct:
+            for j, (c, rig, cert) in enumerate(distinct):
                 rows = stored[(c.n, cert)]
                 cid, is_new = insert_or_match(s, c, rig, task.run_id, task.params.tol_d, rows,
-                                              found_by=FOUND_PATH, source_id=task.cluster_id)
+                                              found_by=FOUND_PATH, source_id=task.cluster_id, values=values.get((k, j)))
                 ids.append(cid)
                 if is_new:
                     inserted.setdefault(task.run_id, []).append(cid)

@@ -144,6 +144,35 @@ def _two_finished(S, info) -> list:
     return [run_loaded(tasks[e], t) for e, t in leases]
 
 
+def test_the_write_back_computes_no_facts_while_it_holds_the_lock(run8, engine, monkeypatch):
+    """A new cluster's facts (gap, lattice, serialised coordinates) are computed before the write-back's
+    transaction begins; inside it only SQL and the geometric match run.  The clusters stored have the
+    facts a direct computation gives."""
+    from sqlalchemy import event
+
+    S, info = run8
+    finished = _two_finished(S, info)
+    in_transaction, during = [False], []
+    event.listen(engine, "begin", lambda conn: in_transaction.__setitem__(0, True))
+    event.listen(engine, "commit", lambda conn: in_transaction.__setitem__(0, False))
+    real = store.cluster_values
+
+    def watched(c, rig):
+        during.append(in_transaction[0])
+        return real(c, rig)
+
+    monkeypatch.setattr(store, "cluster_values", watched)
+    before = {row.id for row in S().execute(select(ClusterRow.id))}
+    summaries = store.record_expansions(S, finished, "w")
+    new = sum(x["new_clusters"] for x in summaries)
+    assert new > 0 and len(during) >= new and not any(during)
+    with S() as s:
+        for row in s.execute(select(ClusterRow).where(ClusterRow.id.notin_(before))).scalars():
+            core = row.to_core()
+            assert row.lattice == store.lattice_value(core)
+            assert row.min_gap == pytest.approx(core.min_gap(), rel=0, abs=0)
+
+
 def test_a_tasks_expansions_are_written_back_together_or_not_at_all(run8, engine, monkeypatch):
     """One transaction for a task: when writing its second expansion fails, nothing of the first is
     left either (not its new clusters, not its transitions, not its being done)."""
