@@ -9,12 +9,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import enumeration, paths
+from benchmarks import enumeration, paths, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
     "paths": paths,
     "enumerate": enumeration,
+    "soak": soak,
 }
 
 

@@ -252,7 +252,9 @@ class Catalogue:
 
     def runs(self) -> list[dict]:
         """Every run with its frontier, one dict each: what ``packings status --json`` prints.  A run
-        marked running whose coordinator is gone is shown as ``interrupted``."""
+        marked running whose coordinator is gone is shown as ``interrupted``; ``retries`` counts the
+        expansions put back after an infrastructure fault (uncounted), ``isolated_failures`` the tasks
+        of one expansion alone lost again (each an attempt)."""
         from sqlalchemy import select
 
         from packings import store
@@ -263,6 +265,7 @@ class Catalogue:
         with self.session() as s:
             for run in s.execute(select(Run).order_by(Run.id)).scalars():
                 f = store.frontier(s, run.id)
+                faults = store.faults(s, run.id)
                 params = json.loads(run.params)
                 status = run.status
                 if status == RUNNING and not coordinator_alive(run.coordinator, run.heartbeat_at):
@@ -270,6 +273,7 @@ class Catalogue:
                 out.append({"run": run.id, "n": run.n, "status": status, "clusters": sum(f.values()),
                             "pending": f.get("pending", 0), "leased": f.get("leased", 0),
                             "done": f.get("done", 0), "failed": f.get("failed", 0),
+                            "retries": faults["retries"], "isolated_failures": faults["isolated_failures"],
                             "max_break": params.get("max_break"), "min_contacts": params.get("min_contacts"),
                             "seconds": round(run.seconds or 0.0, 1),
                             "started": run.started_at.isoformat(timespec="seconds"),

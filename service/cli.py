@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gc
 import json
+import os
 import sys
 
 import click
@@ -41,10 +42,31 @@ def format_counts(n: int, by_contacts: dict[int, int]) -> str:
     return "\n".join(lines)
 
 
+LOG_ENV = "PACKINGS_LOG"  #: the log level when no -v is given (default WARNING)
+
+
+def configure_logging(verbose: int) -> None:
+    """What an operator needs to see on standard error: the ``packings`` loggers' warnings (faults
+    recovered: workers lost, leases put back, expansions retried), with ``-v`` also what a run does,
+    ``-vv`` everything (the level also comes from ``$PACKINGS_LOG``)."""
+    import logging
+
+    default = os.environ.get(LOG_ENV, "WARNING").upper()
+    level = {0: getattr(logging, default, logging.WARNING), 1: logging.INFO}.get(verbose, logging.DEBUG)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s packings %(levelname)s: %(message)s", "%H:%M:%S"))
+    logger = logging.getLogger("packings")
+    logger.handlers[:] = [handler]
+    logger.setLevel(level)
+    logger.propagate = False
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="packings", prog_name="packings")
-def cli() -> None:
+@click.option("-v", "--verbose", count=True, help="Log what a run does (-v), or everything (-vv), on standard error.")
+def cli(verbose: int) -> None:
     """Enumerate every rigid cluster of n identical hard spheres."""
+    configure_logging(verbose)
 
 
 @cli.command("enumerate")
@@ -224,7 +246,9 @@ def db_version(db_url: str | None) -> None:
 @db_option
 @click.option("--json", "as_json", is_flag=True, help="As JSON.")
 def status_cmd(db_url: str | None, as_json: bool) -> None:
-    """Runs and their frontier (expansions pending, leased, done, failed)."""
+    """Runs and their frontier (expansions pending, leased, done, failed), and the faults recovered:
+    expansions put back after a worker or coordinator was lost (retries, not counted as attempts), and
+    tasks of one expansion lost again (isolated, each an attempt)."""
     with _catalogue(db_url) as cat:
         rows = cat.runs()
     if as_json:
@@ -233,8 +257,10 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
     if not rows:
         click.echo("no runs yet: `packings enumerate N` starts one")
         return
-    cols = ["run", "n", "status", "clusters", "pending", "leased", "done", "failed", "max_break", "seconds", "started"]
-    click.echo(_export.table(cols, [[r[c] for c in cols] for r in rows]))
+    cols = ["run", "n", "status", "clusters", "pending", "leased", "done", "failed", "retries", "isolated_failures",
+            "max_break", "seconds", "started"]
+    header = [{"isolated_failures": "isolated"}.get(c, c) for c in cols]
+    click.echo(_export.table(header, [[r[c] for c in cols] for r in rows]))
 
 
 @cli.command("stats")

@@ -4,16 +4,31 @@ It claims pending expansions in batches sized to the workers, submits them as
 Dask tasks of up to ``batch`` expansions each (fewer, while a claim takes all
 that is pending: at the start and the end of a run), consumes results as they
 complete and claims more, until nothing is pending or leased.  A task writes
-its expansions back in one transaction, each guarded by its lease token; an
-expansion that fails is put back to pending and retried, at most
-``max_attempts`` times in all, then marked failed with its error text.  Everything needed to resume is in the database:
-a coordinator that is killed leaves leases behind, and the next one (the same
-command) puts them back to pending when it starts.
+its expansions back in one transaction, each guarded by its lease token.
+
+Failures are of two kinds:
+
+* an expansion that fails (``expand`` or its write-back raised) is put back to
+  pending and retried, at most ``max_attempts`` times in all, then marked
+  failed with its error's traceback;
+* a task lost to the infrastructure (its worker died, :data:`INFRASTRUCTURE`,
+  or the scheduler forgot it) says nothing about its expansions: they go back
+  to pending without using up an attempt (``expansions.retries``), and from
+  then on each is sent alone in a task of its own.  Only a task lost again
+  while it held one expansion alone counts against that expansion
+  (``expansions.isolated_failures``): one that kills every worker it runs on
+  ends failed, machines that come and go do not end a run.
+
+Everything needed to resume is in the database: a coordinator that is killed
+leaves leases behind, and the next one (the same command) puts them back to
+pending when it starts, their attempts not used up.  What was recovered is
+logged (logger ``packings.coordinator``).
 """
 
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 import uuid
@@ -21,10 +36,14 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from distributed import Client, as_completed
+from distributed.client import FutureCancelledError
+from distributed.comm.core import CommClosedError
+from distributed.scheduler import KilledWorker
 from sqlalchemy import Engine, select
 
 from packings import store
 from packings.db import sessions
+from packings.errors import StorageError
 from packings.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
 from packings.owners import process_name
 from packings.plugin import DatabasePlugin
@@ -32,6 +51,19 @@ from packings.tasks import ExpansionsFailed, error_line, expand_task, summary
 from packings.workers.params import Params
 
 log = logging.getLogger(__name__)
+
+#: a task that raised one of these was lost with its worker or its connection: no fault of its expansions
+INFRASTRUCTURE = (KilledWorker, CommClosedError, FutureCancelledError)
+#: what SQLite, PostgreSQL or the system say when the database cannot be written (lower case)
+CANNOT_WRITE = ("database or disk is full", "no space left on device", "could not extend file", "diskfull",
+                "readonly database", "read-only transaction", "read-only file system")
+
+
+def cannot_write(error: str) -> str | None:
+    """The exception line of a failed task's error (or of an error's text), if it says that the
+    database cannot be written."""
+    line = summary(error)
+    return line if any(w in line.lower() for w in CANNOT_WRITE) else None
 
 HEARTBEAT_SECONDS = 10.0
 CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
@@ -141,6 +173,19 @@ class _Every:
         return self.value
 
 
+def not_writable(line: str) -> StorageError:
+    return StorageError(f"the database cannot be written ({line}): free space or make it writable, then run "
+                        "the same command again to resume")
+
+
+def _try(f: Callable) -> None:
+    """``f()``, a failure of which is logged, not raised (a clean-up that may fail as what it cleans up did)."""
+    try:
+        f()
+    except Exception as e:  # noqa: BLE001 - logged; what it would have done is done by the next coordinator
+        log.warning("%s", error_line(e))
+
+
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
         f = store.frontier(s, run_id)
@@ -168,6 +213,11 @@ def run_enumeration(
     Reader = sessions(engine, readonly=True)
     owner = f"{process_name()}:{uuid.uuid4().hex[:8]}"
     info = store.start_run(Session_, n, params, owner)
+    log.info("run %d (n = %d): %s", info.id, n, "started" if info.created else "resumed")
+    if info.recovered:
+        log.warning("run %d: %d expansion(s) leased by a coordinator that is gone put back to pending",
+                    info.id, info.recovered)
+    isolate: set[int] = set()  #: expansions whose task was lost: sent one per task
     plugin = DatabasePlugin(url)
     client.register_plugin(plugin)
     start = time.perf_counter()
@@ -188,12 +238,32 @@ def run_enumeration(
             return
         tasks = capacity - in_flight
         claimed = store.claim(Session_, info.id, owner, tasks * batch)
-        for part in _shares(claimed, _task_count(len(claimed), tasks, capacity, batch)):
+        alone = [[x] for x in claimed if x[0] in isolate]  # each lost once with a task: now on its own
+        shared = [x for x in claimed if x[0] not in isolate]
+        for part in alone + _shares(shared, _task_count(len(shared), max(1, tasks - len(alone)), capacity, batch)):
             eid, token = part[0]
-            fut = client.submit(expand_task, part, plugin.name, key=f"expand-{eid}-{len(part)}-{token}", pure=False)
+            # one alone goes first: the less it waits on a worker, the less a fault of another task hits it
+            fut = client.submit(expand_task, part, plugin.name, key=f"expand-n{n}-{eid}-{len(part)}-{token}",
+                                pure=False, priority=int(eid in isolate))
             fut.expansions = part  # type: ignore[attr-defined]
             ac.add(fut)
             in_flight += 1
+
+    def lost(fut, why: str) -> None:
+        """``fut``'s task was lost to the infrastructure: put its expansions back, uncounted, and send
+        each alone from now on; one that was alone already and killed its workers again counts."""
+        part = fut.expansions
+        if len(part) == 1 and part[0][0] in isolate and why.startswith(KilledWorker.__name__):
+            eid, token = part[0]
+            status = store.release(Session_, eid, token, f"lost its workers while running alone: {why}",
+                                   max_attempts, isolated=True)
+            log.error("run %d: expansion %d lost its workers while running alone (%s): %s",
+                      info.id, eid, why, "failed" if status == FAILED else "to be retried")
+            return
+        back = store.put_back(Session_, part, f"infrastructure fault, retried: {why}")
+        isolate.update(eid for eid, _ in part)
+        log.warning("run %d: a task of %d expansion(s) was lost (%s); %d put back, each to be retried alone",
+                    info.id, len(part), why, back)
 
     beat = _Heartbeat(Session_, info.id, owner)
     try:
@@ -202,18 +272,27 @@ def run_enumeration(
         while in_flight:
             for fut in ac:
                 in_flight -= 1
-                if fut.status == "error":
+                failed = {}
+                if fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
+                    lost(fut, "task cancelled")
+                elif fut.status == "error":
                     exc = fut.exception()
-                    failed = exc.errors if isinstance(exc, ExpansionsFailed) else dict.fromkeys(
-                        (eid for eid, _ in fut.expansions), error_line(exc))
-                elif fut.status == "cancelled":
-                    failed = dict.fromkeys((eid for eid, _ in fut.expansions), "task cancelled")
-                else:
-                    failed = {}
+                    if isinstance(exc, INFRASTRUCTURE):
+                        lost(fut, error_line(exc))
+                    elif isinstance(exc, ExpansionsFailed):
+                        failed = exc.errors
+                    else:
+                        failed = dict.fromkeys((eid for eid, _ in fut.expansions), error_line(exc))
+                full = next((line for line in map(cannot_write, failed.values()) if line), None)
+                if full is not None:  # no expansion's fault, and no use trying others: stop, resumably
+                    _try(lambda: store.put_back(Session_, fut.expansions, f"database not writable: {full}"))
+                    raise not_writable(full)
                 # an expansion of the task that was written back is no longer leased: release leaves it
                 for eid, token in fut.expansions:
                     if eid in failed:
-                        store.release(Session_, eid, token, failed[eid], max_attempts)
+                        status = store.release(Session_, eid, token, failed[eid], max_attempts)
+                        log.warning("run %d: expansion %d failed (%s): %s", info.id, eid, summary(failed[eid]),
+                                    "given up" if status == FAILED else "to be retried")
                 fut.release()
                 fill()
                 shown()
@@ -221,11 +300,17 @@ def run_enumeration(
         shown(force=True)
     except BaseException:
         beat.stop()
-        store.abandon(Session_, info.id, owner, time.perf_counter() - start)
+        # if the database cannot take this either, the next coordinator puts the leases back
+        _try(lambda: store.abandon(Session_, info.id, owner, time.perf_counter() - start))
+        e = sys.exc_info()[1]
+        full = None if isinstance(e, StorageError) else cannot_write(str(e))
+        if full is not None:  # the coordinator's own write failed so
+            raise not_writable(full) from None
         raise
     beat.stop()
     seconds = time.perf_counter() - start
     status = store.finish_run(Session_, info.id, owner, seconds)
+    log.info("run %d (n = %d): %s after %.1f s", info.id, n, status, seconds)
     with Reader() as s:
         by_contacts = store.run_counts(s, info.id)
         diagnostics = store.run_diagnostics(s, info.id)

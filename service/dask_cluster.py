@@ -80,6 +80,8 @@ def _load_distributed_defaults() -> None:
 
 #: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
 PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
+START_ATTEMPTS = 3  #: tries to start the local cluster (a worker process that dies as it starts fails the start)
+log = logging.getLogger(__name__)
 
 
 class dask_client:
@@ -111,8 +113,11 @@ class dask_client:
         import dask
         from distributed import Client, LocalCluster
 
+        # Dask's own logs of a failed or lost task ("Compute Failed" with the whole error, "marked as
+        # failed because workers died") would repeat what the coordinator logs in one line and keeps
+        # in the database: only Dask's critical messages are shown
         for name in ("distributed", "bokeh", "tornado"):
-            logging.getLogger(name).setLevel(logging.ERROR)
+            logging.getLogger(name).setLevel(logging.CRITICAL)
         if self.scheduler:
             try:
                 self._client = Client(self.scheduler, timeout="10s")
@@ -127,9 +132,17 @@ class dask_client:
                 dask.config.set({"distributed.worker.profile.enabled": False})
             start_fork_server()  # if `packings enumerate` has not yet
             # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
-            self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                        dashboard_address="127.0.0.1:8787", silence_logs=logging.ERROR,
-                                        plugins=self.plugins)
+            for attempt in range(START_ATTEMPTS):
+                try:
+                    self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                                dashboard_address="127.0.0.1:8787", silence_logs=logging.CRITICAL,
+                                                plugins=self.plugins)
+                    break
+                except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
+                    log.warning("the local Dask cluster failed to start (%s)%s", e,
+                                "; trying again" if attempt + 1 < START_ATTEMPTS else "")
+                    if attempt + 1 == START_ATTEMPTS:
+                        raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
             self._client = Client(self.cluster)
 
     @property

@@ -72,7 +72,35 @@ def parse_url(url: str) -> URL:
         u = u.set(drivername="postgresql+psycopg")
     if u.get_backend_name() not in ("sqlite", "postgresql"):
         raise DatabaseError(f"unsupported database {u.get_backend_name()!r} in {url!r}: use sqlite:/// or postgresql://")
+    if u.get_backend_name() == "sqlite" and _in_memory(u):
+        raise DatabaseError(f"{url!r} is an in-memory SQLite database, which only the process that opens it sees "
+                            "(the workers would not): give a file, e.g. sqlite:///packings.db")
+    _check_driver(u, url)
     return u
+
+
+def _in_memory(u: URL) -> bool:
+    db = u.database or ""
+    return db in ("", ":memory:") or (db.startswith("file:") and ("mode=memory" in db or db.startswith("file::memory:")))
+
+
+def _check_driver(u: URL, url: str) -> None:
+    """Refuse, in one line, a driver that is not installed or that the service cannot use (an async one).
+    Supported: sqlite:/// (Python's sqlite3), postgresql:// (psycopg 3, installed with packings), and
+    postgresql+psycopg2:// where psycopg2 is installed."""
+    plain = {"sqlite": "sqlite:///", "postgresql": "postgresql://"}[u.get_backend_name()]
+    try:
+        dialect = u.get_dialect()
+    except NoSuchModuleError:
+        raise DatabaseError(f"unknown database driver {u.drivername!r} in {url!r}: use sqlite:/// or postgresql://") from None
+    if getattr(dialect, "is_async", False):
+        raise DatabaseError(f"{u.drivername!r} is an asyncio driver, which packings does not use: "
+                            f"use {plain} instead")
+    try:
+        dialect.import_dbapi()
+    except ImportError as e:
+        raise DatabaseError(f"the driver of {u.drivername!r} is not installed ({e.name or e}): "
+                            f"use {plain} or install it") from None
 
 
 def display_url(url: URL) -> str:

@@ -19,3 +19,8 @@ class NotFound(PackingsError, KeyError):
 
     def __str__(self) -> str:  # KeyError's str() is the repr of its argument
         return str(self.args[0]) if self.args else ""
+
+
+class StorageError(PackingsError):
+    """The database cannot be written: its disk is full, or it is read-only.  A run stops, with its
+    leases put back, and the same command resumes it once space is freed."""

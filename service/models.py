@@ -171,7 +171,12 @@ class ExpansionRow(Base):
     run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
     cluster_id: Mapped[int] = mapped_column(ForeignKey("clusters.id"))
     status: Mapped[str] = mapped_column(String(16), default=PENDING)
+    #: leases that counted against max_attempts: a failure of the expansion itself, or of its task alone
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    #: times it was put back because of an infrastructure fault (a worker or a coordinator lost), uncounted
+    retries: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    #: times its task, run alone after such a fault, was lost again (each one counted in attempts)
+    isolated_failures: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     lease_owner: Mapped[str | None] = mapped_column(String(200), nullable=True)
     lease_token: Mapped[str | None] = mapped_column(String(64), nullable=True)
     leased_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)

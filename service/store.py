@@ -32,7 +32,7 @@ from importlib import metadata
 from typing import TYPE_CHECKING
 
 import numpy as np
-from sqlalchemy import Connection, bindparam, func, insert, select, text, update
+from sqlalchemy import Connection, bindparam, case, func, insert, select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from packings.db import READONLY, advisory_key, is_postgresql
@@ -234,13 +234,15 @@ class RunInfo:
     n: int
     params: Params
     created: bool
+    recovered: int = 0  #: expansions leased by a coordinator that was gone, put back to pending
 
 
 def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> RunInfo:
     """Create the run for (n, params), or resume it; then take it over.
 
     A new run is seeded with one rigid cluster (packings.workers.seeds).  Resuming puts
-    back to pending every expansion leased by a coordinator that is gone.
+    back to pending every expansion leased by a coordinator that is gone, without using up an
+    attempt (:attr:`RunInfo.recovered` says how many).
     Raises :class:`packings.owners.RunBusy` if a live coordinator holds the run.
     """
     pj = params.to_json()
@@ -258,13 +260,13 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
             ensure_expansions(s, run.id, [cid])
         elif (held := busy(run.id, n, run.coordinator, run.heartbeat_at, owner)) is not None:
             raise held
-        _unlease(s, run.id)
+        recovered = _unlease(s, run.id, retry=True)
         run.coordinator = owner
         run.heartbeat_at = utcnow()
         if run.status != COMPLETE:
             run.status = RUNNING
         run_id = run.id
-    return RunInfo(run_id, n, params, created)
+    return RunInfo(run_id, n, params, created, recovered)
 
 
 def heartbeat(Session_: sessionmaker, run_id: int, owner: str) -> None:
@@ -286,19 +288,23 @@ def finish_run(Session_: sessionmaker, run_id: int, owner: str, seconds: float) 
 
 
 def abandon(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> None:
-    """An interrupted coordinator puts its leases back and lets the run go."""
+    """An interrupted coordinator puts its leases back (their attempts not used up) and lets the run go."""
     with Session_.begin() as s:
         _unlease(s, run_id, ExpansionRow.lease_owner == owner)
         _let_go(s.get(Run, run_id), owner, seconds)
 
 
-def _unlease(s: Session, run_id: int, *where) -> None:
-    """Put the run's leased expansions (those matching ``where``) back to pending."""
-    s.execute(
+def _unlease(s: Session, run_id: int, *where, retry: bool = False) -> int:
+    """Put the run's leased expansions (those matching ``where``) back to pending, giving back the
+    attempt their lease took (their coordinator, not they, stopped); with ``retry``, counted as an
+    infrastructure retry (the coordinator was lost).  Returns how many."""
+    return s.execute(
         update(ExpansionRow)
         .where(ExpansionRow.run_id == run_id, ExpansionRow.status == LEASED, *where)
-        .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None)
-    )
+        .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None,
+                attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
+                retries=ExpansionRow.retries + int(retry))
+    ).rowcount
 
 
 def _let_go(run: Run, owner: str, seconds: float) -> None:
@@ -336,8 +342,11 @@ def claim(Session_: sessionmaker, run_id: int, owner: str, k: int) -> list[tuple
         return out
 
 
-def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, max_attempts: int) -> str | None:
-    """A task failed: back to pending, or ``failed`` after ``max_attempts``.
+def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, max_attempts: int,
+            isolated: bool = False) -> str | None:
+    """A task failed, and this counts against the expansion: back to pending, or ``failed`` after
+    ``max_attempts``.  ``isolated``: its task ran it alone, after an infrastructure fault, and was
+    lost again (counted in ``isolated_failures`` too).
 
     Returns the new status, or None if the lease was no longer this token's.
     """
@@ -345,6 +354,7 @@ def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, m
         e = s.execute(select(ExpansionRow).where(ExpansionRow.id == expansion_id).with_for_update()).scalar_one()
         if e.status != LEASED or e.lease_token != token:
             return None
+        e.isolated_failures += int(isolated)
         e.error = error[-16000:]  # a traceback's end says most
         e.lease_owner = e.lease_token = e.leased_at = None
         e.status = FAILED if e.attempts >= max_attempts else PENDING
@@ -353,11 +363,36 @@ def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, m
         return e.status
 
 
+def put_back(Session_: sessionmaker, leases: list[tuple[int, str]], error: str) -> int:
+    """A task was lost to an infrastructure fault (its worker died, the connection closed, the
+    scheduler forgot it): its expansions still leased with these tokens go back to pending with
+    their attempt given back, counted in ``retries``; ``error`` is kept as the last error seen.
+    Returns how many."""
+    if not leases:
+        return 0
+    with Session_.begin() as s:
+        return sum(s.execute(
+            update(ExpansionRow)
+            .where(ExpansionRow.id == eid, ExpansionRow.status == LEASED, ExpansionRow.lease_token == token)
+            .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None, error=error[-16000:],
+                    attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
+                    retries=ExpansionRow.retries + 1)
+        ).rowcount for eid, token in leases)
+
+
 def frontier(s: Session, run_id: int) -> dict[str, int]:
     rows = s.execute(
         select(ExpansionRow.status, func.count()).where(ExpansionRow.run_id == run_id).group_by(ExpansionRow.status)
     ).all()
     return {status: count for status, count in rows}
+
+
+def faults(s: Session, run_id: int) -> dict[str, int]:
+    """The run's infrastructure retries (expansions put back, uncounted) and isolated failures."""
+    retries, isolated = s.execute(
+        select(func.coalesce(func.sum(ExpansionRow.retries), 0), func.coalesce(func.sum(ExpansionRow.isolated_failures), 0))
+        .where(ExpansionRow.run_id == run_id)).one()
+    return {"retries": int(retries), "isolated_failures": int(isolated)}
 
 
 # --------------------------------------------------------------------------- tasks

@@ -35,3 +35,13 @@ def test_the_paths_benchmark_compares_the_backends_on_the_same_paths():
     assert [r["n"] for r in report["rows"]] == [10, 12, 14]
     for r in report["rows"]:
         assert r["paths"] > 0 and r["same_outcome"] == r["paths"] and 0.0 < r["median_ms_compiled"] < r["median_ms_numpy"]
+
+
+def test_the_soak_benchmark_reports_faults_against_an_undisturbed_run():
+    report = benchmark("soak", "--n", "8", "--backends", "sqlite", "--seed", "3")
+    rows = report["rows"]
+    assert [r["faults"] for r in rows] == ["none", "workers killed", "coordinator killed"]
+    for r in rows:
+        assert r["exit"] == 0 and r["expected"] == r["seen"] == 13 and r["same_clusters"]
+        assert r["failed"] == r["leased"] == r["duplicates"] == 0
+    assert rows[0]["time_ratio"] == 1.0 and rows[2]["seconds"] > 0

@@ -10,7 +10,6 @@ which case they fail.
 from __future__ import annotations
 
 import os
-import uuid
 from contextlib import contextmanager
 
 import pytest
@@ -48,25 +47,15 @@ def _pg_available() -> str | None:
 def pg_database():
     """A fresh, empty PostgreSQL database (URL) at any scope, dropped on leaving;
     skips (or fails, under PACKINGS_REQUIRE_PG=1) without a server."""
-    from sqlalchemy import text
-
-    from packings.db import parse_url
+    from benchmarks.soak import postgresql_database
 
     problem = _pg_available()
     if problem:
         if os.environ.get("PACKINGS_REQUIRE_PG") == "1":
             pytest.fail(problem)
         pytest.skip(problem)
-    name = f"packings_test_{uuid.uuid4().hex[:12]}"
-    admin = _pg_admin_engine()
-    with admin.connect() as c:
-        c.execute(text(f'CREATE DATABASE "{name}"'))
-    try:
-        yield parse_url(PG_ADMIN).set(database=name).render_as_string(hide_password=False)
-    finally:
-        with admin.connect() as c:
-            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+    with postgresql_database(PG_ADMIN, "packings_test") as url:
+        yield url
 
 
 @pytest.fixture

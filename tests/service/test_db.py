@@ -107,6 +107,14 @@ def test_db_upgrade_and_version(db_url):
     ("mysql://root@localhost/x", "unsupported database"),
     ("postgresql://nobody@127.0.0.1:1/nothing", "cannot connect"),
     ("sqlite:////nonexistent-dir/sub/packings.db", "does not exist"),
+    # a database that only this process would see: the workers could not (refused before Dask starts)
+    ("sqlite://", "in-memory SQLite database"),
+    ("sqlite:///", "in-memory SQLite database"),
+    ("sqlite:///:memory:", "in-memory SQLite database"),
+    ("sqlite+aiosqlite:///x.db", "asyncio driver"),
+    ("postgresql+asyncpg://u@127.0.0.1/test", "asyncio driver"),
+    ("postgresql+pg8000://u@127.0.0.1/test", "'postgresql+pg8000' is not installed"),
+    ("postgresql+nosuch://u@127.0.0.1/test", "unknown database driver"),
 ])
 def test_bad_database_urls_are_one_line(url, words, tmp_path):
     r = cli("enumerate", "6", "--db", url, "--quiet", cwd=tmp_path)

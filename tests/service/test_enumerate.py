@@ -13,10 +13,10 @@ import subprocess
 import sys
 import time
 
-import psutil
 import pytest
 from sqlalchemy import func, select
 
+from benchmarks.soak import worker_processes
 from packings.db import make_engine, sessions
 from packings.models import LEASED, PENDING, ClusterRow, ExpansionRow
 from packings.workers.identity import ClusterIndex
@@ -109,6 +109,11 @@ def test_enumerate_prints_the_table_the_dashboard_and_progress(sqlite_url):
     assert "n = 7: 5 rigid clusters" in r.stdout and "diagnostics:" in r.stdout
     assert "dashboard http://127.0.0.1:" in r.stderr
     assert "expansions" in r.stderr and "clusters 5" in r.stderr
+    assert " packings " not in r.stderr  # nothing logged: no fault to report
+    # -v logs what the run does
+    r = packings("-v", "enumerate", "7", "--db", sqlite_url, "--workers", "1", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "packings INFO: run 1 (n = 7): resumed" in r.stderr and "packings INFO: run 1 (n = 7): complete" in r.stderr
 
 
 @pytest.fixture(scope="module")
@@ -130,21 +135,11 @@ def test_enumerate_10(db_url, paper_counts, reference10):
     assert_same_clusters(db_url, 10, reference10)
 
 
-def _worker_processes(pid: int) -> list[psutil.Process]:
-    """The Dask worker processes a LocalCluster started under ``pid`` (spawned, or forked from the fork
-    server, which is left out: it is their parent)."""
-    kids = [p for p in psutil.Process(pid).children(recursive=True)
-            if any("multiprocessing" in a or "spawn_main" in a for a in p.cmdline())
-            and "resource_tracker" not in " ".join(p.cmdline())]
-    pids = {p.pid for p in kids}
-    return [p for p in kids if not any(c.pid in pids for c in p.children())]
-
-
 def test_killing_a_worker_mid_run(db_url, reference9):
     proc = start("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet")
     try:
         wait_for(lambda: done_count(db_url) >= 8, proc)
-        victims = _worker_processes(proc.pid)
+        victims = worker_processes(proc.pid)
         assert len(victims) == 2, [p.cmdline() for p in victims]
         victims[0].send_signal(signal.SIGKILL)
         out, err = proc.communicate(timeout=600)
@@ -173,6 +168,7 @@ def test_killing_the_coordinator_mid_run_then_resuming(db_url, reference9):
     r = packings("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet")
     assert r.returncode == 0, r.stderr
     assert "n = 9: 52 rigid clusters" in r.stdout and "(resumed)" in r.stdout
+    assert f"{leased} expansion(s) leased by a coordinator that is gone put back to pending" in r.stderr
     assert_same_clusters(db_url, 9, reference9)
 
 

@@ -1,0 +1,203 @@
+"""Soak test: an enumeration under injected faults against an undisturbed one, on each backend.
+
+For each backend, three runs of ``packings enumerate N`` on fresh databases: undisturbed; with one
+of the local cluster's worker processes killed (SIGKILL) every 1-3 s; and with the coordinator
+killed (SIGKILL) at five moments and the same command run again each time.  Moments come from
+``--seed``.  Dask's ``allowed-failures`` is set to ``--allowed-failures`` (default 1) so that a task
+hit by that many kills plus one reaches the coordinator as ``KilledWorker``.  Prints a table: faults
+injected, clusters expected (the undisturbed run's) against seen, failed, left leased, duplicate
+keys, retries, isolated failures, and the wall time against the undisturbed run's.
+
+    python -m benchmarks soak --n 10 [--backends sqlite,postgresql] [--seed 1] [--json]
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+
+PG_ADMIN = os.environ.get("PACKINGS_TEST_PG", "postgresql://postgres@127.0.0.1:5432/postgres")
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--n", type=int, default=10)
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--backends", default="sqlite,postgresql")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--allowed-failures", type=int, default=1)
+    p.add_argument("--json", action="store_true")
+
+
+def worker_processes(pid: int) -> list:
+    """The Dask worker processes a LocalCluster started under ``pid`` (spawned, or forked from the fork
+    server, which is left out: it is their parent)."""
+    import psutil
+
+    kids = [p for p in psutil.Process(pid).children(recursive=True)
+            if any("multiprocessing" in a or "spawn_main" in a for a in p.cmdline())
+            and "resource_tracker" not in " ".join(p.cmdline())]
+    pids = {p.pid for p in kids}
+    return [p for p in kids if not any(c.pid in pids for c in p.children())]
+
+
+@contextmanager
+def postgresql_database(admin_url: str, prefix: str):
+    """A new, empty PostgreSQL database (its URL) made through ``admin_url``, dropped on leaving."""
+    from sqlalchemy import create_engine, text
+
+    from packings.db import parse_url
+
+    name = f"{prefix}_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(parse_url(admin_url), isolation_level="AUTOCOMMIT")
+    with admin.connect() as c:
+        c.execute(text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield parse_url(admin_url).set(database=name).render_as_string(hide_password=False)
+    finally:
+        with admin.connect() as c:
+            c.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+@contextmanager
+def fresh_database(backend: str):
+    """The URL of an empty database on ``backend``, removed afterwards."""
+    if backend == "sqlite":
+        with tempfile.TemporaryDirectory() as d:
+            yield f"sqlite:///{Path(d) / 'soak.db'}"
+        return
+    with postgresql_database(PG_ADMIN, "packings_soak") as url:
+        yield url
+
+
+def _command(n: int, url: str, workers: int) -> list[str]:
+    return [sys.executable, "-m", "packings.cli", "enumerate", str(n), "--db", url, "--workers", str(workers), "--quiet"]
+
+
+def _done(url: str) -> int:
+    from sqlalchemy import text
+
+    from packings.db import make_engine
+
+    engine = make_engine(url)
+    try:
+        with engine.connect() as c:
+            return c.execute(text("SELECT count(*) FROM expansions WHERE status = 'done'")).scalar()
+    except Exception:  # noqa: BLE001 - no schema yet
+        return 0
+    finally:
+        engine.dispose()
+
+
+def _wait_until(predicate, proc) -> bool:
+    while not predicate():
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def undisturbed(n: int, url: str, workers: int) -> int:
+    return subprocess.run(_command(n, url, workers), capture_output=True, text=True).returncode
+
+
+def kill_workers(n: int, url: str, workers: int, rng: random.Random) -> tuple[int, int]:
+    """One worker process killed every 1-3 s from the first expansion done on; (kills, exit status)."""
+    proc = subprocess.Popen(_command(n, url, workers), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    kills = 0
+    _wait_until(lambda: _done(url) >= 1, proc)
+    while proc.poll() is None:
+        try:
+            proc.wait(timeout=rng.uniform(1.0, 3.0))
+            break
+        except subprocess.TimeoutExpired:
+            pass
+        try:
+            victims = sorted(worker_processes(proc.pid), key=lambda p: p.pid)
+            if victims:
+                rng.choice(victims).send_signal(signal.SIGKILL)
+                kills += 1
+        except Exception:  # noqa: BLE001 - gone already
+            pass
+    return kills, proc.wait()
+
+
+def kill_coordinator(n: int, url: str, workers: int, rng: random.Random, total: int) -> tuple[int, int]:
+    """The coordinator killed at five moments (expansions done), rerun each time; (kills, exit status)."""
+    kills = 0
+    for moment in sorted(rng.sample(range(1, max(total - 1, 6)), 5)):
+        proc = subprocess.Popen(_command(n, url, workers), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        if _wait_until(lambda: _done(url) >= moment, proc):
+            proc.send_signal(signal.SIGKILL)
+            kills += 1
+        proc.wait()
+    return kills, undisturbed(n, url, workers)
+
+
+def inspect(url: str, n: int) -> dict:
+    """What the database holds after a run: its clusters' certificates and the fault counts."""
+    from sqlalchemy import text
+
+    from packings.db import make_engine
+
+    engine = make_engine(url)
+    with engine.connect() as c:
+        certs = sorted(c.execute(text("SELECT certificate FROM clusters WHERE n = :n"), {"n": n}).scalars())
+        dup = c.execute(text("SELECT count(*) FROM (SELECT n, certificate, embedding FROM clusters "
+                             "GROUP BY n, certificate, embedding HAVING count(*) > 1) d")).scalar()
+        row = c.execute(text("SELECT sum(CASE WHEN status = 'failed' THEN 1 ELSE 0 END), "
+                             "sum(CASE WHEN status = 'leased' THEN 1 ELSE 0 END), "
+                             "sum(retries), sum(isolated_failures) FROM expansions")).one()
+    engine.dispose()
+    return {"certificates": certs, "duplicates": dup, "failed": int(row[0] or 0), "leased": int(row[1] or 0),
+            "retries": int(row[2] or 0), "isolated_failures": int(row[3] or 0)}
+
+
+def run(args) -> int:
+    rng = random.Random(args.seed)
+    os.environ["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] = str(args.allowed_failures)
+    rows, ok = [], True
+    for backend in args.backends.split(","):
+        with fresh_database(backend) as url:
+            t = time.perf_counter()
+            status = undisturbed(args.n, url, args.workers)
+            base_s = time.perf_counter() - t
+            reference = inspect(url, args.n)
+        expected = reference["certificates"]
+        rows.append({"backend": backend, "faults": "none", "injected": 0, "exit": status, **reference,
+                     "seconds": round(base_s, 1), "time_ratio": 1.0})
+        for name, inject in (("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
+                             ("coordinator killed", lambda u: kill_coordinator(args.n, u, args.workers, rng,
+                                                                                len(expected)))):
+            with fresh_database(backend) as url:
+                t = time.perf_counter()
+                injected, status = inject(url)
+                seconds = time.perf_counter() - t
+                seen = inspect(url, args.n)
+            rows.append({"backend": backend, "faults": name, "injected": injected, "exit": status, **seen,
+                         "seconds": round(seconds, 1), "time_ratio": round(seconds / base_s, 2)})
+    for r in rows:
+        r["expected"], r["seen"] = len(expected), len(r["certificates"])
+        r["same_clusters"] = r.pop("certificates") == expected
+        ok &= r["exit"] == 0 and r["same_clusters"] and not (r["failed"] or r["leased"] or r["duplicates"])
+    if args.json:
+        print(json.dumps({"n": args.n, "seed": args.seed, "rows": rows}))
+    else:
+        cols = ["backend", "faults", "injected", "expected", "seen", "same_clusters", "failed", "leased",
+                "duplicates", "retries", "isolated_failures", "seconds", "time_ratio"]
+        print(f"soak, n = {args.n}, {args.workers} workers, seed {args.seed}, "
+              f"allowed-failures {args.allowed_failures}")
+        width = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in cols}
+        print("  ".join(c.rjust(width[c]) for c in cols))
+        for r in rows:
+            print("  ".join(str(r[c]).rjust(width[c]) for c in cols))
+    return 0 if ok else 1

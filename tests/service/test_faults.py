@@ -1,0 +1,313 @@
+"""Fault injection: infrastructure faults are not attempts, and a run survives them on its own.
+
+Two kinds of test.  In-process ones make a task fail the way a lost worker makes it fail (Dask's
+``KilledWorker``), deterministically, and check what the coordinator does with its expansions.  Real
+ones kill processes (Dask workers, the coordinator) at moments drawn from a seeded generator, on
+both backends, and check that the run completes by itself with exactly the clusters of an
+undisturbed run, nothing failed, nothing left leased, no duplicate, and each expansion's transitions
+written once and whole.  The seed of a real test is in its name (``[seed]``): a failure reproduces
+the same schedule of faults (what they hit still depends on the machine's timing).
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import signal
+import subprocess
+from collections import Counter
+
+import pytest
+from sqlalchemy import func, select
+
+from benchmarks.soak import worker_processes
+from packings.db import make_engine, sessions
+from packings.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run, Transition
+from packings.workers.params import Params
+from tests.service.test_enumerate import (
+    assert_same_clusters, done_count, start, wait_for)
+from tests.service.test_enumerate import packings as cli
+
+#: Dask's scheduler gives a task lost with its worker to another one up to allowed-failures (3) times
+#: before it raises KilledWorker; at 1 a task hit by two kills reaches the coordinator, as many kills
+#: over hours would.  (At 0 a task merely queued on a killed worker counts as having killed it: an
+#: expansion waiting there alone is charged with an attempt it did not cause.)
+SURFACE_KILLS = {"DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "1"}
+
+
+class _LostWorker:
+    address = "tcp://127.0.0.1:0"
+
+
+def _killed_worker(key: str):
+    from distributed.scheduler import KilledWorker
+
+    return KilledWorker(key, _LostWorker(), 0)
+
+
+def _in_process_run(engine, n: int, monkeypatch, task, max_attempts: int = 3):
+    """run_enumeration of n on a LocalCluster of threads, its tasks replaced by ``task(real, expansions,
+    plugin)`` (threads of this process: the patch reaches them)."""
+    from distributed import Client, LocalCluster
+
+    import packings.coordinator
+    from packings.coordinator import run_enumeration
+
+    real = packings.coordinator.expand_task
+    monkeypatch.setattr(packings.coordinator, "expand_task", lambda e, p: task(real, e, p))
+    url = engine.url.render_as_string(hide_password=False)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        return run_enumeration(engine, url, n, Params(), client, max_attempts=max_attempts)
+
+
+def _expansions(engine) -> list[ExpansionRow]:
+    with sessions(engine)() as s:
+        rows = s.execute(select(ExpansionRow).order_by(ExpansionRow.id)).scalars().all()
+        s.expunge_all()
+    return rows
+
+
+def test_a_lost_task_puts_its_expansions_back_without_using_an_attempt(engine, monkeypatch, paper_counts):
+    """The first tasks of several expansions are lost as with a dead worker: their expansions go back
+    to pending with no attempt used, each is then sent alone, and the run completes with max_attempts 1."""
+    import packings.tasks
+
+    batches, lost = [], set()
+    # tasks are pickled, closures by value: they reach the lists through a module
+    monkeypatch.setattr(packings.tasks, "fault_log", (batches, lost), raising=False)
+
+    def task(real, expansions, plugin):
+        batches, lost = packings.tasks.fault_log
+        ids = [eid for eid, _ in expansions]
+        batches.append(ids)
+        if len(ids) > 1 and len(lost) < 3:
+            lost.add(tuple(ids))
+            raise _killed_worker(f"expand-{ids[0]}")
+        return real(expansions, plugin)
+
+    result = _in_process_run(engine, 9, monkeypatch, task, max_attempts=1)
+    assert result.status == "complete" and result.errors == []
+    assert result.by_contacts == {int(k): v for k, v in paper_counts["clusters_by_contacts"]["9"].items()}
+    assert len(lost) == 3
+    put_back = {eid for ids in lost for eid in ids}
+    rows = _expansions(engine)
+    assert all(e.status == DONE and e.attempts == 1 and e.isolated_failures == 0 for e in rows)
+    assert {e.id for e in rows if e.retries} == put_back and all(e.retries == 1 for e in rows if e.id in put_back)
+    # after its task was lost, each went out alone
+    for eid in put_back:
+        later = [ids for ids in batches if eid in ids][1:]
+        assert later == [[eid]]
+
+
+def test_an_expansion_that_kills_every_worker_alone_ends_failed(engine, monkeypatch):
+    """An expansion whose task is lost every time: its first loss (in a batch or not) is a retry, each
+    loss alone an attempt; after max_attempts it is failed, and nothing else is."""
+    from packings.workers.explore import explore
+    from packings.workers.identity import same_geometry
+
+    import packings.store
+    import packings.tasks
+
+    poison = explore(8).clusters[4]
+    monkeypatch.setattr(packings.tasks, "fault_log", (sessions(engine), poison, Params().tol_d), raising=False)
+
+    def task(real, expansions, plugin):
+        Session_, poison, tol_d = packings.tasks.fault_log  # tasks are pickled: reach them through a module
+        loaded = packings.store.load_tasks(Session_, expansions)
+        if any(same_geometry(t.cluster, poison, tol_d) for t in loaded.values()):
+            raise _killed_worker(f"expand-{expansions[0][0]}")
+        return real(expansions, plugin)
+
+    result = _in_process_run(engine, 8, monkeypatch, task, max_attempts=2)
+    assert result.status == "incomplete" and len(result.errors) == 1
+    assert "lost its workers while running alone" in result.errors[0]
+    rows = _expansions(engine)
+    [bad] = [e for e in rows if e.status == FAILED]
+    assert (bad.retries, bad.attempts, bad.isolated_failures) == (1, 2, 2)
+    assert all(e.status == DONE and e.isolated_failures == 0 for e in rows if e.id != bad.id)
+    r = cli("status", "--json", "--db", engine.url.render_as_string(hide_password=False))
+    [run] = json.loads(r.stdout)
+    assert (run["failed"], run["isolated_failures"]) == (1, 2) and run["retries"] >= 1
+
+
+def _assert_transitions_whole(url: str, n: int) -> None:
+    """Each done expansion's transitions were written once and whole: as many, with the same outcomes,
+    as expanding its stored cluster again gives (deterministic for given coordinates)."""
+    from packings.workers.expand import expand
+
+    engine = make_engine(url)
+    with sessions(engine)() as s:
+        done = s.execute(select(ExpansionRow.cluster_id, ClusterRow).join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
+                         .where(ExpansionRow.status == DONE, ClusterRow.n == n)).all()
+        stored = Counter()
+        for source, outcome in s.execute(select(Transition.source_id, Transition.outcome)):
+            stored[source, outcome] += 1
+        per_attempt = s.execute(select(func.count()).select_from(
+            select(Transition.source_id, Transition.broken, Transition.direction)
+            .group_by(Transition.source_id, Transition.broken, Transition.direction)
+            .having(func.count() > 1).subquery())).scalar()
+        params = Params.from_dict(json.loads(s.execute(select(Run.params)).scalar_one()))
+    engine.dispose()
+    assert per_attempt == 0
+    for cid, row in done:
+        ex = expand(row.to_core(), params)
+        want = Counter(e.outcome for e in ex.endpoints)
+        got = Counter({o: k for (c, o), k in stored.items() if c == cid})
+        assert got == want, f"cluster {cid}"
+
+
+def _faults(url: str) -> dict:
+    r = cli("status", "--json", "--db", url)
+    [run] = json.loads(r.stdout)
+    return run
+
+
+@pytest.fixture(scope="module")
+def reference10():
+    from packings.workers.explore import explore
+
+    return list(explore(10).clusters)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1])
+def test_workers_killed_at_random_the_run_completes_by_itself(db_url, reference10, seed, monkeypatch):
+    """Kill one of two worker processes every 1-3 s (seeded) during an n = 10 run (n = 9 is over in
+    a few seconds, before a second kill), with tasks hit twice reaching the coordinator as
+    KilledWorker: the run completes by itself, exact, its expansions put back rather than failed."""
+    rng = random.Random(seed)
+    for k, v in SURFACE_KILLS.items():
+        monkeypatch.setenv(k, v)
+    proc = start("enumerate", "10", "--db", db_url, "--workers", "2", "--json", "--quiet")
+    kills = 0
+    try:
+        wait_for(lambda: done_count(db_url) >= 1, proc)
+        while proc.poll() is None:
+            try:
+                proc.wait(timeout=rng.uniform(1.0, 3.0))
+                break
+            except subprocess.TimeoutExpired:  # still running: time for the next kill
+                pass
+            victims = worker_processes(proc.pid)
+            if victims:
+                try:
+                    rng.choice(sorted(victims, key=lambda p: p.pid)).send_signal(signal.SIGKILL)
+                    kills += 1
+                except Exception:  # noqa: BLE001 - it was gone already
+                    pass
+        out, err = proc.communicate(timeout=900)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    result = json.loads(out)
+    assert result["status"] == "complete" and result["total"] == 263 and kills >= 3
+    assert_same_clusters(db_url, 10, reference10)
+    run = _faults(db_url)
+    assert run["failed"] == 0 and run["leased"] == 0 and run["retries"] > 0
+    _assert_transitions_whole(db_url, 10)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [7])
+def test_the_coordinator_killed_five_times_then_rerun(db_url, seed):
+    """kill -9 the coordinator at five moments drawn from the seed, rerunning the same command each
+    time: the last run completes with the clusters of an undisturbed one, nothing failed (a lease it
+    left behind is put back without an attempt), no duplicate, every transition written once."""
+    from packings.workers.explore import explore
+
+    rng = random.Random(seed)
+    moments = sorted(rng.sample(range(3, 50), 5))
+    for moment in moments:
+        proc = start("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet")
+        try:
+            wait_for(lambda: done_count(db_url) >= moment, proc)
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=30)
+        finally:
+            proc.kill()
+    r = cli("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet", "--max-attempts", "1")
+    assert r.returncode == 0, r.stderr
+    assert "n = 9: 52 rigid clusters" in r.stdout and "(resumed)" in r.stdout
+    assert_same_clusters(db_url, 9, list(explore(9).clusters))
+    run = _faults(db_url)
+    assert run["failed"] == 0 and run["leased"] == 0 and run["retries"] > 0
+    _assert_transitions_whole(db_url, 9)
+    engine = make_engine(db_url)
+    with sessions(engine)() as s:
+        assert s.execute(select(func.max(ExpansionRow.attempts))).scalar() == 1
+        assert s.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == LEASED)).scalar() == 0
+    engine.dispose()
+
+
+def test_a_write_back_that_dies_half_way_leaves_nothing_and_is_retried(engine, monkeypatch, paper_counts):
+    """The write-back of one task raises after half of its clusters are inserted (once): nothing of
+    that transaction is visible, the task's expansions are retried (an attempt each: the fault is in
+    the task), and the run ends with exactly the paper's clusters."""
+    import packings.store
+
+    real = packings.store.insert_or_match
+    state = {"calls": 0, "raised": False}
+
+    def dying(session, c, *a, **kw):
+        state["calls"] += 1
+        if not state["raised"] and state["calls"] == 6:  # within the second task's write-back, half-way
+            state["raised"] = True
+            raise RuntimeError("worker died mid-write (injected)")
+        return real(session, c, *a, **kw)
+
+    monkeypatch.setattr(packings.store, "insert_or_match", dying)
+    result = _in_process_run(engine, 9, monkeypatch, lambda real_task, e, p: real_task(e, p))
+    assert state["raised"] and result.status == "complete"
+    assert result.by_contacts == {int(k): v for k, v in paper_counts["clusters_by_contacts"]["9"].items()}
+    rows = _expansions(engine)
+    retried = [e for e in rows if e.attempts == 2]
+    assert retried and all(e.status == DONE for e in rows)
+    with sessions(engine)() as s:
+        keys = s.execute(select(ClusterRow.n, ClusterRow.certificate, ClusterRow.embedding)).all()
+        transitions = s.execute(select(func.count()).select_from(Transition)).scalar()
+        per_attempt = s.execute(select(func.count()).select_from(
+            select(Transition.source_id, Transition.broken, Transition.direction)
+            .group_by(Transition.source_id, Transition.broken, Transition.direction)
+            .having(func.count() > 1).subquery())).scalar()
+    assert len(keys) == len(set(keys)) == 52 and per_attempt == 0 and transitions > 0
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 400 KiB file system (tmpfs), which an n = 10 catalogue (about 1.2 MB) fills mid-run."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here (needs root): {(r.stderr or r.stdout).strip()[:120]}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+@pytest.mark.slow
+def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_after(small_disk, reference10):
+    url = f"sqlite:///{small_disk / 'packings.db'}"
+    r = cli("enumerate", "10", "--db", url, "--workers", "2", "--quiet")
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert lines[-1].startswith("packings: error: the database cannot be written (")
+    assert "database or disk is full" in lines[-1] and "run the same command again" in lines[-1]
+    assert all(" packings WARNING: " in line for line in lines[:-1]), lines  # only the faults logged
+    done_before = done_count(url)
+    assert 0 < done_before < 263
+    # nothing half-written: the file is sound and nothing failed
+    engine = make_engine(url)
+    with engine.connect() as c:
+        assert c.exec_driver_sql("PRAGMA integrity_check").scalar() == "ok"
+        assert c.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == FAILED)).scalar() == 0
+    engine.dispose()
+    # space freed: the same command resumes and loses nothing
+    subprocess.run(["mount", "-o", "remount,size=64m", str(small_disk)], check=True)
+    r = cli("enumerate", "10", "--db", url, "--workers", "2", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "n = 10: 263 rigid clusters" in r.stdout and "(resumed)" in r.stdout
+    assert_same_clusters(url, 10, reference10)
+    assert _faults(url)["failed"] == 0
