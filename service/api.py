@@ -341,7 +341,11 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
         raise UsageError(f"max_break must be between 1 and 10 (got {max_break})")
     if not 1 <= max_attempts <= 100:
         raise UsageError(f"max_attempts must be between 1 and 100 (got {max_attempts})")
+    compiling = False
     if scheduler is None:
+        from packings.workers.kernel_cache import kernels_cached
+
+        compiling = kernels_cached() is False  # then the fork server compiles them as it starts
         start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
     params = Params(max_break=max_break, min_contacts=min_contacts)
     url = resolve_url(url)
@@ -350,6 +354,9 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     # a bad URL, server or schema, or a run that another live coordinator holds, is reported before any
     # Dask cluster starts
     preflight(url, check=lambda engine: _refuse_busy_run(engine, n, params))
+    if compiling:  # said, rather than a silent minute
+        print("packings: compiling the numerical kernels, once for this installation (about a minute on two "
+              "cores; later runs load them in a second)", file=sys.stderr, flush=True)
     from packings.plugin import DatabasePlugin
 
     # a local cluster starts in the background, its workers warming up with the database plugin, while the

@@ -15,7 +15,7 @@ import sys
 import click
 
 from packings.api import check_n, resolve_url
-from packings.errors import PackingsError, UsageError
+from packings.errors import Interrupted, PackingsError, UsageError
 from packings.workers.params import Params
 
 # What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
@@ -93,8 +93,11 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     """
     from packings import api
 
-    result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
-                           min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet)
+    try:
+        result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
+                               min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet)
+    except KeyboardInterrupt:  # the run put its leases back: one line (click would print a newline first)
+        raise Interrupted() from None
     url = resolve_url(db_url)
     from packings.db import display_url, parse_url
 
@@ -507,8 +510,11 @@ def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     try:
         cli.main(args=argv or ["--help"], prog_name="packings", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("aborted", err=True)
+    except Interrupted as e:
+        click.echo(f"packings: {e}", err=True)
+        sys.exit(130)
+    except click.exceptions.Abort:  # Ctrl-C outside a command's own handling (click printed a newline)
+        click.echo(f"packings: {Interrupted()}", err=True)
         sys.exit(130)
     except click.ClickException as e:
         click.echo(f"packings: error: {e.format_message()}", err=True)
@@ -523,7 +529,7 @@ def main(argv: list[str] | None = None) -> None:
         click.echo(f"packings: error: {line}", err=True)
         sys.exit(1)
     except KeyboardInterrupt:
-        click.echo("packings: interrupted; rerun the same command to resume", err=True)
+        click.echo(f"packings: {Interrupted()}", err=True)
         sys.exit(130)
 
 

@@ -113,6 +113,8 @@ class dask_client:
         import dask
         from distributed import Client, LocalCluster
 
+        from packings.plugin import LocalWorkerPlugin
+
         # Dask's own logs of a failed or lost task ("Compute Failed" with the whole error, "marked as
         # failed because workers died") would repeat what the coordinator logs in one line and keeps
         # in the database: only Dask's critical messages are shown
@@ -136,7 +138,7 @@ class dask_client:
                 try:
                     self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
                                                 dashboard_address="127.0.0.1:8787", silence_logs=logging.CRITICAL,
-                                                plugins=self.plugins)
+                                                plugins=(LocalWorkerPlugin(), *self.plugins))
                     break
                 except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
                     log.warning("the local Dask cluster failed to start (%s)%s", e,

@@ -24,3 +24,10 @@ class NotFound(PackingsError, KeyError):
 class StorageError(PackingsError):
     """The database cannot be written: its disk is full, or it is read-only.  A run stops, with its
     leases put back, and the same command resumes it once space is freed."""
+
+
+class Interrupted(PackingsError):
+    """Ctrl-C: the run stopped with its leases put back; the same command resumes it (exit status 130)."""
+
+    def __init__(self, message: str = "interrupted; run the same command to resume"):
+        super().__init__(message)

@@ -36,6 +36,22 @@ def prepare_process() -> float:
     return seconds
 
 
+class LocalWorkerPlugin(WorkerPlugin):
+    """Sets up each worker process of a local cluster (one that ``packings enumerate`` starts): they
+    ignore SIGINT.  Ctrl-C in a terminal reaches the whole process group; the coordinator alone answers
+    it, putting its leases back and closing the cluster, which stops the workers; on their own they
+    would each print a traceback of their event loop."""
+
+    name = "packings-local-worker"
+
+    def setup(self, worker) -> None:
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class DatabasePlugin(WorkerPlugin):
     """Creates the database engine once per worker process."""
 

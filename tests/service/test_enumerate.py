@@ -529,3 +529,29 @@ def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
         monkeypatch.undo()
         dask.config.refresh()  # and leave no setting behind for other tests
     assert list(seen.values()) == [expected]
+
+
+def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference9):
+    """Ctrl-C in a terminal signals the whole process group (the coordinator and its local workers):
+    one line, exit status 130, no worker's traceback, leases put back; the same command resumes."""
+    import os
+
+    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "9", "--db", db_url, "--workers", "2",
+                             "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        wait_for(lambda: done_count(db_url) >= 5, proc)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130
+    lines = err.splitlines()
+    assert lines[-1] == "packings: interrupted; run the same command to resume" and "Traceback" not in err
+    assert all(line.startswith("packings: compiling the numerical kernels") for line in lines[:-1])
+    [run] = json.loads(packings("status", "--json", "--db", db_url).stdout)
+    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 52
+    r = packings("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "n = 9: 52 rigid clusters" in r.stdout and "(resumed)" in r.stdout
+    assert_same_clusters(db_url, 9, reference9)

@@ -75,6 +75,10 @@ def test_the_installed_wheel_enumerates_in_an_empty_directory(wheel_env, tmp_pat
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert (out["status"], out["total"]) == ("complete", 5)
+    # a fresh installation compiles its kernels, and says so; the next run loads them from the cache
+    assert "packings: compiling the numerical kernels" in r.stderr
+    r = run(bin_dir, ["packings", "enumerate", "7", "--workers", "1", "--quiet", "--json"], tmp_path)
+    assert r.returncode == 0 and json.loads(r.stdout)["total"] == 5 and "compiling" not in r.stderr, r.stderr
     assert (tmp_path / "packings.db").is_file(), "the default database is created where the command runs"
     r = run(bin_dir, ["packings", "db", "version"], tmp_path)
     assert r.returncode == 0 and r.stdout.splitlines()[-1] == "up to date", r.stdout + r.stderr

@@ -1,0 +1,33 @@
+"""Whether numba's on-disk cache holds the compiled kernels, told without importing numba.
+
+The kernels of :mod:`packings.workers._compiled` are compiled with ``cache=True``: the first
+process on an installation compiles them (about a minute on two cores) and writes them to the
+``__pycache__`` folder beside the module, where later processes load them in about a second.
+Numba keeps one index file (``*.nbi``) per kernel, stamped with the SHA-256 digest of the source
+file (the digest's 32 bytes appear as they are in the pickled index), and ignores an index whose
+stamp is not the source's.  The command line asks this before its workers warm up, to say that the
+first run compiles.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+SOURCE = Path(__file__).with_name("_compiled.py")
+
+
+def kernels_cached(source: Path = SOURCE) -> bool | None:
+    """True if the cache beside ``source`` has index files, each stamped with the source as it is
+    now; False if it has none, or a stale one (the next warm-up compiles); None where this cannot be
+    told (a cache directory set by ``NUMBA_CACHE_DIR``, or a folder numba cannot write, where it uses
+    another)."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return None
+    cache = source.parent / "__pycache__"
+    if not os.access(cache if cache.is_dir() else source.parent, os.W_OK):
+        return None
+    indexes = list(cache.glob(f"{source.stem}.*.nbi")) if cache.is_dir() else []
+    digest = hashlib.sha256(source.read_bytes()).digest()
+    return bool(indexes) and all(digest in p.read_bytes() for p in indexes)
