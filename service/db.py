@@ -244,12 +244,19 @@ def current_revision(engine: Engine) -> str | None:
 
 def upgrade(engine: Engine) -> None:
     """Bring the schema to head (Alembic's upgrade)."""
+    migrate(engine, "head")
+
+
+def migrate(engine: Engine, revision: str, down: bool = False) -> None:
+    """Alembic's upgrade (or, ``down``, downgrade) to ``revision``, in one transaction on a connection
+    of ``engine`` (handed to the migrations outside a transaction: on SQLite they switch foreign keys
+    off first, see the migrations' env.py)."""
     from alembic import command
 
     cfg = alembic_config(engine)
-    with engine.begin() as conn:
+    with engine.connect() as conn:
         cfg.attributes["connection"] = conn
-        command.upgrade(cfg, "head")
+        (command.downgrade if down else command.upgrade)(cfg, revision)
 
 
 def first_line(e: BaseException) -> str:

@@ -61,7 +61,8 @@ def downgrade() -> None:
     op.drop_index('ix_clusters_source', table_name='clusters')
     if op.get_bind().dialect.name == "sqlite":
         # SQLite drops a column in place (3.35+), but not one with a REFERENCES clause: rebuild the table
-        # (as 0002's downgrade does; like it, this fails while expansions or transitions refer to clusters)
+        # (as 0002's downgrade does; env.py switches foreign keys off around it, so rows that refer to
+        # clusters do not stop it)
         with op.batch_alter_table('clusters', recreate='always') as batch:
             batch.drop_column('source_id')
             batch.drop_column('found_by')

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
-from packings.db import DatabaseError, current_revision, head_revision, make_engine, open_database, parse_url
+from packings.db import DatabaseError, current_revision, head_revision, make_engine, migrate, open_database, parse_url
 from packings.models import Base
 
 
@@ -227,15 +229,6 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
 
 
 
-def _migrate(engine, revision: str, down: bool = False) -> None:
-    from alembic import command
-
-    from packings.db import alembic_config
-
-    cfg = alembic_config(engine)
-    with engine.begin() as conn:
-        cfg.attributes["connection"] = conn
-        (command.downgrade if down else command.upgrade)(cfg, revision)
 
 
 def _how_found(engine) -> dict[int, tuple[str, int | None]]:
@@ -275,10 +268,10 @@ def test_revision_0003_backfills_how_stored_clusters_were_found(engine, tmp_path
         reached = set(c.execute(text("SELECT target_id FROM transitions WHERE target_id <> source_id")).scalars())
     assert seeds & reached
     with _another(engine, tmp_path) as target:
-        _migrate(target, "0002")
+        migrate(target, "0002")
         _copy_as_0002(engine, target)
         assert current_revision(target) == "0002"
-        _migrate(target, "head")
+        migrate(target, "head")
         assert current_revision(target) == head_revision()
         assert _how_found(target) == written
         cols = {c["name"]: c for c in inspect(target).get_columns("clusters")}
@@ -321,7 +314,7 @@ def test_db_upgrade_migrates_a_0002_database_holding_clusters(engine, tmp_path):
 
     fill_database(engine, 6)
     with _another(engine, tmp_path) as old:
-        _migrate(old, "0002")
+        migrate(old, "0002")
         _copy_as_0002(engine, old)
         url = old.url.render_as_string(hide_password=False)
         assert "packings db upgrade" in one_line_error(cli("stats", "--db", url))
@@ -330,3 +323,61 @@ def test_db_upgrade_migrates_a_0002_database_holding_clusters(engine, tmp_path):
         assert current_revision(old) == head_revision()
         assert _how_found(old) == _how_found(engine)
         assert sorted(f for f, _ in _how_found(old).values()) == ["path", "seed"]
+
+
+def _table_counts(engine) -> dict:
+    with engine.connect() as c:
+        out = {t: c.execute(text(f"SELECT count(*) FROM {t}")).scalar() for t in ("runs", "clusters", "expansions",
+                                                                               "transitions")}
+        out["by_contacts"] = sorted(c.execute(text("SELECT n, contacts, count(*) FROM clusters GROUP BY n, contacts")).all())
+        out["done"] = c.execute(text("SELECT count(*) FROM expansions WHERE status = 'done'")).scalar()
+    return out
+
+
+def test_migrations_go_down_and_up_on_a_populated_database(engine):
+    """Every revision down to the first and back up, one at a time, on a database holding an n = 8
+    run (expansions and transitions referring to its clusters, which SQLite's table rebuilds must not
+    trip over): the same rows after, and the schema is head again."""
+    from tests.service.conftest import fill_database
+
+    fill_database(engine, 8)
+    before = _table_counts(engine)
+    revisions = ["0004", "0003", "0002", "0001"]
+    for revision in revisions[1:]:
+        migrate(engine, revision, down=True)
+        assert current_revision(engine) == revision
+        assert _table_counts(engine) == before
+    for revision in reversed(revisions[:-1]):
+        migrate(engine, revision)
+        assert current_revision(engine) == revision
+        assert _table_counts(engine) == before
+    assert current_revision(engine) == head_revision()
+
+
+REPOSITORY = Path(__file__).resolve().parents[2]
+
+
+def _alembic(*args: str):
+    alembic = os.path.join(os.path.dirname(sys.executable), "alembic")
+    return subprocess.run([alembic, *args], cwd=REPOSITORY, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.skipif(not (REPOSITORY / "alembic.ini").is_file(), reason="the alembic command needs the repository")
+def test_the_alembic_command_logs_and_goes_both_ways(engine):
+    from tests.service.conftest import fill_database
+
+    fill_database(engine, 7)
+    url = engine.url.render_as_string(hide_password=False)
+    r = _alembic("-x", f"db={url}", "downgrade", "-1")
+    assert r.returncode == 0, r.stderr
+    assert f"Running downgrade {head_revision()} -> " in r.stderr  # env.py applies alembic.ini's logging
+    r = _alembic("-x", f"db={url}", "upgrade", "head")
+    assert r.returncode == 0 and f"-> {head_revision()}" in r.stderr, r.stderr
+    assert current_revision(engine) == head_revision()
+
+
+def test_alembic_sql_mode_honours_the_database_given():
+    pg = _alembic("-x", "db=postgresql://u@127.0.0.1/x", "upgrade", "head", "--sql")
+    lite = _alembic("-x", "db=sqlite:///x.db", "upgrade", "head", "--sql")
+    assert pg.returncode == 0 and lite.returncode == 0, pg.stderr + lite.stderr
+    assert "SERIAL" in pg.stdout and "SERIAL" not in lite.stdout  # PostgreSQL's DDL, not the ini's SQLite

@@ -230,16 +230,11 @@ def test_path_keys_agree_with_the_transitions(catalog, rows):
 
 
 def test_upgrade_from_0001_backfills_the_facts(db_url):
-    from alembic import command
-
-    from packings.db import alembic_config, head_revision, open_database
+    from packings.db import head_revision, migrate, open_database
 
     engine = open_database(db_url, create=True)
     ids = store_clusters(engine, [cuboctahedron(), pentagonal_bipyramid()])
-    cfg = alembic_config(engine)
-    with engine.begin() as conn:  # back to the schema before the facts
-        cfg.attributes["connection"] = conn
-        command.downgrade(cfg, "0001")
+    migrate(engine, "0001", down=True)  # back to the schema before the facts
     engine.dispose()
     one_line_error(run("stats", "--db", db_url), "packings db upgrade")
     out = ok("db", "upgrade", "--db", db_url)
