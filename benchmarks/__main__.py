@@ -9,13 +9,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import enumeration, paths, soak
+from benchmarks import enumeration, paths, screenshot, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
     "paths": paths,
     "enumerate": enumeration,
     "soak": soak,
+    "screenshot": screenshot,
 }
 
 

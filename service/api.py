@@ -318,7 +318,7 @@ def _refuse_busy_run(engine, n: int, params) -> None:
 
 def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
               max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
-              progress: bool = True) -> RunResult:
+              progress: bool = True, dashboard_address: str = "127.0.0.1:8787") -> RunResult:
     """Enumerate the rigid clusters of ``n`` spheres into the database at ``url`` (as :func:`connect`;
     created if need be), or resume the run with the same n and parameters, and return its result:
     ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,
@@ -327,7 +327,9 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     The work runs on a new local Dask cluster of ``workers`` processes (default: one per core), or on
     the existing one whose scheduler is at ``scheduler`` (e.g. ``"tcp://host:8786"``).  ``max_break``
     caps the number of contacts broken at once (default: none); ``min_contacts`` keeps only clusters
-    with at least that many contacts.  ``progress`` shows a progress bar on standard error.
+    with at least that many contacts.  ``progress`` shows a progress bar on standard error.  A local
+    cluster serves its Dask dashboard, with the run's own page (``/packings``, :mod:`packings.dashboard`),
+    at ``dashboard_address`` (another port if that one is taken).
     """
     from packings.dask_cluster import dask_client, start_fork_server
     from packings.workers.params import Params
@@ -361,7 +363,8 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
 
     # a local cluster starts in the background, its workers warming up with the database plugin, while the
     # database is opened here; .client waits for it
-    with dask_client(scheduler, workers, not progress, plugins=(DatabasePlugin(url),)) as dask:
+    with dask_client(scheduler, workers, not progress, plugins=(DatabasePlugin(url),),
+                     dashboard_address=dashboard_address, database=url) as dask:
         if scheduler:
             dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
         engine = open_database(url, create=True)

@@ -82,10 +82,13 @@ def cli(verbose: int) -> None:
 @click.option("--min-contacts", type=int, default=None, help="Keep only clusters with at least this many contacts.")
 @click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
               help="Tries per expansion before it is marked failed.")
+@click.option("--dashboard-address", default="127.0.0.1:8787", show_default=True, metavar="HOST:PORT",
+              help="Where a local cluster serves the Dask dashboard and its packings page (another port if taken).")
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: str | None, max_break: int | None,
-                  min_contacts: int | None, max_attempts: int, as_json: bool, quiet: bool) -> None:
+                  min_contacts: int | None, max_attempts: int, dashboard_address: str, as_json: bool,
+                  quiet: bool) -> None:
     """Enumerate the rigid clusters of N spheres into the database and print them by number of contacts.
 
     Resumes the run with the same N and parameters if the database has one
@@ -95,7 +98,8 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
 
     try:
         result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
-                               min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet)
+                               min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet,
+                               dashboard_address=dashboard_address)
     except KeyboardInterrupt:  # the run put its leases back: one line (click would print a newline first)
         raise Interrupted() from None
     url = resolve_url(db_url)
@@ -105,12 +109,14 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     if as_json:
         click.echo(json.dumps({"n": n, "run": result.run_id, "status": result.status, "total": result.total,
                                "by_contacts": {str(k): v for k, v in result.by_contacts.items()},
-                               "diagnostics": result.diagnostics, "seconds": round(result.seconds, 2)}))
+                               "diagnostics": result.diagnostics, "seconds": round(result.seconds, 2),
+                               "total_seconds": round(result.total_seconds, 2)}))
     else:
         click.echo(format_counts(n, result.by_contacts))
         click.echo("diagnostics: " + ", ".join(f"{k} {v}" for k, v in result.diagnostics.items()))
-        click.echo(f"run {result.run_id}: {result.status} in {result.seconds:.1f} s"
-                   + (" (resumed)" if result.resumed else "") + f"; database {display_url(parse_url(url))}")
+        took = (f"in {result.total_seconds:.1f} s, {result.seconds:.1f} s of it now (resumed)" if result.resumed
+                else f"in {result.seconds:.1f} s")
+        click.echo(f"run {result.run_id}: {result.status} {took}; database {display_url(parse_url(url))}")
     for err in result.errors[:10]:
         click.echo(f"packings: failed task: {err}", err=True)
     if result.status == "complete" and not as_json:

@@ -103,6 +103,7 @@ class RunResult:
     seconds: float
     resumed: bool
     errors: list[str] = field(default_factory=list)
+    total_seconds: float = 0.0  #: the run's time over all its coordinators (``seconds``: this one's)
 
     @property
     def total(self) -> int:
@@ -137,9 +138,10 @@ class _Heartbeat(threading.Thread):
     """Marks the run as driven by this coordinator every HEARTBEAT_SECONDS,
     however long the tasks take, so that other hosts do not take it over."""
 
-    def __init__(self, Session_, run_id: int, owner: str):
+    def __init__(self, Session_, run_id: int, owner: str, seconds: Callable[[], float] | None = None):
         super().__init__(name="packings-heartbeat", daemon=True)
         self.args = (Session_, run_id, owner)
+        self.seconds = seconds  #: the run's time so far, recorded with each beat
         self.missed = 0  #: beats that failed (each is retried at the next)
         self.stopped = threading.Event()
         self.start()
@@ -147,7 +149,7 @@ class _Heartbeat(threading.Thread):
     def run(self) -> None:
         while not self.stopped.wait(HEARTBEAT_SECONDS):
             try:
-                store.heartbeat(*self.args)
+                store.heartbeat(*self.args, self.seconds() if self.seconds else None)
             except Exception as e:  # noqa: BLE001 - a missed beat is retried at the next one
                 self.missed += 1
                 log.warning("run %d: heartbeat %d missed: %s", self.args[1], self.missed, error_line(e))
@@ -242,8 +244,10 @@ def run_enumeration(
         shared = [x for x in claimed if x[0] not in isolate]
         for part in alone + _shares(shared, _task_count(len(shared), max(1, tasks - len(alone)), capacity, batch)):
             eid, token = part[0]
-            # one alone goes first: the less it waits on a worker, the less a fault of another task hits it
-            fut = client.submit(expand_task, part, plugin.name, key=f"expand-n{n}-{eid}-{len(part)}-{token}",
+            # one alone goes first: the less it waits on a worker, the less a fault of another task hits it.
+            # The key's prefix (Dask's key_split keeps "expand_n12", drops "-n12") names the run's n in
+            # Dask's own panels (progress, task stream)
+            fut = client.submit(expand_task, part, plugin.name, key=f"expand_n{n}-{eid}-{len(part)}-{token}",
                                 pure=False, priority=int(eid in isolate))
             fut.expansions = part  # type: ignore[attr-defined]
             ac.add(fut)
@@ -265,7 +269,11 @@ def run_enumeration(
         log.warning("run %d: a task of %d expansion(s) was lost (%s); %d put back, each to be retried alone",
                     info.id, len(part), why, back)
 
-    beat = _Heartbeat(Session_, info.id, owner)
+    def so_far() -> float:
+        """The run's time: its earlier coordinators' and this one's."""
+        return info.seconds + (time.perf_counter() - start)
+
+    beat = _Heartbeat(Session_, info.id, owner, so_far)
     try:
         fill(force=True)
         shown(force=True)
@@ -301,7 +309,7 @@ def run_enumeration(
     except BaseException:
         beat.stop()
         # if the database cannot take this either, the next coordinator puts the leases back
-        _try(lambda: store.abandon(Session_, info.id, owner, time.perf_counter() - start))
+        _try(lambda: store.abandon(Session_, info.id, owner, so_far()))
         e = sys.exc_info()[1]
         full = None if isinstance(e, StorageError) else cannot_write(str(e))
         if full is not None:  # the coordinator's own write failed so
@@ -309,11 +317,12 @@ def run_enumeration(
         raise
     beat.stop()
     seconds = time.perf_counter() - start
-    status = store.finish_run(Session_, info.id, owner, seconds)
+    status = store.finish_run(Session_, info.id, owner, so_far())
     log.info("run %d (n = %d): %s after %.1f s", info.id, n, status, seconds)
     with Reader() as s:
         by_contacts = store.run_counts(s, info.id)
         diagnostics = store.run_diagnostics(s, info.id)
         errors = [f"expansion {i}: {summary(e or '')}" for i, e in s.execute(
             select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == info.id, ExpansionRow.status == FAILED))]
-    return RunResult(info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors)
+    return RunResult(info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors,
+                     info.seconds + seconds)

@@ -12,6 +12,7 @@ import logging
 import os
 import sys
 import threading
+import warnings
 from pathlib import Path
 
 from packings.errors import SchedulerError
@@ -80,6 +81,7 @@ def _load_distributed_defaults() -> None:
 
 #: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
 PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
+DASHBOARD_ADDRESS = "127.0.0.1:8787"  #: where a local cluster serves its dashboard (another port if taken)
 START_ATTEMPTS = 3  #: tries to start the local cluster (a worker process that dies as it starts fails the start)
 log = logging.getLogger(__name__)
 
@@ -93,8 +95,10 @@ class dask_client:
     need, and run ``plugins``' setup before it is up); :attr:`client` waits for it.
     """
 
-    def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool, plugins=()):
+    def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool, plugins=(),
+                 dashboard_address: str = DASHBOARD_ADDRESS, database: str | None = None):
         self.scheduler, self.n_workers, self.quiet, self.plugins = scheduler, n_workers, quiet, tuple(plugins)
+        self.dashboard_address, self.database = dashboard_address, database
         self.cluster = self._client = self._error = self._thread = None
         self._announced = False
 
@@ -134,10 +138,15 @@ class dask_client:
                 dask.config.set({"distributed.worker.profile.enabled": False})
             start_fork_server()  # if `packings enumerate` has not yet
             # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
+            import packings.dashboard  # its page joins the dashboard of the scheduler started now
+
+            # a busy port: Dask takes another and warns; the address taken is said once, by .wait()
+            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
             for attempt in range(START_ATTEMPTS):
                 try:
                     self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                                dashboard_address="127.0.0.1:8787", silence_logs=logging.CRITICAL,
+                                                dashboard_address=self.dashboard_address,
+                                                silence_logs=logging.CRITICAL,
                                                 plugins=(LocalWorkerPlugin(), *self.plugins))
                     break
                 except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
@@ -145,6 +154,9 @@ class dask_client:
                                 "; trying again" if attempt + 1 < START_ATTEMPTS else "")
                     if attempt + 1 == START_ATTEMPTS:
                         raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
+            packings.dashboard.serve_json(self.cluster.scheduler)
+            if self.database:
+                packings.dashboard.watch(self.database)
             self._client = Client(self.cluster)
 
     @property
@@ -160,7 +172,14 @@ class dask_client:
             raise self._error
         if not (self.quiet or self._announced):
             where = self.scheduler or f"local cluster, {len(self._client.nthreads())} worker processes"
-            print(f"dask: {where}; dashboard {self._client.dashboard_link}", file=sys.stderr, flush=True)
+            link = self._client.dashboard_link
+            if self.cluster is not None:
+                wanted = self.dashboard_address.rsplit(":", 1)[-1]
+                port = str(self.cluster.scheduler.http_server.port)
+                if wanted not in ("0", port):
+                    print(f"packings: dashboard port {wanted} is taken; serving it on {port}", file=sys.stderr)
+                link = link.replace("/status", "/packings")
+            print(f"dask: {where}; dashboard {link}", file=sys.stderr, flush=True)
             self._announced = True
         return self._client
 

@@ -235,6 +235,7 @@ class RunInfo:
     params: Params
     created: bool
     recovered: int = 0  #: expansions leased by a coordinator that was gone, put back to pending
+    seconds: float = 0.0  #: the run's time before this coordinator took it (its earlier coordinators')
 
 
 def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> RunInfo:
@@ -265,17 +266,22 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
         run.heartbeat_at = utcnow()
         if run.status != COMPLETE:
             run.status = RUNNING
-        run_id = run.id
-    return RunInfo(run_id, n, params, created, recovered)
+        run_id, seconds = run.id, run.seconds or 0.0
+    return RunInfo(run_id, n, params, created, recovered, seconds)
 
 
-def heartbeat(Session_: sessionmaker, run_id: int, owner: str) -> None:
+def heartbeat(Session_: sessionmaker, run_id: int, owner: str, seconds: float | None = None) -> None:
+    """Mark the run as held by ``owner`` now and, if given, record its ``seconds`` so far (the time of
+    all its coordinators: :attr:`RunInfo.seconds` plus this one's), so that ``status`` shows a running
+    run's time and a coordinator that is killed loses at most one beat of it."""
+    values = {"heartbeat_at": utcnow(), **({} if seconds is None else {"seconds": seconds})}
     with Session_.begin() as s:
-        s.execute(update(Run).where(Run.id == run_id, Run.coordinator == owner).values(heartbeat_at=utcnow()))
+        s.execute(update(Run).where(Run.id == run_id, Run.coordinator == owner).values(**values))
 
 
 def finish_run(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> str:
-    """Mark the run complete (or incomplete, if some expansions failed) and let it go."""
+    """Mark the run complete (or incomplete, if some expansions failed) and let it go, its time so far
+    being ``seconds`` (see :func:`heartbeat`)."""
     with Session_.begin() as s:
         run = s.get(Run, run_id)
         counts = frontier(s, run_id)
@@ -308,9 +314,10 @@ def _unlease(s: Session, run_id: int, *where, retry: bool = False) -> int:
 
 
 def _let_go(run: Run, owner: str, seconds: float) -> None:
-    """Add this coordinator's time to the run and release the run if it holds it."""
-    run.seconds = (run.seconds or 0.0) + seconds
+    """If this coordinator holds the run: record its ``seconds`` so far (see :func:`heartbeat`) and
+    release it."""
     if run.coordinator == owner:
+        run.seconds = seconds
         run.coordinator = None
 
 

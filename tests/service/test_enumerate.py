@@ -96,6 +96,8 @@ def test_enumerate_9_with_a_local_cluster(db_url, reference9, paper_counts):
     assert r2.returncode == 0, r2.stderr
     again = json.loads(r2.stdout)
     assert again["run"] == out["run"] and again["by_contacts"] == out["by_contacts"]
+    # its time: the first run's, and a moment now
+    assert again["total_seconds"] >= out["seconds"] > again["seconds"]
     assert_same_clusters(db_url, 9, reference9)
     # and stats reads the same counts
     r3 = packings("stats", "--json", "--db", db_url)
@@ -217,8 +219,10 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
     dask = os.path.join(os.path.dirname(sys.executable), "dask")
     port, dash = _free_port(), _free_port()
     address = f"tcp://127.0.0.1:{port}"
+    # the scheduler serves the packings page of the database it is told (README: many machines)
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", f"127.0.0.1:{dash}"], stderr=subprocess.DEVNULL)]
+                               "--dashboard-address", f"127.0.0.1:{dash}", "--preload", "packings.dashboard"],
+                              stderr=subprocess.DEVNULL, env={**os.environ, "PACKINGS_DB": db_url})]
     try:
         _wait_until_listening(port)  # as an operator starts the scheduler before pointing anything at it
         procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads", "1"],
@@ -236,6 +240,20 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
             workers = {w for (w,) in s.execute(select(ExpansionRow.worker))}
         engine.dispose()
         assert workers and all(w.startswith("tcp://127.0.0.1:") for w in workers)
+        # the page's data: the run as the database has it (read every second)
+        import urllib.request
+
+        time.sleep(2)
+        with urllib.request.urlopen(f"http://127.0.0.1:{dash}/packings.json", timeout=10) as page:
+            snap = json.loads(page.read())
+        assert (snap["run"], snap["n"], snap["status"], snap["clusters"]) == (out["run"], 8, "complete", 13)
+        assert snap["frontier"] == {"pending": 0, "leased": 0, "done": 13, "failed": 0}
+        # Dask's own panels name the tasks by run: their keys carry n
+        from distributed import Client
+
+        with Client(address, timeout="30s") as client:
+            prefixes = client.run_on_scheduler(lambda dask_scheduler: sorted(dask_scheduler.task_prefixes))
+        assert "expand_n8" in prefixes, prefixes
     finally:
         for p in reversed(procs):
             p.terminate()

@@ -446,3 +446,21 @@ def test_a_stored_traceback_has_a_one_line_summary():
     assert text.startswith("Traceback (most recent call last)") and "test_a_stored_traceback" in text
     assert summary(text) == "ValueError: boom"
     assert summary("KilledWorker: lost\ndetails") == "KilledWorker: lost" and summary("") == ""
+
+
+def test_a_runs_time_is_kept_across_coordinators_and_recorded_while_it_runs(run8):
+    """The heartbeat records the run's time so far (status shows it while the run goes on); letting
+    the run go records it; the next coordinator starts from it."""
+    S, info = run8
+    assert info.seconds == 0.0
+    store.heartbeat(S, info.id, OWNER, 4.5)
+    with S() as s:
+        assert s.get(Run, info.id).seconds == 4.5
+    store.abandon(S, info.id, OWNER, 6.0)
+    again = store.start_run(S, 8, Params(), OWNER + "-2")
+    assert again.seconds == 6.0
+    store.heartbeat(S, info.id, OWNER, 99.0)  # no longer the holder: changes nothing
+    assert store.finish_run(S, info.id, OWNER + "-2", 7.25) in ("running", "complete")
+    with S() as s:
+        assert s.get(Run, info.id).seconds == 7.25
+

@@ -1,0 +1,253 @@
+"""The ``packings`` page of the Dask dashboard: a run's progress, read from its database.
+
+Importing this module adds the page (``/packings``, a Bokeh document) and its data
+(``/packings.json``) to every Dask scheduler created afterwards in the process:
+``packings enumerate`` imports it before it starts its local cluster, and a scheduler
+of many machines loads it as a preload::
+
+    PACKINGS_DB=postgresql://user@db-host/packings dask scheduler --preload packings.dashboard
+
+What the page shows comes from a thread that reads the database every
+:data:`POLL_SECONDS` (never the scheduler's event loop, which a query would stall):
+the run being driven (the one whose coordinator is alive, else the latest), its
+clusters by number of contacts, its frontier (pending, leased, done, failed), the
+faults recovered, expansions per second over the last minute, an estimate of the
+time left (pending expansions over that rate: a lower bound, since the frontier
+grows while a run goes on), each worker's expansions, and the failed expansions
+with their errors.  The JSON is the same snapshot.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import logging
+import os
+import threading
+import time
+from collections import deque
+
+log = logging.getLogger(__name__)
+
+POLL_SECONDS = 1.0  #: how often the database is read
+RATE_WINDOW = 60.0  #: seconds over which expansions per second are measured
+PAGE = "/packings"
+
+
+class Watcher(threading.Thread):
+    """Reads the database every POLL_SECONDS into :attr:`snapshot` (a dict; empty before the first read)."""
+
+    def __init__(self, url: str):
+        super().__init__(name="packings-dashboard", daemon=True)
+        self.url = url
+        self.snapshot: dict = {}
+        self.history: deque[tuple[float, int]] = deque()  # (monotonic time, expansions done)
+        self.stopped = threading.Event()
+        self._engine = None
+
+    def run(self) -> None:
+        while not self.stopped.is_set():
+            try:
+                self.snapshot = self.read()
+            except Exception as e:  # noqa: BLE001 - shown on the page; the next read may succeed
+                self.snapshot = {**self.snapshot, "error": f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"}
+            self.stopped.wait(POLL_SECONDS)
+        if self._engine is not None:
+            self._engine.dispose()
+
+    def stop(self) -> None:
+        self.stopped.set()
+
+    def read(self) -> dict:
+        from packings.db import make_engine, sessions
+
+        if self._engine is None:
+            self._engine = make_engine(self.url)
+        with sessions(self._engine, readonly=True)() as s:
+            data = read_run(s)
+        if data.get("run") is not None:
+            now = time.monotonic()
+            if self.history and self.history[-1][1] > data["frontier"]["done"]:
+                self.history.clear()  # another run
+            self.history.append((now, data["frontier"]["done"]))
+            while now - self.history[0][0] > RATE_WINDOW:
+                self.history.popleft()
+            (t0, d0), (t1, d1) = self.history[0], self.history[-1]
+            rate = (d1 - d0) / (t1 - t0) if t1 > t0 else 0.0
+            pending = data["frontier"]["pending"] + data["frontier"]["leased"]
+            data["rate"] = round(rate, 2)
+            data["eta_seconds"] = round(pending / rate, 0) if rate > 0 else None
+        return data
+
+
+def read_run(s) -> dict:
+    """The snapshot of the run being driven (one session's reads)."""
+    from sqlalchemy import func, select
+
+    from packings import store
+    from packings.models import FAILED, ExpansionRow, Run
+    from packings.owners import coordinator_alive
+    from packings.tasks import summary
+
+    runs = s.execute(select(Run).order_by(Run.started_at.desc(), Run.id.desc())).scalars().all()
+    run = next((r for r in runs if r.coordinator and coordinator_alive(r.coordinator, r.heartbeat_at)), None)
+    run = run or (runs[0] if runs else None)
+    at = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    if run is None:
+        return {"run": None, "at": at}
+    f = store.frontier(s, run.id)
+    frontier = {k: int(f.get(k, 0)) for k in ("pending", "leased", "done", "failed")}
+    workers = [{"worker": w, "done": int(k), "seconds": round(float(t or 0.0), 1)} for w, k, t in s.execute(
+        select(ExpansionRow.worker, func.count(), func.sum(ExpansionRow.seconds))
+        .where(ExpansionRow.run_id == run.id, ExpansionRow.status == "done").group_by(ExpansionRow.worker)
+        .order_by(ExpansionRow.worker))]
+    failed = [{"expansion": i, "error": summary(e or "")} for i, e in s.execute(
+        select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == run.id, ExpansionRow.status == FAILED)
+        .order_by(ExpansionRow.id).limit(50))]
+    by_contacts = store.run_counts(s, run.id)
+    alive = bool(run.coordinator) and coordinator_alive(run.coordinator, run.heartbeat_at)
+    return {"run": run.id, "n": run.n, "status": run.status if alive or run.status != "running" else "interrupted",
+            "at": at, "clusters": sum(by_contacts.values()), "by_contacts": {str(m): k for m, k in by_contacts.items()},
+            "frontier": frontier, **store.faults(s, run.id), "workers": workers, "failed": failed,
+            "seconds": round(run.seconds or 0.0, 1)}
+
+
+_WATCHERS: dict[str, Watcher] = {}
+_CURRENT: list[Watcher] = []
+
+
+def watch(url: str) -> Watcher:
+    """Show the runs of the database at ``url`` on the page (one watching thread per database)."""
+    w = _WATCHERS.get(url)
+    if w is None or not w.is_alive():
+        w = _WATCHERS[url] = Watcher(url)
+        w.start()
+    _CURRENT[:] = [w]
+    return w
+
+
+def current() -> dict:
+    return _CURRENT[0].snapshot if _CURRENT else {"run": None, "error": "no database: set PACKINGS_DB"}
+
+
+# --------------------------------------------------------------------------- the page
+
+
+def _html(d: dict) -> str:
+    if d.get("run") is None:
+        return f"<h2>packings</h2><p>{d.get('error') or 'no run in the database yet'}</p>"
+    fr = d["frontier"]
+    eta = d.get("eta_seconds")
+    left = "—" if eta is None else str(dt.timedelta(seconds=int(eta)))
+    rows = [("run", f"{d['run']} (n = {d['n']}), {d['status']}"), ("clusters found", d["clusters"]),
+            ("expansions", f"{fr['done']} done, {fr['pending']} pending, {fr['leased']} leased, {fr['failed']} failed"),
+            ("faults recovered", f"{d['retries']} retries, {d['isolated_failures']} isolated failures"),
+            ("expansions per second", d.get("rate", "—")),
+            ("time left, at least", left + " (the frontier still grows)"), ("read at", d["at"])]
+    if d.get("error"):
+        rows.append(("database", d["error"]))
+    cells = "".join(f"<tr><th style='text-align:left;padding-right:1em'>{k}</th><td>{v}</td></tr>" for k, v in rows)
+    return f"<h2>packings: n = {d['n']}</h2><table>{cells}</table>"
+
+
+def packings_doc(scheduler, extra, doc) -> None:
+    """The Bokeh document of the page."""
+    from bokeh.layouts import column, row
+    from bokeh.models import ColumnDataSource, DataTable, Div, TableColumn
+    from bokeh.plotting import figure
+
+    header = Div(text=_html(current()), width=700, styles={"padding-top": "40px"})  # below the navigation bar
+    contacts = ColumnDataSource({"contacts": [], "clusters": []})
+    bars = figure(title="clusters by number of contacts", x_range=[], height=280, width=460,
+                  tools="", toolbar_location=None)
+    bars.vbar(x="contacts", top="clusters", source=contacts, width=0.8)
+    states = ["pending", "leased", "done", "failed"]
+    frontier = ColumnDataSource({"state": states, "expansions": [0] * 4})
+    fbars = figure(title="frontier", x_range=states, height=280, width=360, tools="", toolbar_location=None)
+    fbars.vbar(x="state", top="expansions", source=frontier, width=0.8)
+    rate = ColumnDataSource({"t": [], "rate": []})
+    line = figure(title="expansions per second", height=220, width=820, x_axis_type="datetime", tools="",
+                  toolbar_location=None)
+    line.line(x="t", y="rate", source=rate)
+    workers = ColumnDataSource({"worker": [], "done": [], "seconds": []})
+    wtable = DataTable(source=workers, height=160, width=820, columns=[
+        TableColumn(field="worker", title="worker"), TableColumn(field="done", title="expansions done"),
+        TableColumn(field="seconds", title="seconds in expand")])
+    failures = ColumnDataSource({"expansion": [], "error": []})
+    ftable = DataTable(source=failures, height=140, width=820, columns=[
+        TableColumn(field="expansion", title="failed expansion"), TableColumn(field="error", title="error")])
+
+    def update() -> None:
+        d = current()
+        header.text = _html(d)
+        if d.get("run") is None:
+            return
+        keys = list(d["by_contacts"])
+        if list(bars.x_range.factors) != keys:
+            bars.x_range.factors = keys
+        contacts.data = {"contacts": keys, "clusters": list(d["by_contacts"].values())}
+        frontier.data = {"state": states, "expansions": [d["frontier"][k] for k in states]}
+        if "rate" in d:
+            rate.stream({"t": [dt.datetime.now()], "rate": [d["rate"]]}, rollover=600)
+        workers.data = {k: [w[k] for w in d["workers"]] for k in ("worker", "done", "seconds")}
+        failures.data = {k: [f[k] for f in d["failed"]] for k in ("expansion", "error")}
+
+    update()
+    doc.add_periodic_callback(update, int(POLL_SECONDS * 1000))
+    doc.title = "Dask: packings"
+    doc.add_root(column(header, row(bars, fbars), line, wtable, ftable))
+    from distributed.dashboard.components.scheduler import BOKEH_THEME, env
+
+    doc.template = env.get_template("simple.html")
+    doc.template_variables.update(extra)
+    doc.theme = BOKEH_THEME
+
+
+def _json_handler():
+    from tornado import web
+
+    class SnapshotHandler(web.RequestHandler):
+        def get(self) -> None:
+            self.set_header("Content-Type", "application/json")
+            self.write(json.dumps(current()))
+
+    return SnapshotHandler
+
+
+def serve_json(scheduler) -> None:
+    """Add ``/packings.json`` to ``scheduler``'s web server."""
+    scheduler.http_application.add_handlers(r".*", [(PAGE + r"\.json", _json_handler())])
+
+
+def _register() -> None:
+    """Add the page to the dashboard of every scheduler created from now on in this process, and to
+    its navigation bar."""
+    try:
+        import distributed.dashboard.scheduler as dashboard
+    except ImportError:  # no Bokeh: Dask serves no dashboard at all
+        return
+    if PAGE in dashboard.applications:
+        return
+    dashboard.applications[PAGE] = packings_doc
+    pages_of = dashboard.template_variables
+
+    def template_variables(scheduler):
+        out = pages_of(scheduler)
+        if "packings" not in out["pages"]:
+            out["pages"].insert(0, "packings")
+        return out
+
+    dashboard.template_variables = template_variables
+
+
+_register()
+
+
+def dask_setup(scheduler) -> None:
+    """``dask scheduler --preload packings.dashboard``: watch ``$PACKINGS_DB`` and serve the JSON."""
+    url = os.environ.get("PACKINGS_DB")
+    if url:
+        watch(url)
+    else:
+        log.warning("packings.dashboard: PACKINGS_DB is not set; the packings page shows nothing")
+    serve_json(scheduler)
