@@ -181,6 +181,10 @@ def test_commands_parse_to_the_intended_settings(compose):
     services = compose["services"]
     p = parsed(argv(services["scheduler"]))
     assert (p["host"], p["dashboard_address"], p["port"]) == ("0.0.0.0", ":8787", None)  # port None: 8786
+    assert p["preload"] == ("packings.dashboard",) and services["scheduler"]["environment"]["PACKINGS_DB"]
+    import importlib
+
+    assert hasattr(importlib.import_module(p["preload"][0]), "dask_setup")  # a module the scheduler can preload
     p = parsed(argv(services["worker"]))
     assert (p["scheduler"], int(p["n_workers"]), p["nthreads"], p["preload_argv"]) == ("tcp://scheduler:8786", 1, 1, ())
     p = parsed(argv(services["coordinator"], {"N": "11"}))
