@@ -42,11 +42,26 @@ def worker_processes(pid: int) -> list:
     server, which is left out: it is their parent)."""
     import psutil
 
-    kids = [p for p in psutil.Process(pid).children(recursive=True)
-            if any("multiprocessing" in a or "spawn_main" in a for a in p.cmdline())
-            and "resource_tracker" not in " ".join(p.cmdline())]
+    def command(p) -> str:
+        try:
+            return " ".join(p.cmdline())
+        except psutil.Error:  # gone meanwhile (killed, or its nanny replacing it)
+            return ""
+
+    def children(p) -> list:
+        try:
+            return p.children()
+        except psutil.Error:
+            return []
+
+    try:
+        kids = psutil.Process(pid).children(recursive=True)
+    except psutil.Error:
+        return []
+    kids = [p for p in kids if ("multiprocessing" in command(p) or "spawn_main" in command(p))
+            and "resource_tracker" not in command(p)]
     pids = {p.pid for p in kids}
-    return [p for p in kids if not any(c.pid in pids for c in p.children())]
+    return [p for p in kids if not any(c.pid in pids for c in children(p))]
 
 
 @contextmanager

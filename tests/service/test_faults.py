@@ -311,3 +311,72 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_after(small_disk, 
     assert "n = 10: 263 rigid clusters" in r.stdout and "(resumed)" in r.stdout
     assert_same_clusters(url, 10, reference10)
     assert _faults(url)["failed"] == 0
+
+
+@pytest.fixture(scope="module")
+def reference8():
+    from packings.workers.explore import explore
+
+    return list(explore(8).clusters)
+
+
+def test_two_runs_of_different_n_on_one_postgresql_database_at_once(pg_url, reference8):
+    """Two coordinators, each with its own local cluster, on one PostgreSQL database at the same time:
+    both runs complete with exactly their clusters."""
+    from packings.workers.explore import explore
+
+    procs = [start("enumerate", str(n), "--db", pg_url, "--workers", "1", "--quiet", "--dashboard-address",
+                   "127.0.0.1:0") for n in (8, 9)]
+    outs = [p.communicate(timeout=900) for p in procs]
+    for p, (out, err) in zip(procs, outs):
+        assert p.returncode == 0, err
+    assert "n = 8: 13 rigid clusters" in outs[0][0] and "n = 9: 52 rigid clusters" in outs[1][0]
+    assert_same_clusters(pg_url, 8, reference8)
+    assert_same_clusters(pg_url, 9, list(explore(9).clusters))
+
+
+@pytest.mark.slow
+def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10):
+    """The many-machine setting on one machine: `dask scheduler`, four `dask worker` processes, the
+    coordinator with --scheduler on PostgreSQL; one worker process is killed mid-run (its nanny starts
+    another): the run completes, exact."""
+    import os
+    import sys
+
+    import psutil
+
+    from tests.service.test_enumerate import _free_port, _wait_until_listening
+
+    dask = os.path.join(os.path.dirname(sys.executable), "dask")
+    port = _free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address",
+                               "127.0.0.1:0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        _wait_until_listening(port)
+        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "4", "--nthreads", "1"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        assert cli("db", "upgrade", "--db", pg_url).returncode == 0
+        run = start("enumerate", "10", "--db", pg_url, "--scheduler", address, "--quiet")
+        try:
+            wait_for(lambda: done_count(pg_url) >= 40, run)
+            nannies = psutil.Process(procs[1].pid).children()
+            workers = [c for nanny in nannies for c in nanny.children()] or nannies
+            assert workers, "no worker process to kill"
+            sorted(workers, key=lambda p: p.pid)[0].send_signal(signal.SIGKILL)
+            out, err = run.communicate(timeout=900)
+        finally:
+            run.kill()
+        assert run.returncode == 0, err
+        assert "n = 10: 263 rigid clusters" in out
+        assert_same_clusters(pg_url, 10, reference10)
+        status = _faults(pg_url)
+        assert status["failed"] == 0 and status["leased"] == 0
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
