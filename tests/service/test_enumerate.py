@@ -196,6 +196,17 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def stop(procs: list) -> None:
+    """Terminate processes, the last started first; kill those that do not end within 30 s."""
+    for p in reversed(procs):
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
 def _wait_until_listening(port: int, timeout: float = 120.0) -> None:
     """A `dask scheduler` just launched takes seconds to listen (longer on a loaded machine)."""
     import socket
@@ -255,13 +266,7 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
             prefixes = client.run_on_scheduler(lambda dask_scheduler: sorted(dask_scheduler.task_prefixes))
         assert "expand_n8" in prefixes, prefixes
     finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop(procs)
 
 
 def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatch):

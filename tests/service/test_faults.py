@@ -345,7 +345,7 @@ def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10)
 
     import psutil
 
-    from tests.service.test_enumerate import _free_port, _wait_until_listening
+    from tests.service.test_enumerate import _free_port, _wait_until_listening, stop
 
     dask = os.path.join(os.path.dirname(sys.executable), "dask")
     port = _free_port()
@@ -373,10 +373,4 @@ def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10)
         status = _faults(pg_url)
         assert status["failed"] == 0 and status["leased"] == 0
     finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop(procs)
