@@ -55,13 +55,16 @@ def worker_processes(pid: int) -> list:
             return []
 
     try:
-        kids = psutil.Process(pid).children(recursive=True)
+        root = psutil.Process(pid)
+        kids = root.children(recursive=True)
     except psutil.Error:
         return []
     kids = [p for p in kids if ("multiprocessing" in command(p) or "spawn_main" in command(p))
             and "resource_tracker" not in command(p)]
+    # never the fork server (a child of pid whose command says so), even when it has no worker left
+    server = {p.pid for p in children(root) if "forkserver" in command(p)}
     pids = {p.pid for p in kids}
-    return [p for p in kids if not any(c.pid in pids for c in children(p))]
+    return [p for p in kids if p.pid not in server and not any(c.pid in pids for c in children(p))]
 
 
 @contextmanager

@@ -19,6 +19,7 @@ runs): ``import packings`` must stay cheap for every Dask worker.
 from __future__ import annotations
 
 import json
+import os
 import sys
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
@@ -316,6 +317,10 @@ def _refuse_busy_run(engine, n: int, params) -> None:
         raise held
 
 
+LOCAL_WORKERLESS_SECONDS = 60.0  #: a local cluster without a worker for this long ends the run (resumably)
+WORKERLESS_ENV = "PACKINGS_WORKERLESS_SECONDS"  #: overrides it
+
+
 def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
               max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
               progress: bool = True, dashboard_address: str = "127.0.0.1:8787") -> RunResult:
@@ -376,8 +381,11 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
                       f"({engine.url.database}); use PostgreSQL for many machines", file=sys.stderr)
             bar = _progress_bar(progress)
             try:
+                # a local cluster that has had no worker for this long cannot start them again: stop, resumably
+                # (an existing cluster's workers may join later: wait for them)
+                workerless = None if scheduler else float(os.environ.get(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS))
                 return run_enumeration(engine, url, n, params, dask.client, on_progress=bar if progress else None,
-                                       max_attempts=max_attempts)
+                                       max_attempts=max_attempts, workerless_timeout=workerless)
             finally:
                 bar.close()
         finally:

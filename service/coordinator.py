@@ -43,7 +43,7 @@ from sqlalchemy import Engine, select
 
 from packings import store
 from packings.db import sessions
-from packings.errors import StorageError
+from packings.errors import SchedulerError, StorageError
 from packings.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
 from packings.owners import process_name
 from packings.plugin import DatabasePlugin
@@ -67,6 +67,7 @@ def cannot_write(error: str) -> str | None:
 
 HEARTBEAT_SECONDS = 10.0
 CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
+WATCH_SECONDS = 2.0  #: how often the watchdog asks whether any worker is left
 PROGRESS_SECONDS = 0.25  #: how often progress is read from the database and shown
 #: expansions per Dask task at most: a task costs the coordinator and Dask's scheduler a few ms of CPU,
 #: its worker about 4 ms between tasks and its write-back's fixed part (BEGIN, COMMIT, one query of the
@@ -188,6 +189,43 @@ def _try(f: Callable) -> None:
         log.warning("%s", error_line(e))
 
 
+class _Watchdog(threading.Thread):
+    """Watches the number of Dask workers every WATCH_SECONDS.  While there is none it logs a warning
+    every minute; after ``timeout`` seconds without one (a local cluster that cannot start workers
+    again, e.g. its fork server was killed) it sets :attr:`stalled` and cancels the tasks in flight
+    (``cancel()``), so that the coordinator stops, resumably, rather than wait for ever."""
+
+    def __init__(self, client: Client, run_id: int, timeout: float | None, cancel: Callable[[], None]):
+        super().__init__(name="packings-watchdog", daemon=True)
+        self.client, self.run_id, self.timeout, self.cancel = client, run_id, timeout, cancel
+        self.stalled = False
+        self.stopped = threading.Event()
+        self.start()
+
+    def run(self) -> None:
+        since = warned = None
+        while not self.stopped.wait(WATCH_SECONDS):
+            try:
+                workers = len(self.client.nthreads())
+            except Exception:  # noqa: BLE001 - the scheduler itself is away: Dask reconnects or fails the tasks
+                continue
+            now = time.monotonic()
+            if workers:
+                since = warned = None
+                continue
+            since = since or now
+            if warned is None or now - warned >= 60:
+                log.warning("run %d: no Dask worker for %.0f s", self.run_id, now - since)
+                warned = now
+            if self.timeout is not None and now - since >= self.timeout:
+                self.stalled = True
+                self.cancel()
+                return
+
+    def stop(self) -> None:
+        self.stopped.set()
+
+
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
         f = store.frontier(s, run_id)
@@ -204,12 +242,15 @@ def run_enumeration(
     max_attempts: int = 3,
     per_worker: int = 4,
     batch: int = BATCH,
+    workerless_timeout: float | None = None,
 ) -> RunResult:
     """Create or resume the run for (n, params) and drive it to the end.
 
     ``url`` is the database URL the workers use (they open their own engine
     through :class:`packings.plugin.DatabasePlugin`).  ``per_worker`` tasks per
-    worker thread are kept in flight, of up to ``batch`` expansions each.
+    worker thread are kept in flight, of up to ``batch`` expansions each.  After
+    ``workerless_timeout`` seconds without a Dask worker the run stops with
+    :class:`packings.errors.SchedulerError` (None: it waits for workers to join).
     """
     Session_ = sessions(engine)
     Reader = sessions(engine, readonly=True)
@@ -225,6 +266,7 @@ def run_enumeration(
     start = time.perf_counter()
     ac = as_completed()
     in_flight = 0
+    flight: set = set()  #: the futures in flight (the watchdog cancels them)
 
     threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
     shown = _Every(PROGRESS_SECONDS, lambda: on_progress(_progress(Reader, info.id)) if on_progress else None)
@@ -251,6 +293,7 @@ def run_enumeration(
                                 pure=False, priority=int(eid in isolate))
             fut.expansions = part  # type: ignore[attr-defined]
             ac.add(fut)
+            flight.add(fut)
             in_flight += 1
 
     def lost(fut, why: str) -> None:
@@ -274,12 +317,14 @@ def run_enumeration(
         return info.seconds + (time.perf_counter() - start)
 
     beat = _Heartbeat(Session_, info.id, owner, so_far)
+    watchdog = _Watchdog(client, info.id, workerless_timeout, lambda: client.cancel(list(flight.copy())))
     try:
         fill(force=True)
         shown(force=True)
         while in_flight:
             for fut in ac:
                 in_flight -= 1
+                flight.discard(fut)
                 failed = {}
                 if fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
                     lost(fut, "task cancelled")
@@ -302,12 +347,16 @@ def run_enumeration(
                         log.warning("run %d: expansion %d failed (%s): %s", info.id, eid, summary(failed[eid]),
                                     "given up" if status == FAILED else "to be retried")
                 fut.release()
+                if watchdog.stalled:
+                    raise SchedulerError(f"no Dask worker for {workerless_timeout:.0f} s (the local cluster could "
+                                         "not start them again); run the same command to resume")
                 fill()
                 shown()
             fill(force=True)
         shown(force=True)
     except BaseException:
         beat.stop()
+        watchdog.stop()
         # if the database cannot take this either, the next coordinator puts the leases back
         _try(lambda: store.abandon(Session_, info.id, owner, so_far()))
         e = sys.exc_info()[1]
@@ -316,6 +365,7 @@ def run_enumeration(
             raise not_writable(full) from None
         raise
     beat.stop()
+    watchdog.stop()
     seconds = time.perf_counter() - start
     status = store.finish_run(Session_, info.id, owner, so_far())
     log.info("run %d (n = %d): %s after %.1f s", info.id, n, status, seconds)

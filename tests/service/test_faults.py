@@ -15,6 +15,7 @@ import json
 import random
 import signal
 import subprocess
+import time
 from collections import Counter
 
 import pytest
@@ -374,3 +375,34 @@ def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10)
         assert status["failed"] == 0 and status["leased"] == 0
     finally:
         stop(procs)
+
+
+def test_a_cluster_left_without_workers_stops_the_run_resumably(engine):
+    """Every worker gone for good (here: the cluster scaled to none once ten expansions are done):
+    after ``workerless_timeout`` seconds without one the run stops with SchedulerError rather than
+    wait for ever, its leases put back without an attempt used; a new coordinator completes it."""
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    from packings.coordinator import run_enumeration
+    from packings.errors import SchedulerError
+
+    url = engine.url.render_as_string(hide_password=False)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        def retire():
+            while done_count(url) < 10:
+                time.sleep(0.05)
+            cluster.scale(0)
+
+        threading.Thread(target=retire, daemon=True).start()
+        with pytest.raises(SchedulerError, match="no Dask worker for 3 s"):
+            run_enumeration(engine, url, 9, Params(), client, workerless_timeout=3.0)
+    rows = _expansions(engine)
+    assert not any(e.status == LEASED for e in rows) and not any(e.status == FAILED for e in rows)
+    assert 10 <= sum(e.status == DONE for e in rows) < 52 and max(e.attempts for e in rows) <= 1
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
+    assert result.status == "complete" and result.total == 52 and result.resumed
