@@ -58,7 +58,6 @@ def configure_logging(verbose: int) -> None:
     logger = logging.getLogger("packings")
     logger.handlers[:] = [handler]
     logger.setLevel(level)
-    logger.propagate = False
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

@@ -194,6 +194,30 @@ def is_postgresql(engine_or_session) -> bool:
     return bind.dialect.name == "postgresql"
 
 
+def transaction_locks(conn, keys) -> None:
+    """Serialise writers on each of ``keys`` (tuples) until the transaction ends: PostgreSQL's
+    advisory transaction locks, taken in sorted order (no deadlock between two writers); nothing on
+    SQLite, whose writers hold the one write lock already (every transaction that writes begins
+    IMMEDIATE)."""
+    if not is_postgresql(conn):
+        return
+    for key in sorted(set(keys)):
+        conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key(*key)})
+
+
+def insert_many(conn, table, columns: tuple[str, ...], rows: list[tuple]) -> None:
+    """Insert ``rows`` (tuples of ``columns``' values) into ``table``.  On SQLite straight through the
+    driver's ``executemany`` (SQLAlchemy's processing of each row's parameters costs more than the
+    insert); elsewhere as a Core insert (on PostgreSQL SQLAlchemy sends many rows in each statement)."""
+    if not rows:
+        return
+    if conn.dialect.name == "sqlite":
+        conn.exec_driver_sql(f"INSERT INTO {table.name} ({', '.join(columns)}) "
+                             f"VALUES ({', '.join('?' * len(columns))})", rows)
+    else:
+        conn.execute(table.insert(), [dict(zip(columns, r)) for r in rows])
+
+
 def advisory_key(*parts) -> int:
     """A signed 64-bit key for ``pg_advisory_xact_lock`` from any parts."""
     h = hashlib.blake2b(":".join(map(str, parts)).encode(), digest_size=8).digest()

@@ -32,10 +32,10 @@ from importlib import metadata
 from typing import TYPE_CHECKING
 
 import numpy as np
-from sqlalchemy import Connection, bindparam, case, func, insert, select, text, update
+from sqlalchemy import Connection, bindparam, case, func, insert, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from packings.db import READONLY, advisory_key, is_postgresql
+from packings.db import READONLY, insert_many, transaction_locks
 from packings.owners import busy
 from packings.models import (
     COMPLETE,
@@ -111,11 +111,8 @@ _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
     _E.c.run_id == bindparam("run"), _E.c.cluster_id.in_(bindparam("ids", expanding=True)))
 _INSERT_CLUSTER = insert(_C)
 _INSERT_EXPANSION = insert(_E)
-_INSERT_TRANSITION = insert(_T)
 #: a transition's values, in this order (as tuples: see :func:`insert_transitions`)
 TRANSITION_COLUMNS = ("run_id", "source_id", "broken", "direction", "outcome", "target_id", "steps", "new_contacts")
-_SQLITE_INSERT_TRANSITIONS = (f"INSERT INTO {_T.name} ({', '.join(TRANSITION_COLUMNS)}) "
-                              f"VALUES ({', '.join('?' * len(TRANSITION_COLUMNS))})")
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -153,11 +150,9 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
 
 
 def lock_certificates(session: Session | Connection, keys) -> None:
-    """Take the certificate-level advisory locks (PostgreSQL), in sorted order."""
-    if not is_postgresql(session):
-        return
-    for n, cert in sorted(set(keys)):
-        session.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key("cluster", n, cert)})
+    """Serialise the writers of each (n, certificate) in ``keys`` to the end of the transaction
+    (:func:`packings.db.transaction_locks`)."""
+    transaction_locks(session, [("cluster", n, cert) for n, cert in keys])
 
 
 @dataclass(frozen=True)
@@ -565,16 +560,9 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
 
 
 def insert_transitions(conn: Connection, rows: list[tuple]) -> None:
-    """Insert transitions, each a tuple of :data:`TRANSITION_COLUMNS`' values.  On SQLite straight
-    through the driver's ``executemany``: SQLAlchemy's processing of each row's parameters cost about a
-    tenth of a write-back, which inserts a few dozen a cluster.  Elsewhere as a Core insert (on
-    PostgreSQL SQLAlchemy sends many rows in each statement)."""
-    if not rows:
-        return
-    if conn.dialect.name == "sqlite":
-        conn.exec_driver_sql(_SQLITE_INSERT_TRANSITIONS, rows)
-    else:
-        conn.execute(_INSERT_TRANSITION, [dict(zip(TRANSITION_COLUMNS, r)) for r in rows])
+    """Insert transitions, each a tuple of :data:`TRANSITION_COLUMNS`' values (a write-back inserts a
+    few dozen a cluster: :func:`packings.db.insert_many`)."""
+    insert_many(conn, _T, TRANSITION_COLUMNS, rows)
 
 
 def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, on_batch=None) -> int:
