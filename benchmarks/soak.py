@@ -174,10 +174,11 @@ def inspect(url: str, n: int) -> dict:
                              "GROUP BY n, certificate, embedding HAVING count(*) > 1) d")).scalar()
         row = c.execute(text("SELECT sum(CASE WHEN status = 'failed' THEN 1 ELSE 0 END), "
                              "sum(CASE WHEN status = 'leased' THEN 1 ELSE 0 END), "
+                             "sum(CASE WHEN status = 'pending' THEN 1 ELSE 0 END), "
                              "sum(retries), sum(isolated_failures) FROM expansions")).one()
     engine.dispose()
     return {"certificates": certs, "duplicates": dup, "failed": int(row[0] or 0), "leased": int(row[1] or 0),
-            "retries": int(row[2] or 0), "isolated_failures": int(row[3] or 0)}
+            "pending": int(row[2] or 0), "retries": int(row[3] or 0), "isolated_failures": int(row[4] or 0)}
 
 
 def run(args) -> int:
@@ -206,12 +207,13 @@ def run(args) -> int:
     for r in rows:
         r["expected"], r["seen"] = len(expected), len(r["certificates"])
         r["same_clusters"] = r.pop("certificates") == expected
-        ok &= r["exit"] == 0 and r["same_clusters"] and not (r["failed"] or r["leased"] or r["duplicates"])
+        ok &= r["exit"] == 0 and r["same_clusters"] and not (r["failed"] or r["leased"] or r["pending"]
+                                                                 or r["duplicates"])
     if args.json:
         print(json.dumps({"n": args.n, "seed": args.seed, "rows": rows}))
     else:
-        cols = ["backend", "faults", "injected", "expected", "seen", "same_clusters", "failed", "leased",
-                "duplicates", "retries", "isolated_failures", "seconds", "time_ratio"]
+        cols = ["backend", "faults", "injected", "exit", "expected", "seen", "same_clusters", "pending", "failed",
+                "leased", "duplicates", "retries", "isolated_failures", "seconds", "time_ratio"]
         print(f"soak, n = {args.n}, {args.workers} workers, seed {args.seed}, "
               f"allowed-failures {args.allowed_failures}")
         width = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in cols}

@@ -385,7 +385,8 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
                 # (an existing cluster's workers may join later: wait for them)
                 workerless = None if scheduler else float(os.environ.get(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS))
                 return run_enumeration(engine, url, n, params, dask.client, on_progress=bar if progress else None,
-                                       max_attempts=max_attempts, workerless_timeout=workerless)
+                                       max_attempts=max_attempts, workerless_timeout=workerless,
+                                       revive=dask.revive_workers)
             finally:
                 bar.close()
         finally:

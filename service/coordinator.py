@@ -58,13 +58,6 @@ INFRASTRUCTURE = (KilledWorker, CommClosedError, FutureCancelledError)
 CANNOT_WRITE = ("database or disk is full", "no space left on device", "could not extend file", "diskfull",
                 "readonly database", "read-only transaction", "read-only file system")
 
-
-def cannot_write(error: str) -> str | None:
-    """The exception line of a failed task's error (or of an error's text), if it says that the
-    database cannot be written."""
-    line = summary(error)
-    return line if any(w in line.lower() for w in CANNOT_WRITE) else None
-
 HEARTBEAT_SECONDS = 10.0
 CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
 WATCH_SECONDS = 2.0  #: how often the watchdog asks whether any worker is left
@@ -176,6 +169,13 @@ class _Every:
         return self.value
 
 
+def cannot_write(error: str) -> str | None:
+    """The exception line of a failed task's error (or of an error's text), if it says that the
+    database cannot be written."""
+    line = summary(error)
+    return line if any(w in line.lower() for w in CANNOT_WRITE) else None
+
+
 def not_writable(line: str) -> StorageError:
     return StorageError(f"the database cannot be written ({line}): free space or make it writable, then run "
                         "the same command again to resume")
@@ -190,14 +190,15 @@ def _try(f: Callable) -> None:
 
 
 class _Watchdog(threading.Thread):
-    """Watches the number of Dask workers every WATCH_SECONDS.  While there is none it logs a warning
-    every minute; after ``timeout`` seconds without one (a local cluster that cannot start workers
-    again, e.g. its fork server was killed) it sets :attr:`stalled` and cancels the tasks in flight
-    (``cancel()``), so that the coordinator stops, resumably, rather than wait for ever."""
+    """Watches the Dask workers every WATCH_SECONDS.  It calls ``revive()`` (a local cluster's: replace
+    the workers its nannies could not restart).  While there is no worker it logs a warning every
+    minute; after ``timeout`` seconds without one it sets :attr:`stalled` and cancels the tasks in
+    flight (``cancel()``), so that the coordinator stops, resumably, rather than wait for ever."""
 
-    def __init__(self, client: Client, run_id: int, timeout: float | None, cancel: Callable[[], None]):
+    def __init__(self, client: Client, run_id: int, timeout: float | None, cancel: Callable[[], None],
+                 revive: Callable[[], int] | None = None):
         super().__init__(name="packings-watchdog", daemon=True)
-        self.client, self.run_id, self.timeout, self.cancel = client, run_id, timeout, cancel
+        self.client, self.run_id, self.timeout, self.cancel, self.revive = client, run_id, timeout, cancel, revive
         self.stalled = False
         self.stopped = threading.Event()
         self.start()
@@ -206,6 +207,8 @@ class _Watchdog(threading.Thread):
         since = warned = None
         while not self.stopped.wait(WATCH_SECONDS):
             try:
+                if self.revive is not None:
+                    self.revive()
                 workers = len(self.client.nthreads())
             except Exception:  # noqa: BLE001 - the scheduler itself is away: Dask reconnects or fails the tasks
                 continue
@@ -243,6 +246,7 @@ def run_enumeration(
     per_worker: int = 4,
     batch: int = BATCH,
     workerless_timeout: float | None = None,
+    revive: Callable[[], int] | None = None,
 ) -> RunResult:
     """Create or resume the run for (n, params) and drive it to the end.
 
@@ -250,7 +254,8 @@ def run_enumeration(
     through :class:`packings.plugin.DatabasePlugin`).  ``per_worker`` tasks per
     worker thread are kept in flight, of up to ``batch`` expansions each.  After
     ``workerless_timeout`` seconds without a Dask worker the run stops with
-    :class:`packings.errors.SchedulerError` (None: it waits for workers to join).
+    :class:`packings.errors.SchedulerError` (None: it waits for workers to join); ``revive`` is called
+    every few seconds to replace lost workers (a local cluster's).
     """
     Session_ = sessions(engine)
     Reader = sessions(engine, readonly=True)
@@ -317,7 +322,7 @@ def run_enumeration(
         return info.seconds + (time.perf_counter() - start)
 
     beat = _Heartbeat(Session_, info.id, owner, so_far)
-    watchdog = _Watchdog(client, info.id, workerless_timeout, lambda: client.cancel(list(flight.copy())))
+    watchdog = _Watchdog(client, info.id, workerless_timeout, lambda: client.cancel(list(flight.copy())), revive)
     try:
         fill(force=True)
         shown(force=True)

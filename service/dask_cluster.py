@@ -12,6 +12,7 @@ import logging
 import os
 import sys
 import threading
+import time
 import warnings
 from pathlib import Path
 
@@ -82,6 +83,7 @@ def _load_distributed_defaults() -> None:
 #: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
 PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
 DASHBOARD_ADDRESS = "127.0.0.1:8787"  #: where a local cluster serves its dashboard (another port if taken)
+REVIVE_SECONDS = 15.0  #: how long a local worker slot may be without a process before it is replaced
 START_ATTEMPTS = 3  #: tries to start the local cluster (a worker process that dies as it starts fails the start)
 log = logging.getLogger(__name__)
 
@@ -101,6 +103,7 @@ class dask_client:
         self.dashboard_address, self.database = dashboard_address, database
         self.cluster = self._client = self._error = self._thread = None
         self._announced = False
+        self._dead_since: dict = {}  #: local worker slot -> when its process was first seen dead
 
     def __enter__(self) -> "dask_client":
         self._thread = threading.Thread(target=self._connect_or_fail, name="packings-dask-start", daemon=True)
@@ -158,6 +161,33 @@ class dask_client:
             if self.database:
                 packings.dashboard.watch(self.database)
             self._client = Client(self.cluster)
+
+    def revive_workers(self) -> int:
+        """Replace the local cluster's workers whose nanny gave up (a worker process killed while it
+        was starting again leaves its nanny without one, for good): each slot without a live process
+        for :data:`REVIVE_SECONDS` gets a new nanny and worker.  Returns how many were replaced (0 for
+        an existing cluster, whose workers are its operator's)."""
+        if self.cluster is None:
+            return 0
+        now = time.monotonic()
+        dead = []
+        for name, nanny in list(self.cluster.workers.items()):
+            if getattr(nanny, "is_alive", lambda: True)():
+                self._dead_since.pop(name, None)
+            elif now - self._dead_since.setdefault(name, now) >= REVIVE_SECONDS:
+                dead.append(name)
+        for name in dead:
+            nanny = self.cluster.workers.pop(name)
+            self.cluster.worker_spec.pop(name, None)
+            self._dead_since.pop(name, None)
+            try:
+                self.cluster.sync(nanny.close, timeout=10)
+            except Exception:  # noqa: BLE001 - it had no process left; its port is freed with the cluster
+                pass
+        if dead:
+            log.warning("%d local worker(s) could not be restarted by their nanny: starting new ones", len(dead))
+            self.cluster.scale(len(self.cluster.worker_spec) + len(dead))
+        return len(dead)
 
     @property
     def client(self):

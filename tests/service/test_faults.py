@@ -406,3 +406,35 @@ def test_a_cluster_left_without_workers_stops_the_run_resumably(engine):
             Client(cluster) as client:
         result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
     assert result.status == "complete" and result.total == 52 and result.resumed
+
+
+def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
+    """A worker process killed while its nanny could not start it again (here: the nanny's start made
+    to fail) leaves a slot without a worker for good; revive_workers gives it a new nanny and worker."""
+    import os
+
+    import packings.dask_cluster as dc
+
+    monkeypatch.setattr(dc, "REVIVE_SECONDS", 1.0)
+    with dc.dask_client(None, 2, quiet=True) as d:
+        client = d.client
+        client.wait_for_workers(2, timeout=120)
+        name, nanny = sorted(d.cluster.workers.items())[0]
+
+        async def cannot_start():
+            raise RuntimeError("injected: the new worker process died as it started")
+
+        nanny.instantiate = cannot_start
+        os.kill(nanny.process.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while len(client.nthreads()) != 1:  # the slot is empty, and stays so
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        replaced = 0
+        while not replaced:
+            assert time.monotonic() < deadline
+            replaced = d.revive_workers()
+            time.sleep(0.3)
+        assert replaced == 1 and d.cluster.workers.get(name) is not nanny  # a new nanny in its slot
+        client.wait_for_workers(2, timeout=120)
+        assert len(client.nthreads()) == 2 and len(d.cluster.workers) == 2
