@@ -382,7 +382,7 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
 
     monkeypatch.setattr(packings.coordinator, "run_enumeration", fake_run)
     monkeypatch.setattr(packings.dask_cluster, "dask_client",
-                        lambda *a, **kw: nullcontext(SimpleNamespace(client=None)))
+                        lambda *a, **kw: nullcontext(SimpleNamespace(client=None, revive_workers=lambda: 0)))
     r = CliRunner().invoke(packings.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
