@@ -23,6 +23,7 @@ import os
 import sys
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
+from packings.dask_cluster import DASHBOARD_ADDRESS
 from packings.errors import NotFound, UsageError
 
 if TYPE_CHECKING:
@@ -259,8 +260,7 @@ class Catalogue:
         from sqlalchemy import select
 
         from packings import store
-        from packings.models import RUNNING, Run
-        from packings.owners import coordinator_alive
+        from packings.models import Run
 
         out = []
         with self.session() as s:
@@ -268,10 +268,7 @@ class Catalogue:
                 f = store.frontier(s, run.id)
                 faults = store.faults(s, run.id)
                 params = json.loads(run.params)
-                status = run.status
-                if status == RUNNING and not coordinator_alive(run.coordinator, run.heartbeat_at):
-                    status = "interrupted"  # no live coordinator drives it: the same command resumes it
-                out.append({"run": run.id, "n": run.n, "status": status, "clusters": sum(f.values()),
+                out.append({"run": run.id, "n": run.n, "status": store.shown_status(run), "clusters": sum(f.values()),
                             "pending": f.get("pending", 0), "leased": f.get("leased", 0),
                             "done": f.get("done", 0), "failed": f.get("failed", 0),
                             "retries": faults["retries"], "isolated_failures": faults["isolated_failures"],
@@ -323,7 +320,7 @@ WORKERLESS_ENV = "PACKINGS_WORKERLESS_SECONDS"  #: overrides it
 
 def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
               max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
-              progress: bool = True, dashboard_address: str = "127.0.0.1:8787") -> RunResult:
+              progress: bool = True, dashboard_address: str = DASHBOARD_ADDRESS) -> RunResult:
     """Enumerate the rigid clusters of ``n`` spheres into the database at ``url`` (as :func:`connect`;
     created if need be), or resume the run with the same n and parameters, and return its result:
     ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,

@@ -15,6 +15,7 @@ import sys
 import click
 
 from packings.api import check_n, resolve_url
+from packings.dask_cluster import DASHBOARD_ADDRESS
 from packings.errors import Interrupted, PackingsError, UsageError
 from packings.workers.params import Params
 
@@ -81,7 +82,7 @@ def cli(verbose: int) -> None:
 @click.option("--min-contacts", type=int, default=None, help="Keep only clusters with at least this many contacts.")
 @click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
               help="Tries per expansion before it is marked failed.")
-@click.option("--dashboard-address", default="127.0.0.1:8787", show_default=True, metavar="HOST:PORT",
+@click.option("--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",
               help="Where a local cluster serves the Dask dashboard and its packings page (another port if taken).")
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")

@@ -270,8 +270,7 @@ def run_enumeration(
     client.register_plugin(plugin)
     start = time.perf_counter()
     ac = as_completed()
-    in_flight = 0
-    flight: set = set()  #: the futures in flight (the watchdog cancels them)
+    flight: set = set()  #: the tasks in flight (the watchdog cancels them)
 
     threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
     shown = _Every(PROGRESS_SECONDS, lambda: on_progress(_progress(Reader, info.id)) if on_progress else None)
@@ -281,11 +280,10 @@ def run_enumeration(
         are left (one claim transaction per few results rather than per result), up to ``batch``
         expansions for each task wanted, and share what was claimed out among those tasks (among more,
         smaller ones when that was all that was pending: :func:`_task_count`)."""
-        nonlocal in_flight
         capacity = per_worker * threads()
-        if not force and in_flight > capacity // 2:
+        if not force and len(flight) > capacity // 2:
             return
-        tasks = capacity - in_flight
+        tasks = capacity - len(flight)
         claimed = store.claim(Session_, info.id, owner, tasks * batch)
         alone = [[x] for x in claimed if x[0] in isolate]  # each lost once with a task: now on its own
         shared = [x for x in claimed if x[0] not in isolate]
@@ -299,13 +297,14 @@ def run_enumeration(
             fut.expansions = part  # type: ignore[attr-defined]
             ac.add(fut)
             flight.add(fut)
-            in_flight += 1
 
-    def lost(fut, why: str) -> None:
-        """``fut``'s task was lost to the infrastructure: put its expansions back, uncounted, and send
-        each alone from now on; one that was alone already and killed its workers again counts."""
+    def lost(fut, exc: BaseException | None) -> None:
+        """``fut``'s task was lost to the infrastructure (``exc``; None: cancelled): put its expansions
+        back, uncounted, and send each alone from now on; one that was alone already and killed its
+        workers again (KilledWorker) counts."""
         part = fut.expansions
-        if len(part) == 1 and part[0][0] in isolate and why.startswith(KilledWorker.__name__):
+        why = "task cancelled" if exc is None else error_line(exc)
+        if len(part) == 1 and part[0][0] in isolate and isinstance(exc, KilledWorker):
             eid, token = part[0]
             status = store.release(Session_, eid, token, f"lost its workers while running alone: {why}",
                                    max_attempts, isolated=True)
@@ -326,17 +325,16 @@ def run_enumeration(
     try:
         fill(force=True)
         shown(force=True)
-        while in_flight:
+        while flight:
             for fut in ac:
-                in_flight -= 1
                 flight.discard(fut)
                 failed = {}
                 if fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
-                    lost(fut, "task cancelled")
+                    lost(fut, None)
                 elif fut.status == "error":
                     exc = fut.exception()
                     if isinstance(exc, INFRASTRUCTURE):
-                        lost(fut, error_line(exc))
+                        lost(fut, exc)
                     elif isinstance(exc, ExpansionsFailed):
                         failed = exc.errors
                     else:

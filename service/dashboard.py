@@ -42,21 +42,16 @@ class Watcher(threading.Thread):
         self.url = url
         self.snapshot: dict = {}
         self.history: deque[tuple[float, int]] = deque()  # (monotonic time, expansions done)
-        self.stopped = threading.Event()
         self._engine = None
 
     def run(self) -> None:
-        while not self.stopped.is_set():
+        """For as long as the process lives (a daemon thread: the scheduler's process)."""
+        while True:
             try:
                 self.snapshot = self.read()
             except Exception as e:  # noqa: BLE001 - shown on the page; the next read may succeed
                 self.snapshot = {**self.snapshot, "error": f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"}
-            self.stopped.wait(POLL_SECONDS)
-        if self._engine is not None:
-            self._engine.dispose()
-
-    def stop(self) -> None:
-        self.stopped.set()
+            time.sleep(POLL_SECONDS)
 
     def read(self) -> dict:
         from packings.db import make_engine, sessions
@@ -90,7 +85,7 @@ def read_run(s) -> dict:
     from packings.tasks import summary
 
     runs = s.execute(select(Run).order_by(Run.started_at.desc(), Run.id.desc())).scalars().all()
-    run = next((r for r in runs if r.coordinator and coordinator_alive(r.coordinator, r.heartbeat_at)), None)
+    run = next((r for r in runs if coordinator_alive(r.coordinator, r.heartbeat_at)), None)
     run = run or (runs[0] if runs else None)
     at = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     if run is None:
@@ -105,8 +100,7 @@ def read_run(s) -> dict:
         select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == run.id, ExpansionRow.status == FAILED)
         .order_by(ExpansionRow.id).limit(50))]
     by_contacts = store.run_counts(s, run.id)
-    alive = bool(run.coordinator) and coordinator_alive(run.coordinator, run.heartbeat_at)
-    return {"run": run.id, "n": run.n, "status": run.status if alive or run.status != "running" else "interrupted",
+    return {"run": run.id, "n": run.n, "status": store.shown_status(run),
             "at": at, "clusters": sum(by_contacts.values()), "by_contacts": {str(m): k for m, k in by_contacts.items()},
             "frontier": frontier, **store.faults(s, run.id), "workers": workers, "failed": failed,
             "seconds": round(run.seconds or 0.0, 1)}

@@ -279,10 +279,9 @@ def migrate(engine: Engine, revision: str, down: bool = False) -> None:
 
     cfg = alembic_config(engine)
     with engine.connect() as conn:
-        if conn.dialect.name == "postgresql":
-            # one migration at a time (two coordinators starting on an empty database would both create
-            # the tables): the lock is held to the commit, and the second one then finds the schema at head
-            conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key("schema")})
+        # one migration at a time (two coordinators starting on an empty database would both create the
+        # tables): the lock is held to the commit, and the second one then finds the schema at head
+        transaction_locks(conn, [("schema",)])
         cfg.attributes["connection"] = conn
         (command.downgrade if down else command.upgrade)(cfg, revision)
 

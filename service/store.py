@@ -36,7 +36,7 @@ from sqlalchemy import Connection, bindparam, case, func, insert, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from packings.db import READONLY, insert_many, transaction_locks
-from packings.owners import busy
+from packings.owners import busy, coordinator_alive
 from packings.models import (
     COMPLETE,
     DONE,
@@ -176,6 +176,15 @@ def stored_with(session: Session | Connection, n: int, certificates) -> dict[str
     return out
 
 
+def stored_by_key(session: Session | Connection, keys) -> dict[tuple[int, str], list[Stored]]:
+    """:func:`stored_with` for (n, certificate) ``keys`` of any n: one query per n."""
+    by_n: dict[int, set[str]] = {}
+    for n, cert in keys:
+        by_n.setdefault(n, set()).add(cert)
+    return {(n, cert): rows for n, certs in sorted(by_n.items())
+            for cert, rows in stored_with(session, n, certs).items()}
+
+
 def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
                     rows: list[Stored] | None = None, *, found_by: str, source_id: int | None,
                     values: dict | None = None) -> tuple[int, bool]:
@@ -265,6 +274,17 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
     return RunInfo(run_id, n, params, created, recovered, seconds)
 
 
+INTERRUPTED = "interrupted"  #: how a run marked running whose coordinator is gone is shown
+
+
+def shown_status(run: Run) -> str:
+    """The run's status as ``status`` and the dashboard show it: :data:`INTERRUPTED` for one marked
+    running that no live coordinator drives (the same command resumes it)."""
+    if run.status == RUNNING and not coordinator_alive(run.coordinator, run.heartbeat_at):
+        return INTERRUPTED
+    return run.status
+
+
 def heartbeat(Session_: sessionmaker, run_id: int, owner: str, seconds: float | None = None) -> None:
     """Mark the run as held by ``owner`` now and, if given, record its ``seconds`` so far (the time of
     all its coordinators: :attr:`RunInfo.seconds` plus this one's), so that ``status`` shows a running
@@ -295,16 +315,22 @@ def abandon(Session_: sessionmaker, run_id: int, owner: str, seconds: float) -> 
         _let_go(s.get(Run, run_id), owner, seconds)
 
 
+def _back_to_pending(retry: bool) -> dict:
+    """The values that put a leased expansion back to pending, the attempt its lease took given back
+    (its coordinator or its worker, not it, stopped); with ``retry``, counted as an infrastructure
+    retry (``expansions.retries``)."""
+    return dict(status=PENDING, lease_owner=None, lease_token=None, leased_at=None,
+                attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
+                retries=ExpansionRow.retries + int(retry))
+
+
 def _unlease(s: Session, run_id: int, *where, retry: bool = False) -> int:
-    """Put the run's leased expansions (those matching ``where``) back to pending, giving back the
-    attempt their lease took (their coordinator, not they, stopped); with ``retry``, counted as an
-    infrastructure retry (the coordinator was lost).  Returns how many."""
+    """Put the run's leased expansions (those matching ``where``) back to pending
+    (:func:`_back_to_pending`; ``retry``: the coordinator was lost).  Returns how many."""
     return s.execute(
         update(ExpansionRow)
         .where(ExpansionRow.run_id == run_id, ExpansionRow.status == LEASED, *where)
-        .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None,
-                attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
-                retries=ExpansionRow.retries + int(retry))
+        .values(**_back_to_pending(retry))
     ).rowcount
 
 
@@ -376,9 +402,7 @@ def put_back(Session_: sessionmaker, leases: list[tuple[int, str]], error: str) 
         return sum(s.execute(
             update(ExpansionRow)
             .where(ExpansionRow.id == eid, ExpansionRow.status == LEASED, ExpansionRow.lease_token == token)
-            .values(status=PENDING, lease_owner=None, lease_token=None, leased_at=None, error=error[-16000:],
-                    attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
-                    retries=ExpansionRow.retries + 1)
+            .values(**_back_to_pending(retry=True), error=error[-16000:])
         ).rowcount for eid, token in leases)
 
 
@@ -453,15 +477,11 @@ def unstored_values(engine, expansions: list[tuple[float, list]]) -> dict[tuple[
     list).  Computed from a read before the write-back's transaction, which then holds the write lock
     for SQL and the geometric match only: a cluster stored by another in between leaves a value
     unused, and the rare endpoint that lacks one has it computed in the transaction."""
-    wanted: dict[int, set[str]] = {}
-    for _, distinct in expansions:
-        for c, _, cert in distinct:
-            wanted.setdefault(c.n, set()).add(cert)
+    keys = {(c.n, cert) for _, distinct in expansions for c, _, cert in distinct}
     stored: dict[tuple[int, str], list[Stored]] = {}
-    if wanted:
+    if keys:
         with engine.connect().execution_options(**{READONLY: True}) as conn, conn.begin():
-            for n, certs in sorted(wanted.items()):
-                stored.update(((n, cert), rows) for cert, rows in stored_with(conn, n, certs).items())
+            stored = stored_by_key(conn, keys)
     out = {}
     for k, (tol_d, distinct) in enumerate(expansions):
         for j, (c, rig, cert) in enumerate(distinct):
@@ -526,9 +546,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             return summaries
         keys = {(f.task.cluster.n, cert) for _, f, distinct, _ in live for _, _, cert in distinct}
         lock_certificates(s, keys)
-        stored: dict[tuple[int, str], list[Stored]] = {}
-        for n in sorted({n for n, _ in keys}):
-            stored.update(((n, cert), rows) for cert, rows in stored_with(s, n, {c for m, c in keys if m == n}).items())
+        stored = stored_by_key(s, keys)
         inserted: dict[int, list[int]] = {}  # by run: clusters inserted now, which get their expansion directly
         others: dict[int, list[int]] = {}  # by run: clusters found by another run, which may have none in this one
         transitions = []
