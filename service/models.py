@@ -14,7 +14,9 @@ Conventions:
   ``i < j``, sorted.
 * Clusters are keyed by ``(n, certificate, embedding)``; ``certificate`` is the
   portable hex key of :func:`packings.workers.identity.certificate_key`, and
-  ``embedding`` numbers the distinct geometries sharing one contact graph.
+  ``embedding`` numbers the distinct geometries sharing one contact graph, by
+  shape (:func:`packings.workers.identity.embedding_position`), so that a key
+  names the same geometry in every run.
 """
 
 from __future__ import annotations
@@ -91,7 +93,7 @@ class ClusterRow(Base):
     n: Mapped[int] = mapped_column(Integer)
     contacts: Mapped[int] = mapped_column(Integer)  #: number of contacts m
     certificate: Mapped[str] = mapped_column(String(200))  #: packings.workers.identity.certificate_key
-    embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate
+    embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate, by shape
     coords: Mapped[bytes] = mapped_column(LargeBinary)  #: n x 3 float64, little-endian
     coords_json: Mapped[str] = mapped_column(Text)
     contact_list: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]

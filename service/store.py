@@ -27,7 +27,7 @@ import functools
 import json
 import uuid
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib import metadata
 from typing import TYPE_CHECKING
 
@@ -57,7 +57,7 @@ from packings.models import (
 )
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
-from packings.workers.identity import certificate_key, find_match
+from packings.workers.identity import certificate_key, embedding_position, find_match
 from packings.workers.outcomes import CIRCULAR
 from packings.workers.params import Params
 from packings.workers.rigidity import Rigidity, rigidity
@@ -110,6 +110,7 @@ _STORED = (select(_C.c.id, _C.c.certificate, _C.c.embedding, _C.c.coords, _C.c.c
 _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
     _E.c.run_id == bindparam("run"), _E.c.cluster_id.in_(bindparam("ids", expanding=True)))
 _INSERT_CLUSTER = insert(_C)
+_RENUMBER = update(_C).where(_C.c.id == bindparam("cid")).values(embedding=bindparam("new_embedding"))
 _INSERT_EXPANSION = insert(_E)
 #: a transition's values, in this order (as tuples: see :func:`insert_transitions`)
 TRANSITION_COLUMNS = ("run_id", "source_id", "broken", "direction", "outcome", "target_id", "steps", "new_contacts")
@@ -205,7 +206,12 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
         k = find_match(c, [r.cluster for r in rows], tol_d)
         if k is not None:
             return rows[k].id, False
-    embedding = (rows[-1].embedding + 1) if rows else 0
+    # Embedding numbers follow geometry, not discovery (identity.embedding_position): the geometries
+    # after the new one move up by one, the last first so that no two rows ever share a key.
+    embedding = embedding_position(c, [r.cluster for r in rows], tol_d)
+    moved = [replace(r, embedding=r.embedding + 1) for r in rows[embedding:]]
+    for r in reversed(moved):
+        session.execute(_RENUMBER, {"cid": r.id, "new_embedding": r.embedding})
     if values is None:
         values = cluster_values(c, rig)
     result = session.execute(_INSERT_CLUSTER, {
@@ -213,7 +219,7 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
         "found_by": found_by, "source_id": source_id})
     cid = int(result.inserted_primary_key[0])
     remember_core_cluster(c.n, values["coords"], values["contact_list"], c)  # read back as c, labelled already
-    rows.append(Stored(cid, embedding, c, run_id))
+    rows[embedding:] = [Stored(cid, embedding, c, run_id), *moved]
     return cid, True
 
 
@@ -648,6 +654,21 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
         **dict(sorted(total.items())),
         "failed_tasks": f.get(FAILED, 0),
     }
+
+
+def restricted_ns(s: Session) -> dict[int, int]:
+    """{n: the fewest contacts kept} for each n whose clusters come only from runs restricted by
+    ``--min-contacts`` (no run of n keeps every cluster): their counts are of the clusters with that
+    many contacts or more, never to be mixed with full counts (the fit, the totals)."""
+    full: set[int] = set()
+    least: dict[int, int] = {}
+    for n, params in s.execute(select(Run.n, Run.params)):
+        m = json.loads(params).get("min_contacts")
+        if m is None:
+            full.add(n)
+        else:
+            least[n] = min(m, least.get(n, m))
+    return {n: m for n, m in sorted(least.items()) if n not in full}
 
 
 def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:

@@ -44,6 +44,7 @@ __all__ = [
     "same_geometry",
     "geometry_distance",
     "find_match",
+    "embedding_position",
     "ClusterIndex",
 ]
 
@@ -303,6 +304,42 @@ def find_match(cluster: Cluster, candidates: Iterable[Cluster], tol_d: float) ->
     return None
 
 
+# --------------------------------------------------------------------------- embedding order
+
+
+def _precedes(a: _Canonical, b: _Canonical, resolution: float) -> bool:
+    """Whether geometry ``a`` comes before ``b`` in embedding order: their pair distances sorted from
+    the largest down, compared one by one, the first that differs by more than ``resolution``
+    decides, and the smaller comes first (the more compact geometry)."""
+    differ = np.flatnonzero(np.abs(a.sorted_dist - b.sorted_dist) > resolution)
+    if differ.size == 0:
+        return False
+    k = differ[-1]  # sorted_dist is ascending: its last differing entry is the largest one
+    return bool(a.sorted_dist[k] < b.sorted_dist[k])
+
+
+def embedding_position(cluster: Cluster, others: Iterable[Cluster], tol_d: float) -> int:
+    """Where a new geometry of a contact graph goes among ``others``, the stored geometries of that
+    graph in embedding order: the index of the first one it precedes, else the end.
+
+    Embedding numbers are a function of geometry, not of the order in which clusters were found, so
+    that two runs give every (certificate, embedding) key the same geometry.  The order is by the pair
+    distances sorted from the largest down, compared with a resolution of ``4 tol_d``: two copies of
+    one cluster (coordinates within ``tol_d`` after alignment) have sorted distances within about
+    ``3.5 tol_d`` (:func:`same_geometry`'s first rejection), so they never compare unequal, and the
+    largest distance, the cluster's diameter, decides between distinct geometries in practice.  Two
+    distinct geometries whose sorted distances agree within the resolution keep the order in which
+    they were found (see docs/method.md)."""
+    c = _canonical(cluster)
+    resolution = 4.0 * tol_d
+    k = 0
+    for other in others:
+        if _precedes(c, _canonical(other), resolution):
+            break
+        k += 1
+    return k
+
+
 # --------------------------------------------------------------------------- index
 
 
@@ -311,14 +348,14 @@ class ClusterIndex:
 
     Ids are 0, 1, 2, ... in insertion order.  Clusters with the same contact
     graph but different geometry are different *embeddings* of that graph,
-    numbered 0, 1, ... in the order they were first seen.
+    numbered 0, 1, ... in embedding order (:func:`embedding_position`), as the
+    database numbers them.
     """
 
     def __init__(self) -> None:
         self._clusters: list[Cluster] = []
         self._canon: list[_Canonical] = []
-        self._embedding: list[int] = []
-        self._by_cert: dict[tuple[int, bytes], list[int]] = {}
+        self._by_cert: dict[tuple[int, bytes], list[int]] = {}  #: ids of each graph, in embedding order
 
     def add(self, cluster: Cluster, tol_d: float) -> tuple[int, bool]:
         """Insert ``cluster`` unless an equal one is stored; return ``(id, is_new)``."""
@@ -331,15 +368,15 @@ class ClusterIndex:
                 if _same_geometry_canonical(self._canon[i], c, autos, tol_d):
                     return i, False
         new_id = len(self._clusters)
+        ids.insert(embedding_position(cluster, (self._clusters[i] for i in ids), tol_d), new_id)
         self._clusters.append(cluster)
         self._canon.append(c)
-        self._embedding.append(len(ids))
-        ids.append(new_id)
         return new_id, True
 
     def embedding_number(self, id: int) -> int:
-        """0 for the first geometry stored with this certificate, 1 for the second, ..."""
-        return self._embedding[id]
+        """The cluster's embedding number among the clusters with its contact graph (0, 1, ...)."""
+        c = self._canon[id]
+        return self._by_cert[(c.n, c.cert)].index(id)
 
     def __len__(self) -> int:
         return len(self._clusters)

@@ -342,7 +342,7 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
 
     fill_database(engine, 8)
     before = _table_counts(engine)
-    revisions = ["0004", "0003", "0002", "0001"]
+    revisions = ["0005", "0004", "0003", "0002", "0001"]
     for revision in revisions[1:]:
         migrate(engine, revision, down=True)
         assert current_revision(engine) == revision
@@ -381,3 +381,25 @@ def test_alembic_sql_mode_honours_the_database_given():
     lite = _alembic("-x", "db=sqlite:///x.db", "upgrade", "head", "--sql")
     assert pg.returncode == 0 and lite.returncode == 0, pg.stderr + lite.stderr
     assert "SERIAL" in pg.stdout and "SERIAL" not in lite.stdout  # PostgreSQL's DDL, not the ini's SQLite
+
+
+def test_revision_0005_renumbers_the_stored_geometries_by_shape(engine):
+    """A database whose geometries of one contact graph were numbered in the order found (before 0005)
+    is renumbered in embedding order by the upgrade, whatever the old numbers; a downgrade leaves them."""
+    from packings.db import sessions
+    from tests.service.test_store import _embeddings, _store_chains
+
+    S = sessions(engine)
+    ids = _store_chains(S, (0, 1, 2, 3, 4), seed=3)
+    migrate(engine, "0004", down=True)
+    old = {0: 3, 1: 0, 2: 4, 3: 2, 4: 1}  # as an older run could have found them
+    with engine.begin() as c:
+        for k, cid in ids.items():
+            c.execute(text("UPDATE clusters SET embedding = :e WHERE id = :i"), {"e": -1 - old[k], "i": cid})
+        c.execute(text("UPDATE clusters SET embedding = -1 - embedding"))
+    assert _embeddings(S, ids) == old
+    migrate(engine, "0005")
+    assert _embeddings(S, ids) == {k: k for k in range(5)}
+    migrate(engine, "0004", down=True)
+    assert _embeddings(S, ids) == {k: k for k in range(5)}
+    migrate(engine, "head")

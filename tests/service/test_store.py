@@ -464,3 +464,49 @@ def test_a_runs_time_is_kept_across_coordinators_and_recorded_while_it_runs(run8
     with S() as s:
         assert s.get(Run, info.id).seconds == 7.25
 
+
+
+def _store_chains(S, order, seed: int, one_transaction: bool = False) -> dict[int, int]:
+    """Geometries ``order`` of the 4-chain (tests.workers.test_identity.CHAIN_DIHEDRALS), each moved,
+    reflected and relabelled, stored in that order; their ids by geometry."""
+    from packings.workers.identity import certificate_key
+    from packings.workers.rigidity import Rigidity
+    from tests.workers.test_identity import CHAIN_DIHEDRALS, chain, transformed
+
+    params, ids = Params(), {}
+    floppy = Rigidity(False, "floppy", 1, 0, "first-order")  # the store does not test what it stores
+    clusters = [(k, transformed(chain(CHAIN_DIHEDRALS[k]), seed + i, bool(i % 2))) for i, k in enumerate(order)]
+    cert = certificate_key(clusters[0][1])
+
+    def insert(s, k, c, rows) -> None:
+        store.lock_certificates(s, [(4, cert)])
+        ids[k], new = store.insert_or_match(s, c, floppy, None, params.tol_d, rows, found_by="seed", source_id=None)
+        assert new
+
+    if one_transaction:
+        with S.begin() as s:
+            rows = store.stored_with(s, 4, [cert])[cert]
+            for k, c in clusters:
+                insert(s, k, c, rows)
+            assert [r.embedding for r in rows] == list(range(len(order)))
+    else:
+        for k, c in clusters:
+            with S.begin() as s:
+                insert(s, k, c, None)
+    return ids
+
+
+def _embeddings(S, ids: dict[int, int]) -> dict[int, int]:
+    with S() as s:
+        return {k: s.get(ClusterRow, cid).embedding for k, cid in ids.items()}
+
+
+@pytest.mark.parametrize("order, one_transaction", [((0, 1, 2, 3, 4), False), ((4, 3, 2, 1, 0), False),
+                                                    ((2, 4, 0, 3, 1), False), ((3, 0, 4, 1, 2), True)])
+def test_embedding_numbers_follow_geometry_whatever_order_they_are_stored_in(engine, order, one_transaction):
+    """Five geometries of one contact graph stored in any order, one write-back each or several in one
+    (whose stored rows the store keeps up to date), get the same (certificate, embedding) keys: 0 for
+    the most compact; the stored ones are renumbered as a new one goes between them."""
+    S = sessions(engine)
+    ids = _store_chains(S, order, seed=sum(order[:2]), one_transaction=one_transaction)
+    assert _embeddings(S, ids) == {k: k for k in range(5)}

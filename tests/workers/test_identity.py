@@ -18,6 +18,7 @@ from packings.workers.identity import (
     canonical_labelling,
     certificate,
     certificate_hex,
+    embedding_position,
     find_match,
     same_geometry,
 )
@@ -402,6 +403,43 @@ def test_cluster_index() -> None:
     assert len(idx) == 4
     assert idx[2] is CLUSTERS["octahedron"]
     assert [c.n for c in idx] == [4, 4, 6, 6]
+
+
+#: one contact graph (the 4-chain), five geometries: the 0-3 distance grows with the dihedral angle
+CHAIN_DIHEDRALS = (0.0, 45.0, 90.0, 135.0, 180.0)
+
+
+@SETTINGS
+@given(order=st.permutations(range(len(CHAIN_DIHEDRALS))), seed=st.integers(0, 10_000))
+def test_embedding_numbers_follow_geometry_not_the_order_found(order, seed) -> None:
+    """Geometries of one contact graph added in any order, each moved, reflected, relabelled and
+    perturbed far below tol_d, get the same embedding numbers: the more compact one first."""
+    idx = ClusterIndex()
+    for i, k in enumerate(order):
+        assert idx.add(transformed(chain(CHAIN_DIHEDRALS[k]), seed + i, bool((seed + i) % 2), noise=1e-7),
+                       TOL_D) == (i, True)
+    assert [idx.embedding_number(i) for i in range(len(order))] == list(order)
+    for i, k in enumerate(order):  # a copy matches the geometry it copies, whatever its number
+        assert idx.add(transformed(chain(-CHAIN_DIHEDRALS[k]), seed, True, noise=1e-7), TOL_D) == (i, False)
+
+
+def test_embedding_position_orders_by_the_largest_distances_at_a_resolution_of_4_tol_d() -> None:
+    geometries = [chain(d) for d in CHAIN_DIHEDRALS]
+    assert [embedding_position(g, geometries, TOL_D) for g in geometries] == [1, 2, 3, 4, 5]  # after its equal
+    assert embedding_position(chain(60.0), geometries, TOL_D) == 2
+    assert embedding_position(chain(60.0), [], TOL_D) == 0
+    # a copy within tol_d never goes before the geometry it copies; a change 10 tol_d along the 0-3
+    # distance does
+    near = chain(45.0)
+
+    def stretched(by: float) -> Cluster:
+        x = near.coords.copy()
+        x[3] += by * TOL_D * (x[3] - x[0]) / np.linalg.norm(x[3] - x[0])
+        return Cluster(x, near.contacts)
+
+    assert embedding_position(stretched(1.5), geometries, TOL_D) == 2
+    assert embedding_position(stretched(-1.5), geometries, TOL_D) == 2
+    assert embedding_position(stretched(-10.0), geometries, TOL_D) == 1
 
 
 def test_certificate_key_is_portable_and_equivalent_to_the_certificate():
