@@ -1,22 +1,25 @@
-"""Figures of the stored catalogue, as PNG files: ``packings plot ...``.
+"""Figures of the stored catalogue, for a screen or a paper: ``packings plot ...``.
 
 Two layers:
 
-* pure figure functions, which take plain data and an output path and write
-  one PNG: :func:`plot_counts`, :func:`plot_gap_cdf`, :func:`plot_by_contacts`
-  and :func:`plot_cluster`;
+* pure figure functions, which take plain data and return a matplotlib figure:
+  :func:`plot_counts`, :func:`plot_gap_cdf`, :func:`plot_by_contacts`,
+  :func:`plot_cluster` and :func:`plot_clusters` (several side by side).  Each
+  draws on a new figure of ``size`` inches at ``dpi``, or on the caller's
+  matplotlib axes ``ax=`` (a notebook's); given a ``path``, it also writes the
+  figure there, in the format its suffix names (:data:`FORMATS`);
 * the ``plot`` click group (subcommands ``counts``, ``gaps``, ``contacts``,
-  ``cluster ID`` and ``all``), which reads the data from the database and
+  ``cluster ID ...`` and ``all``), which reads the data from the database and
   calls them.
 
-Every PNG is :data:`WIDTH_IN` x :data:`HEIGHT_IN` inches at :data:`DPI` dots per
-inch, that is :data:`SIZE_PX` = 960 x 720 pixels, whatever is in it (no tight
-bounding box that would change the size).  Files are written to a temporary
-name beside the target and renamed, so a failure never leaves a half-written
-file and an existing file is replaced whole.
+A figure is :data:`SIZE` inches at :data:`DPI` dots per inch unless told
+otherwise, whatever is in it (no tight bounding box that would change the size):
+a PNG is 960 x 720 pixels.  Files are written to a temporary name beside the
+target and renamed, so a failure never leaves a half-written file and an
+existing file is replaced whole.
 
 matplotlib is imported only inside the functions (``packings --help`` does not
-load it), and figures are drawn on matplotlib's Agg canvas directly
+load it), and new figures are drawn on matplotlib's Agg canvas directly
 (``matplotlib.figure.Figure`` with ``FigureCanvasAgg``), never through pyplot:
 no display is needed and no global backend or figure state is touched, so the
 functions are safe to call from a notebook or a thread.
@@ -27,14 +30,17 @@ from __future__ import annotations
 import contextlib
 import os
 from pathlib import Path
+from typing import Sequence
 
 import click
 
 from packings.fit import fit_factorial, predicted
 
-WIDTH_IN, HEIGHT_IN, DPI = 6.4, 4.8, 150
-SIZE_PX = (960, 720)  #: (width, height) in pixels of every PNG written here
+SIZE, DPI = (6.4, 4.8), 150  #: a figure's default size in inches, and its dots per inch
+FORMATS = ("png", "pdf", "svg")  #: what a figure can be written as, by the file name's suffix
 RADIUS = 0.5  #: sphere radius: the unit of length is the sphere diameter
+STICK_RADIUS = 0.14  #: the spheres' radius in the ``sticks`` style, where every contact shows
+STYLES = ("spheres", "sticks")
 #: per-sphere properties a cluster picture can be coloured by, and their colour-bar labels
 COLOR_BY = {
     "degree": "contacts per sphere",
@@ -44,28 +50,65 @@ COLOR_BY = {
 CMAP = "viridis"  #: colour map of the cluster pictures (its darkest 15 % left out, for the sticks to show)
 GHOST = 0.3  #: opacity of the contacts drawn through the spheres in a cluster picture
 STICK_COLOR = "0.1"
+GAP_COLOR = "#d62728"  #: the closest pair of spheres not in contact: a dashed line in this colour
 DEFAULT_NAMES = {"counts": "counts.png", "gaps": "gaps.png", "contacts": "contacts.png"}
 
 
 # --------------------------------------------------------------------------- writing
 
 
-def _figure():
-    """A blank figure of the fixed size on an Agg canvas."""
+def new_figure(size: tuple[float, float] | None = None, dpi: float | None = None):
+    """A blank figure of ``size`` inches (default :data:`SIZE`) at ``dpi`` (default :data:`DPI`) on an Agg
+    canvas."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(WIDTH_IN, HEIGHT_IN), dpi=DPI)
+    w, h = size or SIZE
+    if not (w > 0 and h > 0):
+        raise ValueError(f"a figure's size must be positive, got {w} x {h} inches")
+    if dpi is not None and not dpi > 0:
+        raise ValueError(f"dots per inch must be positive, got {dpi}")
+    fig = Figure(figsize=(w, h), dpi=dpi or DPI)
     FigureCanvasAgg(fig)
     return fig
 
 
-def save_png(fig, path: str | os.PathLike) -> Path:
-    """Write ``fig`` as a PNG of :data:`SIZE_PX` to a temporary file beside
-    ``path``, then rename it over ``path``; on any failure nothing is left."""
+def figure_format(path: str | os.PathLike) -> str:
+    """The format a figure is written in to ``path``: its suffix, one of :data:`FORMATS`."""
+    fmt = Path(path).suffix.lower().lstrip(".")
+    if fmt not in FORMATS:
+        raise ValueError(f"cannot write {path}: give a name ending in " + ", ".join("." + f for f in FORMATS))
+    return fmt
+
+
+def save(fig, path: str | os.PathLike) -> Path:
+    """Write ``fig`` in the format of ``path``'s suffix (:func:`figure_format`), at the figure's own size
+    and dots per inch, to a temporary file beside ``path``, then rename it over ``path``; on any failure
+    nothing is left."""
     from packings.export import replace_file
 
-    return replace_file(path, lambda f: fig.savefig(f, format="png", dpi=DPI), binary=True)
+    fmt = figure_format(path)
+    return replace_file(path, lambda f: fig.savefig(f, format=fmt, dpi=fig.dpi), binary=True)
+
+
+def _canvas(ax, size, dpi, path, **subplot):
+    """(figure, axes) to draw on: the caller's ``ax`` or a new figure's only axes; checks ``path``'s
+    format first, so that nothing is drawn for a file that cannot be written."""
+    if path is not None:
+        figure_format(path)
+    if ax is not None:
+        return ax.figure, ax
+    fig = new_figure(size, dpi)
+    return fig, fig.add_subplot(**subplot)
+
+
+def _done(fig, path, own: bool):
+    """Lay out a figure made here (a caller's is theirs to lay out), write it if asked; the figure."""
+    if own:
+        fig.tight_layout()
+    if path is not None:
+        save(fig, path)
+    return fig
 
 
 def _colors(k: int):
@@ -97,48 +140,60 @@ def _log_ticks(axis, lo: float, hi: float) -> None:
 # --------------------------------------------------------------------------- the figures
 
 
-def plot_counts(totals: dict[int, int], path: str | os.PathLike) -> Path:
+def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *, restricted=None, ax=None,
+                size: tuple[float, float] | None = None, dpi: float | None = None):
     """The number of clusters against n (log scale, one marker per n, the count
     written above it) with the fitted curve b·(n − 5)! of
-    :func:`packings.fit.fit_factorial` (b in the legend)."""
+    :func:`packings.fit.fit_factorial` (b in the legend).  ``restricted``: {n:
+    fewest contacts kept} for the n whose totals count only the clusters with
+    that many contacts or more (runs restricted by ``--min-contacts``): drawn
+    hollow, marked "≥ M contacts", and left out of the fit.  Returns the figure."""
     import numpy as np
 
     totals = {int(n): int(t) for n, t in totals.items() if t and t > 0}
     if not totals:
         raise ValueError("no clusters to plot")
+    restricted = {int(n): int(m) for n, m in (restricted or {}).items() if int(n) in totals}
     ns = sorted(totals)
-    fig = _figure()
-    ax = fig.add_subplot()
-    ax.set_yscale("log")
-    ax.plot(ns, [totals[n] for n in ns], "o", ms=7, color="C0", zorder=3, label="rigid clusters")
+    full = [n for n in ns if n not in restricted]
+    fig, ax_ = _canvas(ax, size, dpi, path)
+    ax_.set_yscale("log")
+    if full:
+        ax_.plot(full, [totals[n] for n in full], "o", ms=7, color="C0", zorder=3, label="rigid clusters")
+    if restricted:
+        part = sorted(restricted)
+        ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="C2", mew=1.5, zorder=3,
+                 label="clusters with ≥ M contacts only (--min-contacts M)")
     for n in ns:
-        ax.annotate(f"{totals[n]:,}", (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center",
-                    fontsize=8, color="0.25")
-    fit = fit_factorial(totals)
+        text = f"{totals[n]:,}" + (f"\n(≥ {restricted[n]})" if n in restricted else "")
+        ax_.annotate(text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center",
+                     fontsize=8, color="0.25")
+    fit = fit_factorial({n: totals[n] for n in full})
     if fit is not None:
         xs = np.arange(max(min(ns), 5), max(ns) + 1)
         used = fit["ns"]
         over = f"n = {used[0]}" + (f"–{used[-1]}" if len(used) > 1 else "")
-        ax.plot(xs, [predicted(fit["b"], x) for x in xs], "--", color="C1", lw=1.5, zorder=2,
-                label=f"fit {fit['b']:.2f}·(n − 5)!  ({over})")
-    ax.set_xlabel("n (spheres)")
-    ax.set_ylabel("number of rigid clusters")
-    ax.set_title("Rigid clusters of n spheres")
-    ax.set_xlim(min(ns) - 0.6, max(ns) + 0.6)
-    _integer_ticks(ax.xaxis, min(ns), max(ns))
+        ax_.plot(xs, [predicted(fit["b"], x) for x in xs], "--", color="C1", lw=1.5, zorder=2,
+                 label=f"fit {fit['b']:.2f}·(n − 5)!  ({over})")
+    ax_.set_xlabel("n (spheres)")
+    ax_.set_ylabel("number of rigid clusters")
+    ax_.set_title("Rigid clusters of n spheres")
+    ax_.set_xlim(min(ns) - 0.6, max(ns) + 0.6)
+    _integer_ticks(ax_.xaxis, min(ns), max(ns))
     lo, hi = min(totals.values()), max(totals.values())
-    ax.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
-    _log_ticks(ax.yaxis, lo / 2, hi * 4)
-    ax.grid(True, which="major", alpha=0.3)
-    ax.legend(loc="upper left")
-    fig.tight_layout()
-    return save_png(fig, path)
+    ax_.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
+    _log_ticks(ax_.yaxis, lo / 2, hi * 4)
+    ax_.grid(True, which="major", alpha=0.3)
+    ax_.legend(loc="upper left")
+    return _done(fig, path, ax is None)
 
 
-def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike) -> Path:
+def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike | None = None, *, ax=None,
+                 size: tuple[float, float] | None = None, dpi: float | None = None):
     """The cumulative distribution of the clusters' minimum gaps (the smallest
     distance between spheres not in contact, minus 1), one line per n, on a log
-    x axis.  Gaps that are missing, not finite or not positive are left out."""
+    x axis.  Gaps that are missing, not finite or not positive are left out.
+    Returns the figure."""
     import numpy as np
 
     series = {}
@@ -149,57 +204,54 @@ def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike) -> Path:
             series[int(n)] = v
     if not series:
         raise ValueError("no minimum gaps to plot")
-    fig = _figure()
-    ax = fig.add_subplot()
+    fig, ax_ = _canvas(ax, size, dpi, path)
     for (n, v), color in zip(sorted(series.items()), _colors(len(series))):
         k = len(v)
         x = np.r_[v[0], v]
         y = np.r_[0.0, np.arange(1, k + 1) / k]
-        ax.step(x, y, where="post", color=color, lw=1.8, label=f"n = {n} ({k})")
-    ax.set_xscale("log")
+        ax_.step(x, y, where="post", color=color, lw=1.8, label=f"n = {n} ({k})")
+    ax_.set_xscale("log")
     lo, hi = min(v[0] for v in series.values()), max(v[-1] for v in series.values())
-    ax.set_xlim(lo / 1.5, hi * 1.5)
-    _log_ticks(ax.xaxis, lo / 1.5, hi * 1.5)
-    ax.set_ylim(0, 1.03)
-    ax.set_xlabel("minimum gap between spheres not in contact (diameters)")
-    ax.set_ylabel("fraction of clusters with min gap ≤ x")
-    ax.set_title("Minimum gaps: cumulative distribution")
-    ax.grid(True, which="major", alpha=0.3)
-    ax.legend(title="n (clusters)", loc="upper left", fontsize=8, title_fontsize=8)
-    fig.tight_layout()
-    return save_png(fig, path)
+    ax_.set_xlim(lo / 1.5, hi * 1.5)
+    _log_ticks(ax_.xaxis, lo / 1.5, hi * 1.5)
+    ax_.set_ylim(0, 1.03)
+    ax_.set_xlabel("minimum gap between spheres not in contact (diameters)")
+    ax_.set_ylabel("fraction of clusters with min gap ≤ x")
+    ax_.set_title("Minimum gaps: cumulative distribution")
+    ax_.grid(True, which="major", alpha=0.3)
+    ax_.legend(title="n (clusters)", loc="upper left", fontsize=8, title_fontsize=8)
+    return _done(fig, path, ax is None)
 
 
-def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike) -> Path:
+def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | None = None, *, ax=None,
+                     size: tuple[float, float] | None = None, dpi: float | None = None):
     """The number of clusters by number of contacts, one series per n, against
-    contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y."""
+    contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  Returns the figure."""
     series = {int(n): {int(m): int(c) for m, c in d.items() if c and c > 0} for n, d in by_n.items()}
     series = {n: d for n, d in series.items() if d}
     if not series:
         raise ValueError("no clusters to plot")
-    fig = _figure()
-    ax = fig.add_subplot()
-    ax.set_yscale("log")
-    ax.axvline(0, color="0.6", lw=1, ls="--", zorder=1)
+    fig, ax_ = _canvas(ax, size, dpi, path)
+    ax_.set_yscale("log")
+    ax_.axvline(0, color="0.6", lw=1, ls="--", zorder=1)
     markers = "osD^v<>ph*"
     for i, ((n, d), color) in enumerate(zip(sorted(series.items()), _colors(len(series)))):
         ms = sorted(d)
-        ax.plot([m - (3 * n - 6) for m in ms], [d[m] for m in ms], marker=markers[i % len(markers)], ms=6, lw=1.5,
-                color=color, zorder=3, label=f"n = {n} ({sum(d.values()):,})")
+        ax_.plot([m - (3 * n - 6) for m in ms], [d[m] for m in ms], marker=markers[i % len(markers)], ms=6, lw=1.5,
+                 color=color, zorder=3, label=f"n = {n} ({sum(d.values()):,})")
     excess = [m - (3 * n - 6) for n, d in series.items() for m in d]
     lo, hi = min(min(excess), -1), max(max(excess), 1)
-    ax.set_xlim(lo - 0.5, hi + 0.5)
-    _integer_ticks(ax.xaxis, lo, hi)
+    ax_.set_xlim(lo - 0.5, hi + 0.5)
+    _integer_ticks(ax_.xaxis, lo, hi)
     counts = [c for d in series.values() for c in d.values()]
-    ax.set_ylim(min(counts) / 2, max(counts) * 2)
-    _log_ticks(ax.yaxis, min(counts) / 2, max(counts) * 2)
-    ax.set_xlabel("contacts − (3n − 6)    (0: isostatic)")
-    ax.set_ylabel("number of rigid clusters")
-    ax.set_title("Rigid clusters by number of contacts")
-    ax.grid(True, which="major", alpha=0.3)
-    ax.legend(title="n (clusters)", fontsize=8, title_fontsize=8, loc="best")
-    fig.tight_layout()
-    return save_png(fig, path)
+    ax_.set_ylim(min(counts) / 2, max(counts) * 2)
+    _log_ticks(ax_.yaxis, min(counts) / 2, max(counts) * 2)
+    ax_.set_xlabel("contacts − (3n − 6)    (0: isostatic)")
+    ax_.set_ylabel("number of rigid clusters")
+    ax_.set_title("Rigid clusters by number of contacts")
+    ax_.grid(True, which="major", alpha=0.3)
+    ax_.legend(title="n (clusters)", fontsize=8, title_fontsize=8, loc="best")
+    return _done(fig, path, ax is None)
 
 
 def sphere_values(coords, contacts, color_by: str = "degree"):
@@ -247,29 +299,27 @@ def best_view(coords, elevations=(15.0, 25.0, 35.0), step: float = 5.0) -> tuple
     return where
 
 
-def plot_cluster(coords, contacts, path: str | os.PathLike, values=None, label: str | None = None,
-                 title: str | None = None, elev: float | None = None, azim: float | None = None,
-                 alpha: float = 1.0, ghost: float = GHOST) -> Path:
-    """A 3D picture of one cluster: spheres of radius 0.5 to scale, each contact a
-    stick between the two centres, spheres coloured by ``values`` (one per
-    sphere; default the number of contacts of each sphere) with a colour bar
-    labelled ``label`` (default "contacts per sphere" for the default values).
-
-    Orthographic view from (``elev``, ``azim``) degrees with z up, equal aspect
-    ratio, no axes; by default (None) the view that hides the least, from
-    :func:`best_view`.  Each sphere is the hemisphere facing the viewer, drawn with
-    ``plot_surface`` (a 14 x 48 mesh) in colours shaded by a light from the upper
-    left (ambient, diffuse and a specular highlight), outlined, and ``alpha``
-    opaque.  The sticks lie inside the touching spheres: each is drawn in
-    its place among the spheres (so those in front hide it) and again, faint
-    (``ghost``), over everything, so the contacts behind spheres show through.
-    Spheres and sticks are drawn back to front by the depth of their centres
-    (midpoints), which is right for equal spheres that do not overlap.
-    """
+def closest_pair(coords, contacts) -> tuple[int, int, float] | None:
+    """(i, j, gap) of the two spheres not in contact that are closest, gap = their distance − 1 (in
+    diameters); None if every pair touches."""
     import numpy as np
-    from matplotlib import colormaps
-    from matplotlib.cm import ScalarMappable
-    from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
+
+    x = np.asarray(coords, dtype=float)
+    n = len(x)
+    d = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
+    far = np.triu(np.ones((n, n), dtype=bool), k=1)
+    for i, j in contacts:
+        far[min(i, j), max(i, j)] = False
+    if not far.any():
+        return None
+    k = int(np.argmin(np.where(far, d, np.inf)))
+    i, j = divmod(k, n)
+    return i, j, float(d[i, j] - 1.0)
+
+
+def _checked(coords, contacts, values):
+    """(centred n x 3 coordinates, contact pairs, per-sphere values or None), or ValueError."""
+    import numpy as np
 
     x = np.asarray(coords, dtype=float)
     if x.ndim != 2 or x.shape[1] != 3 or len(x) == 0:
@@ -278,30 +328,37 @@ def plot_cluster(coords, contacts, path: str | os.PathLike, values=None, label: 
     pairs = [(int(i), int(j)) for i, j in contacts]
     if any(not (0 <= i < n and 0 <= j < n) for i, j in pairs):
         raise ValueError(f"a contact names a sphere outside 0..{n - 1}")
-    if values is None:
-        values, default_label = sphere_values(x, pairs, "degree")
-        label = default_label if label is None else label
-    values = np.asarray(values, dtype=float).reshape(-1)
-    if len(values) != n:
-        raise ValueError(f"values must have one entry per sphere ({n}), got {len(values)}")
-    x = x - x.mean(axis=0)
+    if values is not None:
+        values = np.asarray(values, dtype=float).reshape(-1)
+        if len(values) != n:
+            raise ValueError(f"values must have one entry per sphere ({n}), got {len(values)}")
+    return x - x.mean(axis=0), pairs, values
 
-    # Colours: integer values (e.g. contacts per sphere) get one colour each and integer ticks.
-    lo, hi = float(values.min()), float(values.max())
+
+def _color_scale(values):
+    """(colour map, norm, ticks) for per-sphere values: integer values (contacts per sphere) get one
+    colour each and integer ticks."""
+    import numpy as np
+    from matplotlib import colormaps
+    from matplotlib.colors import BoundaryNorm, ListedColormap, Normalize
+
+    lo, hi = float(np.min(values)), float(np.max(values))
     base = colormaps[CMAP]
     if np.allclose(values, np.round(values)) and hi - lo <= 24:
         levels = np.arange(round(lo), round(hi) + 1)
         cmap = ListedColormap(base(np.linspace(0.15, 0.95, len(levels)) if len(levels) > 1 else [0.6]))
-        norm = BoundaryNorm(np.r_[levels - 0.5, levels[-1] + 0.5], cmap.N)
-        ticks = levels
-    else:
-        if hi - lo < 1e-12:
-            lo, hi = lo - 0.5, hi + 0.5
-        cmap, norm, ticks = ListedColormap(base(np.linspace(0.15, 0.95, 256))), Normalize(lo, hi), None
+        return cmap, BoundaryNorm(np.r_[levels - 0.5, levels[-1] + 0.5], cmap.N), levels
+    if hi - lo < 1e-12:
+        lo, hi = lo - 0.5, hi + 0.5
+    return ListedColormap(base(np.linspace(0.15, 0.95, 256))), Normalize(lo, hi), None
 
-    if elev is None or azim is None:
-        best = best_view(x)
-        elev, azim = best[0] if elev is None else elev, best[1] if azim is None else azim
+
+def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost, style, labels, gap, extent) -> None:
+    """One cluster on 3D axes ``ax``, centred coordinates ``x``: see :func:`plot_cluster`."""
+    import numpy as np
+    from matplotlib import patheffects
+
+    radius = RADIUS if style == "spheres" else STICK_RADIUS
     # The view: towards the viewer (eye), right and up on the screen; the light from the upper left, in front.
     eye = _towards_viewer(elev, azim)
     a = np.radians(azim)
@@ -326,9 +383,8 @@ def plot_cluster(coords, contacts, path: str | os.PathLike, values=None, label: 
     specular = np.pad(specular, ((0, 1), (0, 1)), mode="edge")[..., None]
     rim = np.cos(np.linspace(0, 2 * np.pi, 65))[:, None] * right + np.sin(np.linspace(0, 2 * np.pi, 65))[:, None] * up
 
-    fig = _figure()
-    ax = fig.add_subplot(projection="3d", proj_type="ortho", computed_zorder=False)
     ax.view_init(elev=elev, azim=azim)
+    n = len(x)
     items = [(float(x[i] @ eye), 0, i) for i in range(n)]
     items += [(float((x[i] + x[j]) @ eye / 2), 1, (i, j)) for i, j in pairs]
     for z, (_, kind, what) in enumerate(sorted(items, key=lambda t: (t[0], t[1]))):
@@ -337,35 +393,199 @@ def plot_cluster(coords, contacts, path: str | os.PathLike, values=None, label: 
             rgb = np.asarray(cmap(norm(values[what]))[:3])
             shaded = np.clip(rgb * (0.42 + 0.58 * diffuse) + 0.45 * specular, 0.0, 1.0)
             colors = np.concatenate([shaded, np.full(shaded.shape[:2] + (1,), alpha)], axis=-1)
-            p = c + RADIUS * normals
+            p = c + radius * normals
             ax.plot_surface(p[..., 0], p[..., 1], p[..., 2], facecolors=colors, shade=False, linewidth=0,
                             antialiased=False, rcount=theta.size, ccount=phi.size, zorder=z)
-            o = c + RADIUS * rim
+            o = c + radius * rim
             ax.plot(o[:, 0], o[:, 1], o[:, 2], color=tuple(0.45 * rgb), lw=0.8, alpha=min(1.0, alpha + 0.2),
                     zorder=z)
         else:
             i, j = what
             ax.plot(*zip(x[i], x[j]), color=STICK_COLOR, lw=3.0, solid_capstyle="round", zorder=z)
+    top = len(items) + 1
     # every stick again, faint, over everything: the contacts hidden by the spheres in front show through
-    for i, j in pairs:
-        ax.plot(*zip(x[i], x[j]), color=STICK_COLOR, lw=2.2, alpha=ghost, solid_capstyle="round",
-                zorder=len(items) + 1)
-
-    r = float(np.max(np.linalg.norm(x, axis=1))) + RADIUS
-    ax.set_xlim(-r, r)
-    ax.set_ylim(-r, r)
-    ax.set_zlim(-r, r)
+    if style == "spheres":
+        for i, j in pairs:
+            ax.plot(*zip(x[i], x[j]), color=STICK_COLOR, lw=2.2, alpha=ghost, solid_capstyle="round", zorder=top)
+    outline = [patheffects.withStroke(linewidth=2.5, foreground="white")]
+    if gap:
+        near = closest_pair(x, pairs)
+        if near is not None:
+            i, j, g = near
+            ax.plot(*zip(x[i], x[j]), color=GAP_COLOR, lw=1.6, ls="--", zorder=top + 1)
+            at = (x[i] + x[j]) / 2 + 0.6 * radius * up
+            ax.text(*at, f"gap {g:.3g}", color=GAP_COLOR, fontsize=8, ha="center", va="bottom", zorder=top + 2,
+                    path_effects=outline)
+    if labels:
+        for i in range(n):
+            ax.text(*(x[i] + 1.02 * radius * eye), str(i), fontsize=8 if style == "spheres" else 7, ha="center",
+                    va="center", color="black", zorder=top + 3, path_effects=outline)
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(-extent, extent)
+    ax.set_zlim(-extent, extent)
     ax.set_box_aspect((1, 1, 1), zoom=1.6)
     ax.set_axis_off()
-    ax.set_position([0.0, 0.0, 0.8, 0.93 if title else 1.0])
-    cax = fig.add_axes([0.83, 0.22, 0.025, 0.56])
-    bar = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), cax=cax, ticks=ticks)
+
+
+def _colorbar(fig, cmap, norm, ticks, label, **where) -> None:
+    from matplotlib.cm import ScalarMappable
+
+    bar = fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ticks=ticks, **where)
     bar.outline.set_linewidth(0.5)
     if label:
         bar.set_label(label)
+
+
+def _options(style: str) -> None:
+    if style not in STYLES:
+        raise ValueError(f"unknown style {style!r}: use one of {', '.join(STYLES)}")
+
+
+def plot_cluster(coords, contacts, path: str | os.PathLike | None = None, values=None, label: str | None = None,
+                 title: str | None = None, elev: float | None = None, azim: float | None = None,
+                 alpha: float = 1.0, ghost: float = GHOST, *, style: str = "spheres", labels: bool = False,
+                 gap: bool = True, ax=None, size: tuple[float, float] | None = None, dpi: float | None = None):
+    """A 3D picture of one cluster, each contact a stick between the two centres,
+    spheres coloured by ``values`` (one per sphere; default the number of contacts
+    of each sphere) with a colour bar labelled ``label`` (default "contacts per
+    sphere" for the default values).  Returns the figure.
+
+    ``style`` ``spheres`` draws the spheres to scale (radius 0.5); ``sticks``
+    draws them small, so that every contact shows.  ``labels`` writes each
+    sphere's number (its index in ``coords``).  ``gap`` draws the closest pair
+    of spheres not in contact as a dashed line, with its gap (distance − 1).
+
+    Orthographic view from (``elev``, ``azim``) degrees with z up, equal aspect
+    ratio, no axes; by default (None) the view that hides the least, from
+    :func:`best_view`.  Each sphere is the hemisphere facing the viewer, drawn with
+    ``plot_surface`` (a 14 x 48 mesh) in colours shaded by a light from the upper
+    left (ambient, diffuse and a specular highlight), outlined, and ``alpha``
+    opaque.  The sticks lie inside the touching spheres: each is drawn in
+    its place among the spheres (so those in front hide it) and, in the
+    ``spheres`` style, again, faint (``ghost``), over everything, so the contacts
+    behind spheres show through.  Spheres and sticks are drawn back to front by
+    the depth of their centres (midpoints), which is right for equal spheres
+    that do not overlap.  ``ax`` must be 3D axes (``projection="3d"``).
+    """
+    import numpy as np
+
+    _options(style)
+    x, pairs, values = _checked(coords, contacts, values)
+    if values is None:
+        values, default_label = sphere_values(x, pairs, "degree")
+        label = default_label if label is None else label
+    if ax is not None and getattr(ax, "name", "") != "3d":
+        raise ValueError("a cluster is drawn on 3D axes: make them with projection='3d'")
+    cmap, norm, ticks = _color_scale(values)
+    if elev is None or azim is None:
+        best = best_view(x)
+        elev, azim = best[0] if elev is None else elev, best[1] if azim is None else azim
+    fig, ax_ = _canvas(ax, size, dpi, path, projection="3d", proj_type="ortho", computed_zorder=False)
+    extent = float(np.max(np.linalg.norm(x, axis=1))) + RADIUS
+    _draw_cluster(ax_, x, pairs, values, cmap, norm, elev, azim, alpha=alpha, ghost=ghost, style=style,
+                  labels=labels, gap=gap, extent=extent)
+    if ax is None:
+        ax_.set_position([0.0, 0.0, 0.8, 0.93 if title else 1.0])
+        _colorbar(fig, cmap, norm, ticks, label, cax=fig.add_axes([0.83, 0.22, 0.025, 0.56]))
+        if title:
+            fig.suptitle(title, y=0.96)
+    else:
+        _colorbar(fig, cmap, norm, ticks, label, ax=ax_, shrink=0.6)
+        if title:
+            ax_.set_title(title)
+    if path is not None:
+        save(fig, path)
+    return fig
+
+
+def aligned(clusters: Sequence[tuple]) -> list | None:
+    """The coordinates of ``clusters`` ((coords, contacts) pairs) moved so that they lie as the first
+    does, if they all have one contact graph: each is rotated and moved (no reflection) so that one
+    contact triangle, the same in all under the graph's canonical labelling (nauty), lies where the
+    first cluster's does.  None if their contact graphs differ (or have no triangle)."""
+    import numpy as np
+
+    from packings.workers.cluster import Cluster
+    from packings.workers.identity import canonical_labelling, certificate_key
+
+    cores = [Cluster(np.asarray(x, dtype=float), tuple((min(i, j), max(i, j)) for i, j in c)) for x, c in clusters]
+    if len({(c.n, certificate_key(c)) for c in cores}) != 1:
+        return None
+    first = cores[0]
+    p0 = canonical_labelling(first)
+    rank = np.empty(first.n, dtype=np.int64)
+    rank[p0] = np.arange(first.n)
+    touching = {(int(rank[i]), int(rank[j])) for i, j in first.contacts}
+    touching |= {(j, i) for i, j in touching}
+    triangle = next(((a, b, c) for a, b in sorted(touching) if a < b
+                     for c in range(b + 1, first.n) if (a, c) in touching and (b, c) in touching), None)
+    if triangle is None:
+        return None
+    target = first.coords[p0[list(triangle)]]
+    out = []
+    for core in cores:
+        x = core.coords
+        src = x[canonical_labelling(core)[list(triangle)]]
+        # Kabsch: the proper rotation taking the triangle (about its centroid) onto the target's
+        a, b = src - src.mean(axis=0), target - target.mean(axis=0)
+        u, _, vt = np.linalg.svd(a.T @ b)
+        d = np.sign(np.linalg.det(u @ vt)) or 1.0
+        r = u @ np.diag([1.0, 1.0, d]) @ vt
+        out.append((x - src.mean(axis=0)) @ r + target.mean(axis=0))
+    return out
+
+
+def plot_clusters(clusters: Sequence[tuple], path: str | os.PathLike | None = None, *, values=None,
+                  label: str | None = None, titles: Sequence[str] | None = None, title: str | None = None,
+                  style: str = "spheres", labels: bool = False, gap: bool = True, align: bool = True,
+                  size: tuple[float, float] | None = None, dpi: float | None = None):
+    """Several clusters ((coords, contacts) pairs) side by side, each as :func:`plot_cluster` draws one,
+    at one scale and with one colour bar.  With ``align`` and one contact graph in all (say, the
+    geometries of one graph), they are turned to lie alike (:func:`aligned`) and seen from the same
+    view, so that their differences show.  ``values``: one array per cluster, default contacts per
+    sphere.  The default size is 3.6 inches across per cluster (and a colour bar) by 4.2.  Returns
+    the figure."""
+    import numpy as np
+
+    _options(style)
+    if not clusters:
+        raise ValueError("no clusters to plot")
+    checked = [_checked(x, c, None) for x, c in clusters]
+    if values is None:
+        values = [sphere_values(x, pairs, "degree")[0] for x, pairs, _ in checked]
+        label = COLOR_BY["degree"] if label is None else label
+    values = [_checked(x, pairs, v)[2] for (x, pairs, _), v in zip(checked, values, strict=True)]
+    if titles is not None and len(titles) != len(clusters):
+        raise ValueError(f"{len(titles)} titles for {len(clusters)} clusters")
+    moved = aligned([(x, pairs) for x, pairs, _ in checked]) if align and len(clusters) > 1 else None
+    if moved is not None:
+        centre = moved[0].mean(axis=0)
+        xs = [x - centre for x in moved]
+        view = best_view(xs[0])
+        views = [view] * len(xs)
+    else:
+        xs = [x for x, _, _ in checked]
+        views = [best_view(x) for x in xs]
+    cmap, norm, ticks = _color_scale(np.concatenate(values))
+    k = len(xs)
+    if path is not None:
+        figure_format(path)
+    fig = new_figure(size or (3.6 * k + 1.0, 4.2), dpi)
+    extent = max(float(np.max(np.linalg.norm(x, axis=1))) for x in xs) + RADIUS
+    width = 0.88 / k
+    for i, (x, (_, pairs, _), v, (elev, azim)) in enumerate(zip(xs, checked, values, views)):
+        ax = fig.add_axes([i * width, 0.0, width, 0.86 if title else 0.9], projection="3d", proj_type="ortho",
+                          computed_zorder=False)
+        _draw_cluster(ax, x, pairs, v, cmap, norm, elev, azim, alpha=1.0, ghost=GHOST, style=style, labels=labels,
+                      gap=gap, extent=extent)
+        if titles is not None:
+            ax.set_title(titles[i], fontsize=9)
+    _colorbar(fig, cmap, norm, ticks, label, cax=fig.add_axes([0.9, 0.22, 0.018, 0.56]))
     if title:
-        fig.suptitle(title, y=0.96)
-    return save_png(fig, path)
+        fig.suptitle(title, y=0.97)
+    if path is not None:
+        save(fig, path)
+    return fig
 
 
 # --------------------------------------------------------------------------- the command line
@@ -380,8 +600,29 @@ n_option = click.option("--n", "ns", multiple=True, metavar="N[,N...]",
 
 def _file_option(default_name: str):
     return click.option("-o", "--output", default=None, metavar="PATH",
-                        help=f"The .png file to write (replaced whole), or an existing directory to write "
-                             f"{default_name} in; default ./{default_name}.")
+                        help=f"The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing "
+                             f"directory to write {default_name} in; default ./{default_name}.")
+
+
+def _parse_size(ctx, param, value: str | None) -> tuple[float, float] | None:
+    if value is None:
+        return None
+    try:
+        w, h = (float(v) for v in value.lower().replace("×", "x").split("x"))
+    except ValueError:
+        raise click.BadParameter(f"{value!r} is not WIDTHxHEIGHT in inches (e.g. 3.4x2.6)") from None
+    if not (0 < w <= 100 and 0 < h <= 100):
+        raise click.BadParameter(f"{value!r}: width and height must be more than 0 and at most 100 inches")
+    return w, h
+
+
+def _figure_options(f):
+    """--size and --dpi, passed to the command as ``size`` and ``dpi``."""
+    f = click.option("--dpi", type=click.IntRange(10, 2400), default=None,
+                     help=f"Dots per inch of a PNG (and of the pictures inside a PDF or SVG)  [default: {DPI}]")(f)
+    return click.option("--size", default=None, metavar="WxH", callback=_parse_size,
+                        help=f"Figure size in inches, e.g. 3.4x2.6  [default: {SIZE[0]}x{SIZE[1]}; a row of clusters: "
+                             f"3.6 per cluster + 1 by 4.2]")(f)
 
 
 def parse_ns(values) -> set[int] | None:
@@ -402,8 +643,10 @@ def _output_file(output: str | None, default_name: str) -> Path:
     path = Path(output) if output else Path(default_name)
     if output and path.is_dir():
         path = path / default_name
-    if path.suffix.lower() != ".png":
-        raise click.ClickException(f"cannot write {path}: only PNG is written; give a name ending in .png")
+    try:
+        figure_format(path)
+    except ValueError as e:
+        raise click.ClickException(str(e)) from None
     parent = path.parent
     if not parent.is_dir():
         raise click.ClickException(f"cannot write {path}: directory {parent} does not exist")
@@ -451,6 +694,12 @@ def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
     return out
 
 
+def _restricted(s) -> dict[int, int]:
+    from packings.store import restricted_ns
+
+    return restricted_ns(s)
+
+
 def load_gaps(s, ns: set[int] | None) -> dict[int, list[float]]:
     """{n: [min_gap, ...]} of the stored clusters that have one (only ``ns`` if given)."""
     from sqlalchemy import select
@@ -471,9 +720,9 @@ def _nothing(ns: set[int] | None, what: str = "clusters") -> str:
     return f"no {what}{where} in the database" + ("" if ns else ": run `packings enumerate N` first")
 
 
-def _write(draw, *args, path: Path) -> None:
+def _write(draw, *args, path: Path, **options) -> None:
     try:
-        draw(*args, path)
+        draw(*args, path, **options)
     except OSError as e:
         raise click.ClickException(f"cannot write {path}: {e.strerror or e}") from None
     click.echo(str(path))
@@ -481,9 +730,11 @@ def _write(draw, *args, path: Path) -> None:
 
 @click.group("plot", context_settings={"help_option_names": ["-h", "--help"]})
 def plot() -> None:
-    """Draw figures of the stored clusters as PNG files (960 x 720 pixels).
+    """Draw figures of the stored clusters as PNG, PDF or SVG files (by the file name).
 
-    Each command prints the path of every file it wrote.
+    A figure is 6.4 x 4.8 inches at 150 dots per inch (a PNG of 960 x 720 pixels)
+    unless --size and --dpi say otherwise.  Each command prints the path of every
+    file it wrote.
     """
 
 
@@ -491,22 +742,25 @@ def plot() -> None:
 @db_option
 @n_option
 @_file_option(DEFAULT_NAMES["counts"])
-def counts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) -> None:
+@_figure_options
+def counts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size, dpi) -> None:
     """The number of stored clusters against n (log scale), with the fit b·(n − 5)!."""
     ns_ = parse_ns(ns)
     path = _output_file(output, DEFAULT_NAMES["counts"])
     with _reading(db_url) as s:
-        counts = load_counts(s, ns_)
+        counts, restricted = load_counts(s, ns_), _restricted(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=path)
+    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=path, restricted=restricted, size=size,
+           dpi=dpi)
 
 
 @plot.command("gaps", short_help="Cumulative distribution of the minimum gaps, one line per n.")
 @db_option
 @n_option
 @_file_option(DEFAULT_NAMES["gaps"])
-def gaps_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) -> None:
+@_figure_options
+def gaps_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size, dpi) -> None:
     """The cumulative distribution of the clusters' minimum gaps, one line per n."""
     ns_ = parse_ns(ns)
     path = _output_file(output, DEFAULT_NAMES["gaps"])
@@ -514,14 +768,15 @@ def gaps_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) -> Non
         gaps = load_gaps(s, ns_)
     if not gaps:
         raise click.ClickException(_nothing(ns_, "clusters with a minimum gap"))
-    _write(plot_gap_cdf, gaps, path=path)
+    _write(plot_gap_cdf, gaps, path=path, size=size, dpi=dpi)
 
 
 @plot.command("contacts", short_help="Clusters by contacts − (3n − 6), one series per n.")
 @db_option
 @n_option
 @_file_option(DEFAULT_NAMES["contacts"])
-def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) -> None:
+@_figure_options
+def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size, dpi) -> None:
     """The number of stored clusters by contacts − (3n − 6), one series per n."""
     ns_ = parse_ns(ns)
     path = _output_file(output, DEFAULT_NAMES["contacts"])
@@ -529,54 +784,82 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) ->
         counts = load_counts(s, ns_)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_by_contacts, counts, path=path)
+    _write(plot_by_contacts, counts, path=path, size=size, dpi=dpi)
 
 
-@plot.command("cluster", short_help="One cluster in 3D: spheres to scale, contacts as sticks.")
-@click.argument("cluster_id", metavar="ID", type=int)
+@plot.command("cluster", short_help="Clusters in 3D, side by side: spheres, contacts, the closest gap.")
+@click.argument("cluster_ids", metavar="ID...", type=int, nargs=-1, required=True)
 @db_option
 @click.option("--color-by", type=click.Choice(list(COLOR_BY)), default="degree", show_default=True,
               help="Colour the spheres by their number of contacts (degree), height z, or distance from the "
                    "centroid.")
+@click.option("--style", type=click.Choice(STYLES), default="spheres", show_default=True,
+              help="spheres: to scale; sticks: small spheres, so that every contact shows.")
+@click.option("--labels", is_flag=True, help="Number the spheres (as in the cluster's coordinates and contacts).")
 @click.option("-o", "--output", default=None, metavar="PATH",
-              help="The .png file to write (replaced whole), or an existing directory; default ./cluster-ID.png.")
-def cluster_cmd(cluster_id: int, db_url: str | None, color_by: str, output: str | None) -> None:
-    """Cluster ID in 3D: spheres to scale, contacts as sticks, coloured by a per-sphere property."""
+              help="The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing directory; "
+                   "default ./cluster-ID[-ID...].png.")
+@_figure_options
+def cluster_cmd(cluster_ids: tuple[int, ...], db_url: str | None, color_by: str, style: str, labels: bool,
+                output: str | None, size, dpi) -> None:
+    """Clusters ID... in 3D, side by side: spheres coloured by a per-sphere property, contacts as sticks,
+    and the closest pair of spheres not in contact dashed, with its gap.  Clusters with one contact
+    graph (the geometries of one graph, say) are turned to lie alike on a common contact triangle
+    and seen from the same view."""
     from packings.models import ClusterRow
 
-    path = _output_file(output, f"cluster-{cluster_id}.png")
+    path = _output_file(output, "cluster-" + "-".join(map(str, cluster_ids)) + ".png")
+    rows = []
     with _reading(db_url) as s:
-        c = s.get(ClusterRow, cluster_id)
-        if c is None:
-            raise click.ClickException(f"no cluster with id {cluster_id}")
-        core, n, m = c.to_core(), c.n, c.contacts
-    values, label = sphere_values(core.coords, core.contacts, color_by)
-    title = f"cluster {cluster_id}: n = {n}, {m} contacts (3n−6{m - (3 * n - 6):+d})"
+        for cid in cluster_ids:
+            c = s.get(ClusterRow, cid)
+            if c is None:
+                raise click.ClickException(f"no cluster with id {cid}")
+            rows.append((cid, c.to_core(), c.n, c.contacts, c.embedding))
+    clusters = [(core.coords, core.contacts) for _, core, *_ in rows]
+    values, label = zip(*(sphere_values(x, pairs, color_by) for x, pairs in clusters))
+    titles = [f"cluster {cid}: n = {n}, {m} contacts (3n−6{m - (3 * n - 6):+d})" for cid, _, n, m, _ in rows]
     try:
-        plot_cluster(core.coords, core.contacts, path, values=values, label=label, title=title)
+        if len(rows) == 1:
+            plot_cluster(*clusters[0], path, values=values[0], label=label[0], title=titles[0], style=style,
+                         labels=labels, size=size, dpi=dpi)
+        else:
+            same = aligned(clusters) is not None
+            if same:
+                titles = [f"cluster {cid} (embedding {e})" for cid, _, _, _, e in rows]
+            n, m = rows[0][2], rows[0][3]
+            plot_clusters(clusters, path, values=values, label=label[0], titles=titles,
+                          title=f"one contact graph: n = {n}, {m} contacts, aligned on a contact triangle"
+                          if same else None, style=style, labels=labels, size=size, dpi=dpi)
     except OSError as e:
         raise click.ClickException(f"cannot write {path}: {e.strerror or e}") from None
     click.echo(str(path))
 
 
-@plot.command("all", short_help="counts.png, gaps.png and contacts.png into a directory.")
+@plot.command("all", short_help="counts, gaps and contacts figures into a directory.")
 @db_option
 @n_option
 @click.option("-o", "--output", default=None, metavar="DIR",
               help="An existing directory to write counts.png, gaps.png and contacts.png in (each replaced "
                    "whole); default the current directory.")
-def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None) -> None:
-    """counts.png, gaps.png and contacts.png, from one read of the database."""
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="png", show_default=True,
+              help="Write counts.FORMAT, gaps.FORMAT and contacts.FORMAT.")
+@_figure_options
+def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: str, size, dpi) -> None:
+    """counts.png, gaps.png and contacts.png (or .pdf, .svg), from one read of the database."""
+    names = {k: Path(v).with_suffix("." + fmt).name for k, v in DEFAULT_NAMES.items()}
     ns_ = parse_ns(ns)
     directory = _output_dir(output)
     with _reading(db_url) as s:
-        counts, gaps = load_counts(s, ns_), load_gaps(s, ns_)
+        counts, gaps, restricted = load_counts(s, ns_), load_gaps(s, ns_), _restricted(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=directory / DEFAULT_NAMES["counts"])
+    options = {"size": size, "dpi": dpi}
+    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=directory / names["counts"],
+           restricted=restricted, **options)
     if gaps:
-        _write(plot_gap_cdf, gaps, path=directory / DEFAULT_NAMES["gaps"])
+        _write(plot_gap_cdf, gaps, path=directory / names["gaps"], **options)
     else:  # only clusters in which every pair touches (n <= 4)
         click.echo(f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; "
-                   f"{DEFAULT_NAMES['gaps']} not written", err=True)
-    _write(plot_by_contacts, counts, path=directory / DEFAULT_NAMES["contacts"])
+                   f"{names['gaps']} not written", err=True)
+    _write(plot_by_contacts, counts, path=directory / names["contacts"], **options)

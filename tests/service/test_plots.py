@@ -17,14 +17,16 @@ from sqlalchemy import select
 
 from packings.models import ClusterRow
 from packings.plots import (
-    SIZE_PX,
+    aligned,
     best_view,
+    closest_pair,
     plot,
     plot_by_contacts,
     plot_cluster,
+    plot_clusters,
     plot_counts,
     plot_gap_cdf,
-    save_png,
+    save,
     sphere_values,
 )
 from tests.service.querydb import filled_catalog
@@ -38,14 +40,23 @@ OCTAHEDRON = np.array([[S, 0, 0], [-S, 0, 0], [0, S, 0], [0, -S, 0], [0, 0, S], 
 OCTAHEDRON_CONTACTS = [(i, j) for i in range(6) for j in range(i + 1, 6) if j != i + 1 or i % 2]
 
 
-def pixels(path) -> np.ndarray:
-    """The PNG's pixels, after checking it is one of the fixed size and not a single flat colour."""
+def pixels(path, size=(960, 720)) -> np.ndarray:
+    """The PNG's pixels, after checking it has ``size`` (the default figure's) and is not a single flat
+    colour."""
     with Image.open(path) as im:
         assert im.format == "PNG"
-        assert im.size == SIZE_PX == (960, 720)
+        assert im.size == size
         a = np.asarray(im.convert("RGB"), dtype=float)
     assert a.std() > 0
     return a
+
+
+def drawn(draw, *args, path, **kw) -> np.ndarray:
+    """Draw to ``path`` and return its pixels; the function returns the figure it wrote."""
+    from matplotlib.figure import Figure
+
+    assert isinstance(draw(*args, path, **kw), Figure)
+    return pixels(path)
 
 
 def files(directory: Path) -> list[str]:
@@ -69,10 +80,8 @@ def one_line_error(r, *words, code: int = 1):
 
 
 def test_plot_counts(tmp_path):
-    path = plot_counts({n: sum(d.values()) for n, d in PAPER_BY_CONTACTS.items()}, tmp_path / "counts.png")
-    assert path == tmp_path / "counts.png"
-    pixels(path)
-    pixels(plot_counts({4: 1}, tmp_path / "one.png"))  # nothing to fit: markers only
+    drawn(plot_counts, {n: sum(d.values()) for n, d in PAPER_BY_CONTACTS.items()}, path=tmp_path / "counts.png")
+    drawn(plot_counts, {4: 1}, path=tmp_path / "one.png")  # nothing to fit: markers only
     assert files(tmp_path) == ["counts.png", "one.png"]
 
 
@@ -80,12 +89,12 @@ def test_plot_gap_cdf(tmp_path):
     rng = np.random.default_rng(0)
     gaps = {n: list(np.exp(rng.normal(-2 - 0.2 * n, 1.0, size=20 * n))) for n in (8, 9, 10)}
     gaps[11] = [0.05, None, float("nan"), 0.0, -1.0]  # only the one positive gap is drawn
-    pixels(plot_gap_cdf(gaps, tmp_path / "gaps.png"))
+    drawn(plot_gap_cdf, gaps, path=tmp_path / "gaps.png")
 
 
 def test_plot_by_contacts(tmp_path):
-    pixels(plot_by_contacts(PAPER_BY_CONTACTS, tmp_path / "contacts.png"))
-    pixels(plot_by_contacts({7: {15: 5}}, tmp_path / "single.png"))
+    drawn(plot_by_contacts, PAPER_BY_CONTACTS, path=tmp_path / "contacts.png")
+    drawn(plot_by_contacts, {7: {15: 5}}, path=tmp_path / "single.png")
 
 
 @pytest.mark.parametrize("draw, empty", [(plot_counts, {}), (plot_counts, {7: 0}), (plot_gap_cdf, {}),
@@ -111,13 +120,14 @@ def test_sphere_values():
 def test_plot_cluster(tmp_path):
     x = np.array([[0, 0, 0], [1, 0, 0], [0.5, math.sqrt(3) / 2, 0], [0.5, math.sqrt(3) / 6, math.sqrt(2 / 3)]])
     tetra = [(i, j) for i in range(4) for j in range(i + 1, 4)]
-    default = pixels(plot_cluster(x, tetra, tmp_path / "default.png"))
-    by_height = pixels(plot_cluster(x, tetra, tmp_path / "height.png", values=x[:, 2], label="z", title="tetrahedron"))
+    default = drawn(plot_cluster, x, tetra, path=tmp_path / "default.png")
+    by_height = drawn(plot_cluster, x, tetra, path=tmp_path / "height.png", values=x[:, 2], label="z",
+                      title="tetrahedron")
     assert not np.array_equal(default, by_height)
     # the same picture wherever the cluster sits: it is centred
-    assert np.abs(default - pixels(plot_cluster(x + 7.5, tetra, tmp_path / "moved.png"))).mean() < 0.5
-    pixels(plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, tmp_path / "octahedron.png", elev=10, azim=30))
-    pixels(plot_cluster([[0, 0, 0]], [], tmp_path / "one.png"))
+    assert np.abs(default - drawn(plot_cluster, x + 7.5, tetra, path=tmp_path / "moved.png")).mean() < 0.5
+    drawn(plot_cluster, OCTAHEDRON, OCTAHEDRON_CONTACTS, path=tmp_path / "octahedron.png", elev=10, azim=30)
+    drawn(plot_cluster, [[0, 0, 0]], [], path=tmp_path / "one.png")
 
 
 @pytest.mark.parametrize("kw, message", [(dict(coords=np.zeros((3, 2))), "n x 3"),
@@ -159,10 +169,11 @@ def test_a_failed_write_leaves_the_old_file(tmp_path, monkeypatch):
     assert files(tmp_path) == ["counts.png"]
 
 
-def test_save_png_size(tmp_path):
+def test_save_writes_at_the_figures_size(tmp_path):
     from matplotlib.figure import Figure
 
-    pixels(save_png(_busy(Figure(figsize=(6.4, 4.8))), tmp_path / "f.png"))
+    pixels(save(_busy(Figure(figsize=(6.4, 4.8), dpi=150)), tmp_path / "f.png"))
+    pixels(save(_busy(Figure(figsize=(2, 1), dpi=100)), tmp_path / "g.png"), size=(200, 100))
 
 
 def _busy(fig):
@@ -174,6 +185,149 @@ def test_importing_the_commands_does_not_load_matplotlib():
     code = "import sys, packings.plots; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
+
+
+# --------------------------------------------------------------------------- figures for a paper
+
+TETRA = np.array([[0, 0, 0], [1, 0, 0], [0.5, math.sqrt(3) / 2, 0], [0.5, math.sqrt(3) / 6, math.sqrt(2 / 3)]])
+#: a tetrahedron with a fifth sphere on one face: one pair (3, 4) not in contact, 1/3 apart... of a gap
+BIPYRAMID = np.r_[TETRA, [[0.5, math.sqrt(3) / 6, -math.sqrt(2 / 3)]]]
+BIPYRAMID_CONTACTS = [(i, j) for i in range(4) for j in range(i + 1, 4)] + [(0, 4), (1, 4), (2, 4)]
+
+
+@pytest.mark.parametrize("suffix, magic", [(".png", b"\x89PNG"), (".pdf", b"%PDF"), (".svg", b"<?xml")])
+def test_the_format_follows_the_file_name(tmp_path, suffix, magic):
+    for draw, data in [(plot_counts, {7: 5, 8: 13}), (plot_by_contacts, {8: {18: 13}}),
+                       (plot_cluster, OCTAHEDRON)]:
+        path = tmp_path / (draw.__name__ + suffix)
+        draw(data, OCTAHEDRON_CONTACTS, path) if draw is plot_cluster else draw(data, path)
+        assert path.read_bytes().startswith(magic), path
+    if suffix == ".svg":
+        assert "<svg" in path.read_text()
+
+
+def test_a_format_it_cannot_write_is_refused_before_drawing(tmp_path):
+    for name in ("x.jpg", "x", "x.png.txt"):
+        with pytest.raises(ValueError, match=r"\.png, \.pdf, \.svg"):
+            plot_counts({7: 5}, tmp_path / name)
+        with pytest.raises(ValueError, match=r"\.png, \.pdf, \.svg"):
+            plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, tmp_path / name)
+    assert files(tmp_path) == []
+
+
+def test_size_and_dpi(tmp_path):
+    plot_counts({7: 5, 8: 13}, tmp_path / "a.png", size=(3.4, 2.6), dpi=200)
+    pixels(tmp_path / "a.png", size=(680, 520))
+    plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, tmp_path / "b.png", size=(2, 2), dpi=100)
+    pixels(tmp_path / "b.png", size=(200, 200))
+    with pytest.raises(ValueError, match="positive"):
+        plot_counts({7: 5}, size=(0, 2))
+
+
+def test_every_plot_function_draws_on_a_callers_axes_and_returns_the_figure(tmp_path):
+    """A notebook's figure with four axes: each function draws on the one it is given, writes nothing
+    unless told, and returns that figure."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 8))
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(2, 2, 1), fig.add_subplot(2, 2, 2), fig.add_subplot(2, 2, 3),
+            fig.add_subplot(2, 2, 4, projection="3d")]
+    assert plot_counts({7: 5, 8: 13}, ax=axes[0]) is fig
+    assert plot_gap_cdf({8: [0.1, 0.2]}, ax=axes[1]) is fig
+    assert plot_by_contacts({8: {18: 13}}, ax=axes[2]) is fig
+    assert plot_cluster(TETRA, BIPYRAMID_CONTACTS[:6], ax=axes[3], labels=True) is fig
+    assert [len(a.lines) > 0 for a in axes] == [True] * 4
+    assert axes[0].get_title() == "Rigid clusters of n spheres" and axes[1].get_xscale() == "log"
+    assert files(tmp_path) == []
+    with pytest.raises(ValueError, match="3D axes"):
+        plot_cluster(TETRA, BIPYRAMID_CONTACTS[:6], ax=axes[0])
+    path = tmp_path / "notebook.png"
+    assert plot_counts({7: 5}, path, ax=axes[0]) is fig  # with a path: the caller's whole figure
+    pixels(path, size=(1000, 800))
+
+
+def _texts(fig) -> list[str]:
+    return [t.get_text() for ax in fig.axes for t in ax.texts]
+
+
+def test_the_closest_pair_not_in_contact_is_dashed_with_its_gap():
+    i, j, gap = closest_pair(BIPYRAMID, BIPYRAMID_CONTACTS)
+    assert (i, j) == (3, 4) and gap == pytest.approx(2 * math.sqrt(2 / 3) - 1)
+    assert closest_pair(TETRA, BIPYRAMID_CONTACTS[:6]) is None
+    fig = plot_cluster(BIPYRAMID, BIPYRAMID_CONTACTS)
+    dashed = [line for line in fig.axes[0].lines if line.get_linestyle() == "--"]
+    assert len(dashed) == 1
+    ends = np.array(dashed[0].get_data_3d()).T
+    x = BIPYRAMID - BIPYRAMID.mean(axis=0)
+    assert sorted(map(tuple, np.round(ends, 9))) == sorted(map(tuple, np.round(x[[3, 4]], 9)))
+    assert _texts(fig) == [f"gap {gap:.3g}"] == ["gap 0.633"]
+    assert not [line for line in plot_cluster(BIPYRAMID, BIPYRAMID_CONTACTS, gap=False).axes[0].lines
+                if line.get_linestyle() == "--"]
+
+
+def test_labels_number_the_spheres():
+    assert sorted(_texts(plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, labels=True)), key=lambda t: (len(t), t)) \
+        == ["0", "1", "2", "3", "4", "5", "gap 0.414"]
+    assert _texts(plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS)) == ["gap 0.414"]
+
+
+def test_the_sticks_style_shows_every_contact(tmp_path):
+    """Small spheres: less of the picture is sphere, and no faint second pass of the sticks is needed."""
+    spheres = drawn(plot_cluster, OCTAHEDRON, OCTAHEDRON_CONTACTS, path=tmp_path / "spheres.png", elev=20, azim=30)
+    sticks = drawn(plot_cluster, OCTAHEDRON, OCTAHEDRON_CONTACTS, path=tmp_path / "sticks.png", elev=20, azim=30,
+                   style="sticks")
+    coloured = [np.mean(np.ptp(a, axis=2) > 60) for a in (spheres, sticks)]  # saturated: sphere colour
+    assert coloured[1] < coloured[0] / 3
+    with pytest.raises(ValueError, match="unknown style"):
+        plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, style="balls")
+
+
+def _moved(x, seed: int, reflect: bool = False):
+    rng = np.random.default_rng(seed)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    if (np.linalg.det(q) < 0) != reflect:
+        q[:, 0] *= -1
+    return x @ q.T + rng.uniform(-5, 5, size=3)
+
+
+def test_clusters_of_one_contact_graph_are_aligned_on_a_contact_triangle():
+    """A moved, turned and relabelled copy of a cluster lies on the original once aligned; the two
+    geometries of one n = 11 contact graph share a contact triangle and differ elsewhere; clusters of
+    different graphs are not aligned."""
+    from tests.workers.test_audit import two_geometries
+
+    rng = np.random.default_rng(3)
+    p = rng.permutation(5)
+    inverse = np.argsort(p)
+    copy = (_moved(BIPYRAMID, 1)[p], [(int(inverse[i]), int(inverse[j])) for i, j in BIPYRAMID_CONTACTS])
+    a, b = aligned([(BIPYRAMID, BIPYRAMID_CONTACTS), copy])
+    assert np.allclose(a, BIPYRAMID)
+    assert np.allclose(np.sort(b, axis=0), np.sort(BIPYRAMID, axis=0), atol=1e-9)  # the same spheres
+    g, h = two_geometries()
+    x, y = aligned([(g.coords, g.contacts), (_moved(h.coords, 2), h.contacts)])
+    near = np.min(np.linalg.norm(x[:, None] - y[None], axis=-1), axis=1)
+    assert np.sum(near < 1e-9) >= 3 and near.max() > 0.1
+    assert aligned([(BIPYRAMID, BIPYRAMID_CONTACTS), (OCTAHEDRON, OCTAHEDRON_CONTACTS)]) is None
+
+
+def test_several_clusters_side_by_side(tmp_path):
+    from tests.workers.test_audit import two_geometries
+
+    g, h = two_geometries()
+    fig = plot_clusters([(g.coords, g.contacts), (_moved(h.coords, 5), h.contacts)], tmp_path / "two.png",
+                        titles=["a", "b"], labels=True)
+    pixels(tmp_path / "two.png", size=(1230, 630))
+    three_d = [ax for ax in fig.axes if ax.name == "3d"]
+    assert [ax.get_title() for ax in three_d] == ["a", "b"]
+    assert three_d[0].elev == three_d[1].elev and three_d[0].azim == three_d[1].azim  # one view
+    assert len(fig.axes) == 3  # one colour bar
+    assert sum(t.isdigit() for t in _texts(fig)) == 22
+    apart = plot_clusters([(BIPYRAMID, BIPYRAMID_CONTACTS), (OCTAHEDRON, OCTAHEDRON_CONTACTS)])
+    assert len([ax for ax in apart.axes if ax.name == "3d"]) == 2
+    with pytest.raises(ValueError, match="2 titles for 1"):
+        plot_clusters([(BIPYRAMID, BIPYRAMID_CONTACTS)], titles=["a", "b"])
 
 
 # --------------------------------------------------------------------------- the commands
@@ -286,7 +440,7 @@ def test_bad_output(catalog, tmp_path):
     one_line_error(invoke("all", "--db", catalog.url, "-o", missing), f"cannot write to {missing}")
     (tmp_path / "file.png").write_bytes(b"x")
     one_line_error(invoke("all", "--db", catalog.url, "-o", tmp_path / "file.png"), "not a directory")
-    one_line_error(invoke("counts", "--db", catalog.url, "-o", tmp_path / "c.pdf"), "only PNG")
+    one_line_error(invoke("counts", "--db", catalog.url, "-o", tmp_path / "c.jpg"), ".png, .pdf, .svg")
     assert files(tmp_path) == ["file.png"]
 
 
@@ -333,3 +487,45 @@ def test_help_lists_the_subcommands():
     assert r.exit_code == 0
     for name in ("counts", "gaps", "contacts", "cluster", "all"):
         assert f"  {name} " in r.stdout
+
+
+def test_cluster_command_writes_several_clusters_formats_and_sizes(catalog, tmp_path, monkeypatch):
+    from packings.db import sessions
+
+    with sessions(catalog.engine, readonly=True)() as s:
+        a, b = s.execute(select(ClusterRow.id).where(ClusterRow.n == 8).order_by(ClusterRow.id)).scalars().all()[:2]
+    monkeypatch.chdir(tmp_path)
+    r = invoke("cluster", a, b, "--db", catalog.url, "--labels", "--style", "sticks", "--size", "6x3", "--dpi", "80")
+    assert r.exit_code == 0 and r.stdout == f"cluster-{a}-{b}.png\n", r.stderr
+    pixels(tmp_path / f"cluster-{a}-{b}.png", size=(480, 240))
+    r = invoke("cluster", a, "--db", catalog.url, "-o", "one.pdf")
+    assert r.exit_code == 0 and (tmp_path / "one.pdf").read_bytes().startswith(b"%PDF"), r.stderr
+    r = invoke("counts", "--db", catalog.url, "-o", "c.svg", "--size", "3.4x2.6")
+    assert r.exit_code == 0 and "<svg" in (tmp_path / "c.svg").read_text(), r.stderr
+    r = invoke("all", "--db", catalog.url, "--format", "pdf")
+    assert r.exit_code == 0 and r.stdout.split() == ["counts.pdf", "gaps.pdf", "contacts.pdf"], r.stderr
+    one_line_error(invoke("cluster", a, 99999, "--db", catalog.url), "no cluster with id 99999")
+    for bad in ("3", "x by y", "0x2", "1x200"):
+        r = invoke("counts", "--db", catalog.url, "--size", bad)
+        assert r.exit_code == 2 and "--size" in r.stderr, (bad, r.stderr)
+    assert invoke("cluster", "--db", catalog.url).exit_code == 2  # at least one ID
+    assert sorted(files(tmp_path)) == sorted(["c.svg", f"cluster-{a}-{b}.png", "contacts.pdf", "counts.pdf",
+                                              "gaps.pdf", "one.pdf"])
+
+
+def test_a_row_of_the_api_draws_on_a_notebooks_axes(catalog, tmp_path):
+    """docs/cli.md's example: a row from packings.connect drawn beside the counts, saved as PDF."""
+    import packings
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 4))
+    FigureCanvasAgg(fig)
+    with packings.connect(catalog.url) as cat:
+        row = cat.get(1)
+        assert plot_counts({n: cat.count(n=n) for n in (7, 8)}, ax=fig.add_subplot(1, 2, 1)) is fig
+    assert plot_cluster(row.coords, row.contacts, ax=fig.add_subplot(1, 2, 2, projection="3d"), labels=True) is fig
+    labels = [t.get_text() for t in fig.axes[1].texts if t.get_text().isdigit()]
+    assert labels == [str(i) for i in range(len(row.coords))]
+    fig.savefig(tmp_path / "both.pdf")
+    assert (tmp_path / "both.pdf").read_bytes().startswith(b"%PDF")
