@@ -245,12 +245,12 @@ class Catalogue:
             return stats(s, n, counts_by_n(s))
 
     def fit(self) -> dict | None:
-        """The fit of the totals of the complete runs to b·(n−5)! (None with fewer than two n)."""
+        """The fit of the totals to b·(n−5)!, runs restricted by --min-contacts left out (None if no n)."""
         from packings.stats import fit_all
-        from packings.store import counts_by_n
+        from packings.store import counts_by_n, restricted_ns
 
         with self.session() as s:
-            return fit_all(counts_by_n(s))
+            return fit_all(counts_by_n(s), restricted_ns(s))
 
     def runs(self) -> list[dict]:
         """Every run with its frontier, one dict each: what ``packings status --json`` prints.  A run
@@ -318,6 +318,18 @@ LOCAL_WORKERLESS_SECONDS = 60.0  #: a local cluster without a worker for this lo
 WORKERLESS_ENV = "PACKINGS_WORKERLESS_SECONDS"  #: overrides it
 
 
+def _seconds(variable: str, default: float) -> float:
+    """A number of seconds from the environment ``variable``, else ``default``; a bad value is a UsageError."""
+    value = os.environ.get(variable)
+    try:
+        seconds = default if value is None else float(value)
+    except ValueError:
+        seconds = -1.0
+    if not seconds > 0:
+        raise UsageError(f"{variable} must be a positive number of seconds (got {value!r})")
+    return seconds
+
+
 def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
               max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
               progress: bool = True, dashboard_address: str = DASHBOARD_ADDRESS) -> RunResult:
@@ -333,7 +345,7 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     cluster serves its Dask dashboard, with the run's own page (``/packings``, :mod:`packings.dashboard`),
     at ``dashboard_address`` (another port if that one is taken).
     """
-    from packings.dask_cluster import dask_client, start_fork_server
+    from packings.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
     from packings.workers.params import Params
 
     check_n(n)
@@ -351,7 +363,18 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
 
         compiling = kernels_cached() is False  # then the fork server compiles them as it starts
         start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
+    # a local cluster that has had no worker for this long cannot start them again: stop, resumably
+    # (an existing cluster's workers may join later: wait for them)
+    workerless = None if scheduler else _seconds(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS)
+    reconnect = _seconds(RECONNECT_ENV, RECONNECT_SECONDS)
     params = Params(max_break=max_break, min_contacts=min_contacts)
+    if min_contacts is not None:  # a run restricted so starts from a cluster with that many contacts
+        from packings.workers.seeds import seed_cluster
+
+        try:
+            seed_cluster(n, params)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
     url = resolve_url(url)
     from packings.db import open_database, preflight
 
@@ -366,7 +389,7 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     # a local cluster starts in the background, its workers warming up with the database plugin, while the
     # database is opened here; .client waits for it
     with dask_client(scheduler, workers, not progress, plugins=(DatabasePlugin(url),),
-                     dashboard_address=dashboard_address, database=url) as dask:
+                     dashboard_address=dashboard_address, database=url, reconnect_seconds=reconnect) as dask:
         if scheduler:
             dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
         engine = open_database(url, create=True)
@@ -378,9 +401,6 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
                       f"({engine.url.database}); use PostgreSQL for many machines", file=sys.stderr)
             bar = _progress_bar(progress)
             try:
-                # a local cluster that has had no worker for this long cannot start them again: stop, resumably
-                # (an existing cluster's workers may join later: wait for them)
-                workerless = None if scheduler else float(os.environ.get(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS))
                 return run_enumeration(engine, url, n, params, dask.client, on_progress=bar if progress else None,
                                        max_attempts=max_attempts, workerless_timeout=workerless,
                                        revive=dask.revive_workers)

@@ -54,6 +54,10 @@ log = logging.getLogger(__name__)
 
 #: a task that raised one of these was lost with its worker or its connection: no fault of its expansions
 INFRASTRUCTURE = (KilledWorker, CommClosedError, FutureCancelledError)
+#: why Dask's Client cancels every future it holds when it loses its scheduler, which it then tries to reach
+#: again (FutureCancelledError.reason)
+CONNECTION_LOST = "scheduler-connection-lost"
+RECONNECT_MARGIN = 30.0  #: how long past the Client's own reconnection window the coordinator waits for it
 #: what SQLite, PostgreSQL or the system say when the database cannot be written (lower case)
 CANNOT_WRITE = ("database or disk is full", "no space left on device", "could not extend file", "diskfull",
                 "readonly database", "read-only transaction", "read-only file system")
@@ -229,6 +233,13 @@ class _Watchdog(threading.Thread):
         self.stopped.set()
 
 
+def cancel_reason(fut) -> str:
+    """Why Dask cancelled ``fut``: :data:`CONNECTION_LOST` when its Client lost the scheduler, "unknown"
+    if it does not say (the reason Dask records on the future's state)."""
+    exc = getattr(getattr(fut, "_state", None), "exception", None)
+    return str(getattr(exc, "reason", None) or "unknown")
+
+
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
         f = store.frontier(s, run_id)
@@ -275,11 +286,30 @@ def run_enumeration(
     threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
     shown = _Every(PROGRESS_SECONDS, lambda: on_progress(_progress(Reader, info.id)) if on_progress else None)
 
+    def reconnect() -> None:
+        """The Client lost its scheduler (an existing cluster's, gone or restarting): wait while it tries
+        to reach it again, for its own window (:data:`packings.dask_cluster.RECONNECT_SECONDS`), then
+        register the database plugin again (a restarted scheduler knows none, and gives it to the
+        workers that join it); if it cannot, stop, resumably."""
+        since = time.monotonic()
+        window = float(getattr(client, "_timeout", 0) or 0)
+        log.warning("run %d: lost the Dask scheduler; trying to reach it again for %.0f s", info.id, window)
+        while client.status != "running":
+            waited = time.monotonic() - since
+            if client.status in ("closing", "closed") or waited > window + RECONNECT_MARGIN:
+                raise SchedulerError(f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
+                                     "run the same command to resume")
+            time.sleep(0.2)
+        client.register_plugin(plugin)
+        log.warning("run %d: reached the Dask scheduler again after %.1f s", info.id, time.monotonic() - since)
+
     def fill(force: bool = False) -> None:
         """Keep up to ``per_worker`` tasks per worker thread in flight: claim once at most half of them
         are left (one claim transaction per few results rather than per result), up to ``batch``
         expansions for each task wanted, and share what was claimed out among those tasks (among more,
         smaller ones when that was all that was pending: :func:`_task_count`)."""
+        if client.status != "running":
+            reconnect()
         capacity = per_worker * threads()
         if not force and len(flight) > capacity // 2:
             return
@@ -329,7 +359,11 @@ def run_enumeration(
             for fut in ac:
                 flight.discard(fut)
                 failed = {}
-                if fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
+                if fut.status == "cancelled" and cancel_reason(fut) == CONNECTION_LOST:
+                    # the Client lost the scheduler, which says nothing about the task: back, uncounted
+                    store.put_back(Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler "
+                                                             "was lost")
+                elif fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
                     lost(fut, None)
                 elif fut.status == "error":
                     exc = fut.exception()

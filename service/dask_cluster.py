@@ -85,6 +85,8 @@ PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
 DASHBOARD_ADDRESS = "127.0.0.1:8787"  #: where a local cluster serves its dashboard (another port if taken)
 REVIVE_SECONDS = 15.0  #: how long a local worker slot may be without a process before it is replaced
 START_ATTEMPTS = 3  #: tries to start the local cluster (a worker process that dies as it starts fails the start)
+RECONNECT_SECONDS = 300.0  #: how long a coordinator tries to reach an existing scheduler again once it lost it
+RECONNECT_ENV = "PACKINGS_RECONNECT_SECONDS"  #: overrides it
 log = logging.getLogger(__name__)
 
 
@@ -98,9 +100,11 @@ class dask_client:
     """
 
     def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool, plugins=(),
-                 dashboard_address: str = DASHBOARD_ADDRESS, database: str | None = None):
+                 dashboard_address: str = DASHBOARD_ADDRESS, database: str | None = None,
+                 reconnect_seconds: float = RECONNECT_SECONDS):
         self.scheduler, self.n_workers, self.quiet, self.plugins = scheduler, n_workers, quiet, tuple(plugins)
         self.dashboard_address, self.database = dashboard_address, database
+        self.reconnect_seconds = reconnect_seconds
         self.cluster = self._client = self._error = self._thread = None
         self._announced = False
         self._dead_since: dict = {}  #: local worker slot -> when its process was first seen dead
@@ -133,6 +137,10 @@ class dask_client:
             except (OSError, TimeoutError, ValueError) as e:
                 raise SchedulerError(f"cannot reach the Dask scheduler at {self.scheduler}: "
                                      f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+            # A Client that loses its scheduler tries to connect again for as long as its timeout, then
+            # closes: 10 s to connect at first (one that does not answer is said at once), then the
+            # reconnection window (packings.coordinator waits for it and goes on)
+            self._client._timeout = self.reconnect_seconds
         else:
             k = self.n_workers or os.cpu_count() or 1
             if PROFILE_ENV not in os.environ:

@@ -139,6 +139,14 @@ def test_one_image_for_every_dask_process(compose):
         assert (context / ".dockerignore").is_file()
 
 
+def test_the_scheduler_and_the_workers_are_started_again_when_they_end(compose):
+    """A Dask worker ends when it loses its scheduler; the coordinator waits for a scheduler to come back
+    (PACKINGS_RECONNECT_SECONDS): both must be restarted, the coordinator not (it ends with the run)."""
+    services = compose["services"]
+    assert services["scheduler"]["restart"] == services["worker"]["restart"] == "unless-stopped"
+    assert services["coordinator"]["restart"] == "no"
+
+
 @pytest.mark.parametrize("service", IMAGE_SERVICES)
 def test_every_command_exists_and_accepts_its_arguments(compose, service):
     """The program each service runs is installed next to this Python, and its parser accepts the arguments.

@@ -438,3 +438,110 @@ def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
         assert replaced == 1 and d.cluster.workers.get(name) is not nanny  # a new nanny in its slot
         client.wait_for_workers(2, timeout=120)
         assert len(client.nthreads()) == 2 and len(d.cluster.workers) == 2
+
+
+class _DaskCluster:
+    """`dask scheduler` and `dask worker` processes on one port, started again as an operator's
+    supervisor would (a Dask worker ends when it loses its scheduler)."""
+
+    def __init__(self, workers: int = 2):
+        import os
+        import sys
+
+        from tests.service.test_enumerate import _free_port
+
+        self.dask = os.path.join(os.path.dirname(sys.executable), "dask")
+        self.port, self.workers = _free_port(), workers
+        self.address = f"tcp://127.0.0.1:{self.port}"
+        self.scheduler = self.worker = None
+
+    def start(self) -> None:
+        from tests.service.test_enumerate import _wait_until_listening
+
+        self.scheduler = subprocess.Popen([self.dask, "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
+                                           "--dashboard-address", "127.0.0.1:0"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        _wait_until_listening(self.port)
+        self.worker = subprocess.Popen([self.dask, "worker", self.address, "--nworkers", str(self.workers),
+                                        "--nthreads", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+    def kill_scheduler(self) -> None:
+        self.scheduler.send_signal(signal.SIGKILL)
+        self.scheduler.wait(timeout=30)
+        try:  # its workers end on their own once they lose it
+            self.worker.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            self.worker.kill()
+
+    def stop(self) -> None:
+        from tests.service.test_enumerate import stop
+
+        stop([p for p in (self.scheduler, self.worker) if p is not None])
+
+
+def _scheduler_lost_mid_run(cluster: _DaskCluster, url: str, back_after: float | None) -> tuple[int, str, str]:
+    """`packings enumerate 10 --scheduler` on ``cluster``, whose scheduler is killed once 40 expansions
+    are done and started again ``back_after`` seconds later (None: never); the run's exit status and
+    output."""
+    cluster.start()
+    assert cli("db", "upgrade", "--db", url).returncode == 0
+    run = start("enumerate", "10", "--db", url, "--scheduler", cluster.address, "--quiet")
+    try:
+        wait_for(lambda: done_count(url) >= 40, run)
+        cluster.kill_scheduler()
+        if back_after is not None:
+            time.sleep(back_after)
+            cluster.start()
+        out, err = run.communicate(timeout=900)
+    finally:
+        run.kill()
+    return run.returncode, out, err
+
+
+@pytest.mark.slow
+def test_the_scheduler_restarted_mid_run_the_coordinator_reconnects_and_completes(pg_url, reference10):
+    """With --scheduler, the scheduler is killed mid-run and started again on its port 3 s later (with
+    new workers, as a supervisor restarts them): the coordinator reaches it again, puts the lost tasks'
+    expansions back without using up attempts, registers the database plugin with the new scheduler,
+    and the run completes, exact."""
+    cluster = _DaskCluster()
+    try:
+        code, out, err = _scheduler_lost_mid_run(cluster, pg_url, back_after=3.0)
+        assert code == 0, err
+        assert "lost the Dask scheduler; trying to reach it again" in err
+        assert "reached the Dask scheduler again" in err and "Traceback" not in err
+        assert "n = 10: 263 rigid clusters" in out
+        assert_same_clusters(pg_url, 10, reference10)
+        status = _faults(pg_url)
+        assert status["failed"] == 0 and status["leased"] == 0 and status["retries"] > 0
+        _assert_transitions_whole(pg_url, 10)
+    finally:
+        cluster.stop()
+
+
+@pytest.mark.slow
+def test_a_scheduler_that_does_not_come_back_ends_the_run_in_one_line_resumably(pg_url, reference10, monkeypatch):
+    """The scheduler is killed for good: after the reconnection window (PACKINGS_RECONNECT_SECONDS) the
+    coordinator stops with one line and exit 1, its leases put back; the same run then completes on a
+    new scheduler."""
+    monkeypatch.setenv("PACKINGS_RECONNECT_SECONDS", "3")
+    cluster = _DaskCluster()
+    try:
+        code, out, err = _scheduler_lost_mid_run(cluster, pg_url, back_after=None)
+        assert code == 1 and "Traceback" not in err, err
+        errors = [line for line in err.splitlines() if "error" in line]
+        assert len(errors) == 1 and errors[0].startswith("packings: error: lost the Dask scheduler and could not "
+                                                         "reach it again in"), err
+        assert errors[0].endswith("run the same command to resume")
+        status = _faults(pg_url)
+        assert status["leased"] == 0 and status["status"] != "complete" and status["done"] >= 40
+        cluster.start()
+        r = cli("enumerate", "10", "--db", pg_url, "--scheduler", cluster.address, "--quiet")
+        assert r.returncode == 0 and "n = 10: 263 rigid clusters" in r.stdout, r.stderr
+        assert_same_clusters(pg_url, 10, reference10)
+    finally:
+        cluster.stop()
+    monkeypatch.setenv("PACKINGS_RECONNECT_SECONDS", "soon")
+    r = cli("enumerate", "10", "--db", pg_url, "--scheduler", cluster.address)
+    assert r.returncode != 0 and r.stderr.strip().splitlines() == [
+        "packings: error: PACKINGS_RECONNECT_SECONDS must be a positive number of seconds (got 'soon')"], r.stderr
