@@ -79,7 +79,9 @@ def cli(verbose: int) -> None:
 @click.option("--max-break", type=click.IntRange(1, 10), default=None,
               help="Largest number of contacts broken at once (default: no cap, every size up to m - rank + 1 as the "
                    "paper for n <= 14; a cap is for restricted runs of large n).")
-@click.option("--min-contacts", type=int, default=None, help="Keep only clusters with at least this many contacts.")
+@click.option("--min-contacts", type=int, default=None,
+              help="Keep only clusters with at least this many contacts (a restricted run, e.g. of the ground states "
+                   "of large N); above 3N - 6 the run starts from the close-packed fragment with the most contacts.")
 @click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
               help="Tries per expansion before it is marked failed.")
 @click.option("--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",

@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session, aliased
 from packings.export import table
 from packings.fit import fit_factorial
 from packings.models import COMPLETE, ClusterRow, Run, Transition
-from packings.store import NOT_CLOSE_PACKED, counts_by_n
+from packings.store import NOT_CLOSE_PACKED, counts_by_n, restricted_ns
 from packings.workers.outcomes import CIRCULAR
 
 #: how many of the smallest gaps are listed
@@ -82,7 +82,8 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
     ``counts_by_n(s)`` if the caller has it.
     """
     every = counts_by_n(s) if every is None else every
-    fit = fit_all(every)
+    restricted = restricted_ns(s)
+    fit = fit_all(every, restricted)
     out = []
     for nn, by_contacts in every.items():
         if n is not None and nn != n:
@@ -98,6 +99,7 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
         out.append({
             "n": nn,
             "complete": _complete(s, nn),
+            "min_contacts": restricted.get(nn),
             "total": total,
             "by_contacts": {str(m): c for m, c in by_contacts.items()},
             "hypostatic": sum(c for m, c in by_contacts.items() if m < iso),
@@ -131,7 +133,10 @@ def format_stats(d: dict) -> str:
     n, iso = d["n"], 3 * d["n"] - 6
     head = f"n = {n}: {d['total']} rigid clusters ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, " \
            f"{d['hyperstatic']} hyperstatic)"
-    if not d["complete"]:
+    if d.get("min_contacts") is not None:
+        head = f"n = {n}: {d['total']} rigid clusters with at least {d['min_contacts']} contacts (runs restricted " \
+               f"by --min-contacts: not every cluster of n = {n}, and left out of the fit)"
+    elif not d["complete"]:
         head = f"n = {n}: {d['total']} rigid clusters so far (partial: no full run of n = {n} is complete)"
     if d["fit"] is not None:
         head += f"; the fit b·(n−5)! with b = {d['fit']['b']:.3f} gives {d['fit']['predicted']:.0f}"
@@ -164,9 +169,10 @@ def format_stats(d: dict) -> str:
     return "\n".join(parts)
 
 
-def fit_all(every: dict[int, dict[int, int]]) -> dict | None:
-    """The fit of the totals of ``counts_by_n`` to b·(n−5)!."""
-    return fit_factorial({k: sum(v.values()) for k, v in every.items()})
+def fit_all(every: dict[int, dict[int, int]], restricted=()) -> dict | None:
+    """The fit of the totals of ``counts_by_n`` to b·(n−5)!, leaving out the ``restricted`` n (counts of
+    runs restricted by --min-contacts: :func:`packings.store.restricted_ns`)."""
+    return fit_factorial({k: sum(v.values()) for k, v in every.items() if k not in restricted})
 
 
 def format_fit(fit: dict | None) -> str:

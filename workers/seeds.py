@@ -1,6 +1,10 @@
-"""Rigid starting clusters for any n: polytetrahedra built by gluing spheres onto contact triangles."""
+"""Rigid starting clusters for any n: polytetrahedra built by gluing spheres onto contact triangles, and,
+for runs restricted to clusters with many contacts (``--min-contacts``), close-packed fragments with as
+many contacts as a beam search over the fcc and hcp lattices finds."""
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -67,10 +71,82 @@ def tetrahedron() -> Cluster:
     return Cluster.from_coords(p)
 
 
+def lattice_sites(kind: str, radius: float = 3.5) -> np.ndarray:
+    """The sites of the ``fcc`` or ``hcp`` lattice of unit nearest-neighbour distance within ``radius``
+    of the origin, which is a site."""
+    r = int(np.ceil(2 * radius)) + 1
+    if kind == "fcc":  # the integer points with an even sum, scaled so that neighbours are 1 apart
+        g = np.array([(i, j, k) for i in range(-r, r + 1) for j in range(-r, r + 1) for k in range(-r, r + 1)
+                      if (i + j + k) % 2 == 0], dtype=float) / np.sqrt(2.0)
+    elif kind == "hcp":  # triangular layers A B A B ..., sqrt(2/3) apart, B over the centres of A's triangles
+        a1, a2 = np.array([1.0, 0.0, 0.0]), np.array([0.5, np.sqrt(3) / 2, 0.0])
+        shift = (a1 + a2) / 3.0
+        g = np.array([i * a1 + j * a2 + (shift if layer % 2 else 0.0) + [0.0, 0.0, layer * np.sqrt(2.0 / 3.0)]
+                      for layer in range(-r, r + 1) for i in range(-2 * r, 2 * r + 1) for j in range(-2 * r, 2 * r + 1)])
+    else:
+        raise ValueError(f"unknown lattice {kind!r}: fcc or hcp")
+    return g[np.linalg.norm(g, axis=1) <= radius + 1e-9]
+
+
+def _best_fragments(sites: np.ndarray, n: int, beam: int) -> list[tuple[int, tuple[int, ...]]]:
+    """(contacts, site indices) of the n-site fragments with the most contacts a beam search grows from
+    the site at the origin, adding a touching site at a time and keeping the ``beam`` best (the most
+    contacts, then the most compact) distinct fragments at each size; best first."""
+    d = np.linalg.norm(sites[:, None] - sites[None], axis=-1)
+    touching = np.abs(d - 1.0) < 1e-9
+    origin = int(np.argmin(np.linalg.norm(sites, axis=1)))
+    level: dict[tuple[int, ...], int] = {(origin,): 0}
+    for _ in range(n - 1):
+        grown: dict[tuple[int, ...], int] = {}
+        for frag, m in level.items():
+            inside = np.zeros(len(sites), dtype=bool)
+            inside[list(frag)] = True
+            gain = touching[:, inside].sum(axis=1)
+            for site in np.flatnonzero((gain > 0) & ~inside):
+                key = tuple(sorted((*frag, int(site))))
+                grown[key] = m + int(gain[site])
+
+        def spread(frag: tuple[int, ...]) -> float:
+            x = sites[list(frag)]
+            return float(((x - x.mean(axis=0)) ** 2).sum())
+
+        level = dict(sorted(grown.items(), key=lambda kv: (-kv[1], spread(kv[0]), kv[0]))[:beam])
+    return sorted(((m, frag) for frag, m in level.items()), key=lambda t: -t[0])
+
+
+@functools.lru_cache(maxsize=8)  # a run's start checks it before its Dask cluster starts, then seeds with it
+def close_packed_seed(n: int, params: Params = DEFAULT, beam: int = 64) -> Cluster:
+    """The rigid close-packed fragment of n spheres (fcc or hcp) with the most contacts found by a beam
+    search (:func:`_best_fragments`), in the frame of its first contact triangle.  Not always a cluster
+    with the most contacts of all (some of those are not close-packed); the most contacts it found."""
+    best: Cluster | None = None
+    for kind in ("fcc", "hcp"):
+        sites = lattice_sites(kind, radius=max(2.0, 0.8 * n ** (1 / 3) + 1.5))
+        for m, frag in _best_fragments(sites, n, beam):
+            if best is not None and m <= best.m:
+                break
+            c = Cluster.from_coords(sites[list(frag)], params)
+            if rigidity(c.coords, c.contacts, params).rigid:
+                best = c
+                break
+    if best is None:  # pragma: no cover - a close-packed fragment grown through triangles is rigid
+        raise ValueError(f"no rigid close-packed fragment of {n} spheres found")
+    return Cluster(kernels.to_frame(best.coords, triangles(best.contacts)[0]), best.contacts)
+
+
 def seed_cluster(n: int, params: Params = DEFAULT) -> Cluster:
-    """A rigid cluster of n >= 4 spheres with 3n - 6 contacts (a polytetrahedron)."""
+    """A rigid cluster of n >= 4 spheres to start a run from: a polytetrahedron (3n - 6 contacts), or,
+    if the run keeps only clusters with more contacts than that (``params.min_contacts``), the
+    close-packed fragment with the most contacts found (:func:`close_packed_seed`).  Raises ValueError
+    if that has fewer than ``min_contacts``."""
     if n < 4:
         raise ValueError(f"n must be at least 4, got {n}")
+    if params.min_contacts is not None and params.min_contacts > 3 * n - 6:
+        c = close_packed_seed(n, params)
+        if c.m < params.min_contacts:
+            raise ValueError(f"no cluster of {n} spheres with at least {params.min_contacts} contacts to start "
+                             f"from: the close-packed fragment with the most contacts found has {c.m}")
+        return c
     c = tetrahedron()
     while c.n < n:
         c = glue_sphere(c, params)

@@ -203,3 +203,45 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
     with packings.connect(url) as cat:
         assert [r["status"] for r in cat.runs()] == ["running", "complete"]
         assert [(d["n"], d["complete"]) for d in cat.stats()] == [(6, True), (7, False)]
+
+
+def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_fit(engine, tmp_path):
+    """n = 7 and 8 in full, n = 9 only from a run restricted by --min-contacts: stats, the fit and the
+    counts figure keep n = 9 apart."""
+    from packings.plots import plot_counts
+    from packings.stats import fit_all
+    from packings.workers.params import Params
+
+    fill_database(engine, 7)
+    fill_database(engine, 8)
+    fill_database(engine, 9, Params(min_contacts=21, max_break=3))
+    url = engine.url.render_as_string(hide_password=False)
+    with packings.connect(url) as cat:
+        stats = {d["n"]: d for d in cat.stats()}
+        fit = cat.fit()
+    assert [stats[n]["min_contacts"] for n in (7, 8, 9)] == [None, None, 21]
+    assert stats[9]["total"] == 52 and not stats[9]["complete"]
+    assert fit["ns"] == [7, 8] and fit == fit_all({7: {15: 5}, 8: {18: 13}})
+    assert stats[8]["fit"]["b"] == stats[9]["fit"]["b"] == fit["b"]
+    text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
+                          text=True, timeout=300, check=True).stdout
+    assert "n = 9: 52 rigid clusters with at least 21 contacts (runs restricted by --min-contacts" in text
+    assert "n = 8: 13 rigid clusters (" in text
+    fig = plot_counts({7: 5, 8: 13, 9: 52}, restricted={9: 21})
+    [ax] = fig.axes
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+        "rigid clusters", "clusters with ≥ M contacts only (--min-contacts M)", f"fit {fit['b']:.2f}·(n − 5)!  (n = 7–8)"]
+    assert "52\n(≥ 21)" in [t.get_text() for t in ax.texts]
+    fill_database(engine, 9)  # a full run of n = 9: no longer restricted
+    with packings.connect(url) as cat:
+        assert cat.stats(9)[0]["min_contacts"] is None and cat.fit()["ns"] == [7, 8, 9]
+
+
+def test_a_restricted_run_with_no_seed_that_has_enough_contacts_is_refused_in_one_line(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "10", "--min-contacts", "25", "--db",
+                        f"sqlite:///{tmp_path / 'x.db'}"], capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and r.stdout == ""
+    assert r.stderr.strip().splitlines() == [
+        "packings: error: no cluster of 10 spheres with at least 25 contacts to start from: the close-packed "
+        "fragment with the most contacts found has 24"], r.stderr
+    assert not (tmp_path / "x.db").exists()  # refused before anything is created

@@ -578,3 +578,17 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference9)
     assert r.returncode == 0, r.stderr
     assert "n = 9: 52 rigid clusters" in r.stdout and "(resumed)" in r.stdout
     assert_same_clusters(db_url, 9, reference9)
+
+
+@pytest.mark.slow
+def test_a_run_restricted_to_many_contacts_finds_the_papers_clusters_with_that_many(paper_counts, tmp_path):
+    """`enumerate 11 --min-contacts 28 --max-break 3` (a ground-state run: M(11) - 1, seeded from a
+    close-packed fragment with 28 contacts) finds the paper's 20 clusters with 28 contacts and the one
+    with 29, and nothing with fewer."""
+    url = f"sqlite:///{tmp_path / 'g.db'}"
+    r = packings("enumerate", "11", "--min-contacts", "28", "--max-break", "3", "--db", url, "--workers", "2",
+                 "--json", "--quiet")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    want = {m: c for m, c in paper_counts["clusters_by_contacts"]["11"].items() if int(m) >= 28}
+    assert out["status"] == "complete" and out["by_contacts"] == want == {"28": 20, "29": 1}
