@@ -124,13 +124,29 @@ def _wait_until(predicate, proc) -> bool:
     return True
 
 
-def undisturbed(n: int, url: str, workers: int) -> int:
-    return subprocess.run(_command(n, url, workers), capture_output=True, text=True).returncode
+def _last_line(text: str) -> str:
+    lines = text.strip().splitlines()
+    return lines[-1] if lines else ""
 
 
-def kill_workers(n: int, url: str, workers: int, rng: random.Random) -> tuple[int, int]:
-    """One worker process killed every 1-3 s from the first expansion done on; (kills, exit status)."""
-    proc = subprocess.Popen(_command(n, url, workers), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def undisturbed(n: int, url: str, workers: int) -> tuple[int, str]:
+    """(exit status, the last line the run wrote on standard error: why it stopped, if it failed)."""
+    r = subprocess.run(_command(n, url, workers), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    return r.returncode, _last_line(r.stderr)
+
+
+def kill_workers(n: int, url: str, workers: int, rng: random.Random) -> tuple[int, int, str]:
+    """One worker process killed every 1-3 s from the first expansion done on; (kills, exit status, last
+    line on standard error)."""
+    with tempfile.TemporaryFile("w+") as err:  # a file, not a pipe: a long run's log must not fill it and block
+        proc = subprocess.Popen(_command(n, url, workers), stdout=subprocess.DEVNULL, stderr=err, text=True)
+        kills = _kill_workers_of(proc, url, rng)
+        status = proc.wait()
+        err.seek(0)
+        return kills, status, _last_line(err.read())
+
+
+def _kill_workers_of(proc, url: str, rng: random.Random) -> int:
     kills = 0
     _wait_until(lambda: _done(url) >= 1, proc)
     while proc.poll() is None:
@@ -146,11 +162,12 @@ def kill_workers(n: int, url: str, workers: int, rng: random.Random) -> tuple[in
                 kills += 1
         except Exception:  # noqa: BLE001 - gone already
             pass
-    return kills, proc.wait()
+    return kills
 
 
-def kill_coordinator(n: int, url: str, workers: int, rng: random.Random, total: int) -> tuple[int, int]:
-    """The coordinator killed at five moments (expansions done), rerun each time; (kills, exit status)."""
+def kill_coordinator(n: int, url: str, workers: int, rng: random.Random, total: int) -> tuple[int, int, str]:
+    """The coordinator killed at five moments (expansions done), rerun each time; (kills, and the exit
+    status and last line on standard error of the last run)."""
     kills = 0
     for moment in sorted(rng.sample(range(1, max(total - 1, 6)), 5)):
         proc = subprocess.Popen(_command(n, url, workers), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -158,7 +175,7 @@ def kill_coordinator(n: int, url: str, workers: int, rng: random.Random, total: 
             proc.send_signal(signal.SIGKILL)
             kills += 1
         proc.wait()
-    return kills, undisturbed(n, url, workers)
+    return (kills, *undisturbed(n, url, workers))
 
 
 def inspect(url: str, n: int) -> dict:
@@ -188,22 +205,23 @@ def run(args) -> int:
     for backend in args.backends.split(","):
         with fresh_database(backend) as url:
             t = time.perf_counter()
-            status = undisturbed(args.n, url, args.workers)
+            status, line = undisturbed(args.n, url, args.workers)
             base_s = time.perf_counter() - t
             reference = inspect(url, args.n)
         expected = reference["certificates"]
         rows.append({"backend": backend, "faults": "none", "injected": 0, "exit": status, **reference,
-                     "seconds": round(base_s, 1), "time_ratio": 1.0})
+                     "seconds": round(base_s, 1), "time_ratio": 1.0, "stopped": line if status else ""})
         for name, inject in (("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
                              ("coordinator killed", lambda u: kill_coordinator(args.n, u, args.workers, rng,
                                                                                 len(expected)))):
             with fresh_database(backend) as url:
                 t = time.perf_counter()
-                injected, status = inject(url)
+                injected, status, line = inject(url)
                 seconds = time.perf_counter() - t
                 seen = inspect(url, args.n)
             rows.append({"backend": backend, "faults": name, "injected": injected, "exit": status, **seen,
-                         "seconds": round(seconds, 1), "time_ratio": round(seconds / base_s, 2)})
+                         "seconds": round(seconds, 1), "time_ratio": round(seconds / base_s, 2),
+                         "stopped": line if status else ""})
     for r in rows:
         r["expected"], r["seen"] = len(expected), len(r["certificates"])
         r["same_clusters"] = r.pop("certificates") == expected
@@ -220,4 +238,7 @@ def run(args) -> int:
         print("  ".join(c.rjust(width[c]) for c in cols))
         for r in rows:
             print("  ".join(str(r[c]).rjust(width[c]) for c in cols))
+        for r in rows:  # why a run that did not end well stopped: its last line on standard error
+            if r["stopped"]:
+                print(f"{r['backend']}, {r['faults']}: exit {r['exit']}: {r['stopped']}")
     return 0 if ok else 1

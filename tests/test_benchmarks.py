@@ -43,5 +43,13 @@ def test_the_soak_benchmark_reports_faults_against_an_undisturbed_run():
     assert [r["faults"] for r in rows] == ["none", "workers killed", "coordinator killed"]
     for r in rows:
         assert r["exit"] == 0 and r["expected"] == r["seen"] == 13 and r["same_clusters"]
-        assert r["failed"] == r["leased"] == r["duplicates"] == 0
+        assert r["failed"] == r["leased"] == r["duplicates"] == 0 and r["stopped"] == ""
     assert rows[0]["time_ratio"] == 1.0 and rows[2]["seconds"] > 0
+
+
+def test_the_soak_keeps_why_a_run_stopped():
+    """A run that fails keeps its last line on standard error, which the soak's table prints."""
+    from benchmarks.soak import undisturbed
+
+    status, line = undisturbed(8, "sqlite://", 1)
+    assert status != 0 and line.startswith("packings: error: ") and "in-memory" in line
