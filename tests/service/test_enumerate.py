@@ -554,12 +554,14 @@ def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
     assert list(seen.values()) == [expected]
 
 
-def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference9):
+def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10):
     """Ctrl-C in a terminal signals the whole process group (the coordinator and its local workers):
-    one line, exit status 130, no worker's traceback, leases put back; the same command resumes."""
+    one line, exit status 130, no worker's traceback, leases put back; the same command resumes.
+    n = 10 (about 10 s of expansions on two workers), so that the signal lands mid-run: an n = 9 run
+    can finish in the moment between the test seeing its fifth expansion done and the signal."""
     import os
 
-    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "9", "--db", db_url, "--workers", "2",
+    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "10", "--db", db_url, "--workers", "2",
                              "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
@@ -568,16 +570,16 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference9)
         out, err = proc.communicate(timeout=120)
     finally:
         proc.kill()
-    assert proc.returncode == 130
+    assert proc.returncode == 130, (out, err)
     lines = err.splitlines()
     assert lines[-1] == "packings: interrupted; run the same command to resume" and "Traceback" not in err
     assert all(line.startswith("packings: compiling the numerical kernels") for line in lines[:-1])
     [run] = json.loads(packings("status", "--json", "--db", db_url).stdout)
-    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 52
-    r = packings("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet")
+    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 263
+    r = packings("enumerate", "10", "--db", db_url, "--workers", "2", "--quiet")
     assert r.returncode == 0, r.stderr
-    assert "n = 9: 52 rigid clusters" in r.stdout and "(resumed)" in r.stdout
-    assert_same_clusters(db_url, 9, reference9)
+    assert "n = 10: 263 rigid clusters" in r.stdout and "(resumed)" in r.stdout
+    assert_same_clusters(db_url, 10, reference10)
 
 
 @pytest.mark.slow
