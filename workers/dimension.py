@@ -83,6 +83,68 @@ def solution_dimension(
     return Dimension(len(basis), t, "numerical", rig)
 
 
+#: how far from ``tol_n`` a singular value must be, by this factor either way, for the first-order count
+#: after deleting rows to be read off the self-stresses (:func:`counts_after_breaking`) rather than an SVD
+COUNT_GUARD = 10.0
+
+
+@dataclass(frozen=True)
+class StressBasis:
+    """The pinned rigidity matrix R (m x k) of a whole cluster in one frame, summed up by its SVD: what
+    :func:`counts_after_breaking` needs to count flexes and stresses after some contacts are deleted."""
+
+    W: np.ndarray  #: m x s, an orthonormal basis of the self-stresses (left null space of R)
+    flexes: int  #: f = k - rank(R)
+    smallest: float  #: the smallest singular value counted as nonzero (inf if there is none)
+    largest: float  #: the largest singular value (0 if there is none)
+    noise: float  #: the largest singular value counted as zero (0 if there is none)
+
+    @classmethod
+    def of(cls, ns: kernels.NullSpaces, tol_n: float) -> StressBasis:
+        sigma = np.asarray(ns.sigma)
+        nonzero, zero = sigma[sigma >= tol_n], sigma[sigma < tol_n]
+        return cls(ns.W, ns.V.shape[1], float(nonzero.min()) if nonzero.size else np.inf,
+                   float(sigma.max(initial=0.0)), float(zero.max(initial=0.0)))
+
+
+def counts_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> tuple[int, int] | None:
+    """(flexes, stresses) of R with ``rows`` deleted (the same frame), as an SVD of that matrix counts
+    them with ``tol_n``, read off the self-stresses: or None where rounding could make the SVD count
+    otherwise.
+
+    With R = U_r S V_r^T + E (rank r, |E| = ``noise``) and W the self-stresses, [U_r W] is orthogonal,
+    so the rows B of U_r satisfy U_B U_B^T = I - W_B W_B^T: the rows of U_r left after deleting B have
+    the singular values of W_B (one per deleted row, zero padded) and ones.  Deleting B therefore
+    leaves r - |B| singular values of at least ``smallest`` - noise, and one per singular value w of
+    W_B between ``smallest`` w - noise and ``largest`` w + noise (Weyl): rank(R without B) =
+    r - |B| + rank(W_B), the dual matroid's count, and flexes f + |B| - rank(W_B), stresses
+    s - rank(W_B).  Each w must be either so large that the SVD counts its value nonzero, or so small
+    that it counts it zero, both by the factor ``guard``; otherwise None (decide by the SVD).
+    """
+    if not (basis.smallest - basis.noise >= guard * tol_n and basis.noise <= tol_n / guard):
+        return None
+    k = len(rows)
+    w = np.zeros(k)
+    if basis.W.shape[1]:
+        wb = basis.W[list(rows)]
+        sv = np.sqrt(wb @ wb[0]) if k == 1 else np.linalg.svd(wb, compute_uv=False)
+        w[: sv.size] = sv
+    nonzero = basis.smallest * w - basis.noise >= guard * tol_n
+    zero = basis.largest * w + basis.noise <= tol_n / guard
+    if not np.all(nonzero | zero):
+        return None
+    rank_wb = int(np.count_nonzero(nonzero))
+    return basis.flexes + k - rank_wb, basis.W.shape[1] - rank_wb
+
+
+def may_decide(basis: StressBasis, k: int) -> bool:
+    """Whether the first-order count after deleting k rows can show a set that is not one-dimensional
+    (no flex left, or no stress and a number of flexes other than one) for some rank of W_B (0 up to
+    min(k, s)): where it cannot, :func:`counts_after_breaking` need not be asked."""
+    f, s = basis.flexes, basis.W.shape[1]
+    return any(f + k - r == 0 or (s == r and f + k - r != 1) for r in range(min(k, s) + 1))
+
+
 def _probe(x, v, step, edges, free, params: Params) -> np.ndarray | None:
     """Displacement x' - x to the solution set from x + step v, or None if it is rejected."""
     x0 = x + step * v

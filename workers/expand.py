@@ -12,7 +12,7 @@ import numpy as np
 
 from packings.workers import kernels
 from packings.workers.cluster import Cluster
-from packings.workers.dimension import solution_dimension
+from packings.workers.dimension import StressBasis, counts_after_breaking, may_decide, solution_dimension
 from packings.workers.identity import ClusterIndex, certificate, same_geometry
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
     BELOW_MIN_CONTACTS,
@@ -126,12 +126,34 @@ class PathStart:
         return follow_path(self.x, self.keep, self.broken, self.tangent, self.free, params)
 
 
-def _attempts(cluster: Cluster, params: Params) -> Iterator[Endpoint | PathStart]:
-    """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart."""
+def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Iterator[Endpoint | PathStart]:
+    """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart.
+
+    With ``first_order``, a subset whose first-order count after breaking already decides that its set
+    is not one-dimensional (no flex left; or no stress left and a number of flexes other than one) is
+    decided from the self-stresses of the whole cluster's rigidity matrix in that frame
+    (:func:`packings.workers.dimension.counts_after_breaking`), not from an SVD of what is left; the
+    outcome is the same (where rounding could make them differ, the SVD decides).
+    """
     n, m = cluster.n, cluster.m
     all_edges = cluster.edges()
-    frames: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # the cluster in each pinned frame
-    for k in break_sizes(m, cluster_rank(cluster, params), params):
+    # the cluster in each pinned frame, its free coordinates, and its rigidity matrix's SVD in that frame
+    frames: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray, StressBasis | None]] = {}
+
+    def frame(tri):
+        if tri not in frames:
+            x, free = kernels.to_frame(cluster.coords, tri).ravel(), kernels.free_coordinates(n, tri)
+            basis = StressBasis.of(kernels.null_spaces(x, all_edges, free, params.tol_n), params.tol_n) \
+                if first_order else None
+            frames[tri] = (x, free, basis)
+        return frames[tri]
+
+    own = contact_triangle(all_edges)
+    if first_order:
+        rank = 3 * n - 6 - frame(own)[2].flexes
+    else:
+        rank = cluster_rank(cluster, params)
+    for k in break_sizes(m, rank, params):
         for idx in combinations(range(m), k):
             broken = all_edges[list(idx)]
             keep = np.delete(all_edges, list(idx), axis=0)
@@ -140,9 +162,14 @@ def _attempts(cluster: Cluster, params: Params) -> Iterator[Endpoint | PathStart
             if tri is None:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
                 continue
-            if tri not in frames:
-                frames[tri] = (kernels.to_frame(cluster.coords, tri).ravel(), kernels.free_coordinates(n, tri))
-            x, free = frames[tri]
+            x, free, basis = frame(tri)
+            if basis is not None and basis.W.shape[1] and may_decide(basis, k):
+                counts = counts_after_breaking(basis, idx, params.tol_n)
+                if counts is not None:
+                    flexes, stresses = counts
+                    if flexes == 0 or (stresses == 0 and flexes != 1):
+                        yield Endpoint(bt, 0, NOT_1D, flexes if stresses == 0 else 0)
+                        continue
             dim = solution_dimension(x, keep, free, params, limit=1)
             if dim.dim != 1:
                 yield Endpoint(bt, 0, NOT_1D, dim.dim)
@@ -162,17 +189,19 @@ def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
     return [a for a in _attempts(cluster, params) if isinstance(a, PathStart)]
 
 
-def expand(cluster: Cluster, params: Params) -> Expansion:
+def expand(cluster: Cluster, params: Params, first_order: bool = True) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
     A pure function of its inputs.  For every subset B whose removal leaves a
     solution set of dimension exactly 1, each direction of the tangent that
     lengthens all broken contacts (to first order; both if some are unchanged to
-    first order) is followed to its endpoint.
+    first order) is followed to its endpoint.  ``first_order`` False decides
+    every subset by an SVD of what is left (the reference :func:`_attempts` is
+    measured and tested against); the result is the same.
     """
     cert = certificate(cluster)
     out: list[Endpoint] = []
-    for a in _attempts(cluster, params):
+    for a in _attempts(cluster, params, first_order):
         if isinstance(a, Endpoint):
             out.append(a)
         else:

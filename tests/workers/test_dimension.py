@@ -5,6 +5,7 @@ from itertools import combinations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from packings.workers import dimension, kernels
 from packings.workers.cluster import Cluster
@@ -131,3 +132,110 @@ def test_orthogonal_projections_are_skipped_only_where_they_could_not_be_accepte
     assert dimension.orthogonal_may_be_accepted(x + P.ds0 * v, keep, P.ds0, 1.0, loose)
     # and a stricter one than the probe step never accepts it
     assert not dimension.orthogonal_may_be_accepted(x + P.ds0 * v, keep, P.ds0, 1.0, P.with_(x_tol_max=0.9 * P.ds0))
+
+
+# ----------------------------------------------------------------- first-order counts from the self-stresses
+
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from packings.workers.dimension import StressBasis, counts_after_breaking, may_decide  # noqa: E402
+from packings.workers.expand import PathStart, _attempts  # noqa: E402
+
+
+def _svd_counts(c: Cluster, idx):
+    """(flexes, stresses) after deleting ``idx``, by an SVD of what is left, in that frame."""
+    keep = np.delete(c.edges(), list(idx), axis=0)
+    tri = contact_triangle(keep)
+    x = kernels.to_frame(c.coords, tri).ravel()
+    ns = kernels.null_spaces(x, keep, kernels.free_coordinates(c.n, tri), P.tol_n)
+    return ns.V.shape[1], ns.W.shape[1], tri
+
+
+def _basis(c: Cluster, tri) -> StressBasis:
+    x = kernels.to_frame(c.coords, tri).ravel()
+    return StressBasis.of(kernels.null_spaces(x, c.edges(), kernels.free_coordinates(c.n, tri), P.tol_n), P.tol_n)
+
+
+@pytest.mark.parametrize("name", sorted(FIXTURES))
+def test_the_first_order_counts_decide_every_subset_as_the_svd_does(name):
+    """Every attempt of a cluster (regular, hyperstatic, pre-stress stable, hypostatic) is the same whether
+    the subsets whose first-order count decides them are decided from the cluster's self-stresses or
+    each by an SVD of what is left: same outcomes, same dimensions, same tangents to the bit."""
+    c = Cluster.from_dict(FIXTURES[name])
+    fast, slow = list(_attempts(c, P, first_order=True)), list(_attempts(c, P, first_order=False))
+    assert len(fast) == len(slow)
+    for a, b in zip(fast, slow):
+        assert type(a) is type(b)
+        if isinstance(a, PathStart):
+            assert (a.broken_contacts, a.direction) == (b.broken_contacts, b.direction)
+            assert np.array_equal(a.tangent, b.tangent)
+        else:
+            assert a == b
+
+
+def test_the_first_order_counts_equal_an_svd_of_what_is_left():
+    """On the hyperstatic and the singular clusters, for every subset of one or two contacts whose count
+    the self-stresses give, it is the SVD's; and they give it for most subsets."""
+    given_, asked = 0, 0
+    for name in ("n10_m25_first-order", "n10_m24_prestress", "n10_m23_prestress"):
+        c = Cluster.from_dict(FIXTURES[name])
+        bases = {}
+        for k in (1, 2):
+            for idx in combinations(range(c.m), k):
+                f, s, tri = _svd_counts(c, idx)
+                basis = bases.setdefault(tri, _basis(c, tri))
+                counts = counts_after_breaking(basis, idx, P.tol_n)
+                asked += 1
+                if counts is not None:
+                    given_ += 1
+                    assert counts == (f, s), (name, idx)
+    assert given_ > 0.9 * asked
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.sampled_from(sorted(FIXTURES)), st.integers(1, 3), st.randoms(use_true_random=False))
+def test_the_first_order_counts_do_not_depend_on_labels_or_orientation(name, k, rnd):
+    """Relabel the spheres, rotate and reflect the cluster: the counts after deleting the same contacts
+    (under the relabelling) are the same, and they are the SVD's."""
+    c = Cluster.from_dict(FIXTURES[name])
+    idx = sorted(rnd.sample(range(c.m), k))
+    perm = list(range(c.n))
+    rnd.shuffle(perm)
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.random(random_state=rnd.randint(0, 2**32 - 1)).as_matrix() * rnd.choice([1.0, -1.0])
+    moved_coords = np.empty_like(c.coords)
+    moved_coords[perm] = c.coords @ q.T
+    moved = Cluster(moved_coords, tuple(sorted((min(perm[i], perm[j]), max(perm[i], perm[j])) for i, j in c.contacts)))
+    broken = {tuple(sorted((perm[i], perm[j]))) for i, j in (c.contacts[t] for t in idx)}
+    moved_idx = [t for t, e in enumerate(moved.contacts) if e in broken]
+    results = []
+    for cl, ix in ((c, idx), (moved, moved_idx)):
+        f, s, tri = _svd_counts(cl, ix)
+        if tri is None:
+            return
+        counts = counts_after_breaking(_basis(cl, tri), ix, P.tol_n)
+        assert counts in (None, (f, s))
+        results.append((f, s))
+    assert results[0] == results[1]
+
+
+def test_the_counts_defer_to_the_svd_near_tol_n():
+    """A singular value of R, or of the stresses' rows, within the guard factor of tol_n: no count."""
+    W = np.array([[1.0], [0.0], [0.0]])
+    sure = StressBasis(W, flexes=0, smallest=1.0, largest=2.0, noise=1e-12)
+    assert counts_after_breaking(sure, [0], P.tol_n) == (0, 0)  # the stress's contact: rigid, no stress left
+    assert counts_after_breaking(sure, [1], P.tol_n) == (1, 1)  # a contact no stress uses: a flex, the stress
+    assert counts_after_breaking(StressBasis(W, 0, 1.0, 2.0, noise=3e-7), [0], P.tol_n) is None
+    assert counts_after_breaking(StressBasis(W, 0, smallest=5e-6, largest=2.0, noise=0.0), [0], P.tol_n) is None
+    faint = StressBasis(np.array([[2e-6], [1.0], [0.0]]), 0, 1.0, 2.0, noise=0.0)
+    assert counts_after_breaking(faint, [0], P.tol_n) is None  # 2e-6: between tol_n / 10 and 10 tol_n
+
+
+def test_which_subset_sizes_the_counts_can_decide():
+    regular_one_stress = StressBasis(np.zeros((25, 1)), 0, 1.0, 2.0, 0.0)
+    assert may_decide(regular_one_stress, 1)  # the stress's contact: rigid
+    singular = StressBasis(np.zeros((24, 1)), 1, 1.0, 2.0, 0.0)
+    assert not may_decide(singular, 1)  # a flex and a stress, or two flexes and the stress: never decided
+    assert may_decide(singular, 2)  # two flexes and no stress
