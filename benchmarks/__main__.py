@@ -9,11 +9,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import enumeration, paths, screenshot, soak
+from benchmarks import classes, enumeration, paths, screenshot, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
     "paths": paths,
+    "classes": classes,
     "enumerate": enumeration,
     "soak": soak,
     "screenshot": screenshot,

@@ -53,3 +53,39 @@ def test_the_soak_keeps_why_a_run_stopped():
 
     status, line = undisturbed(8, "sqlite://", 1)
     assert status != 0 and line.startswith("packings: error: ") and "in-memory" in line
+
+
+def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
+    """n = 9: 51 regular clusters and one singular (52, the paper's count); every sampled cluster gives the
+    same endpoints with both backends, and the shares of each backend add up to one."""
+    report = benchmark("classes", "--n", "9", "--sample", "3")
+    rows = {r["class"]: r for r in report["rows"]}
+    assert set(rows) == {"regular", "singular"} and rows["regular"]["clusters"] + rows["singular"]["clusters"] == 52
+    assert rows["regular"]["subsets_min"] == rows["regular"]["subsets_max"] == 21  # one per contact, 3n - 6
+    assert rows["singular"]["subsets_max"] > 21 and rows["singular"]["not_1d_share"] > 0.5
+    for b in ("numba", "svd", "numpy"):
+        assert abs(sum(r[f"share_{b}"] for r in rows.values()) - 1.0) < 1e-9
+    for r in rows.values():
+        assert r["same_endpoints"] == r["sampled"] and r["mean_ms_numba"] > 0 and r["mean_ms_numpy"] > 0
+        assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0
+
+
+def test_the_classes_of_a_cluster():
+    from benchmarks.classes import cluster_class
+
+    assert cluster_class(12, 30, 0) == "regular" and cluster_class(12, 30, 2) == "singular"
+    assert cluster_class(12, 29, 3) == "hypostatic" and cluster_class(12, 31, 0) == "hyperstatic"
+
+
+def test_the_classes_benchmark_reads_a_stored_catalogue(tmp_path):
+    url = f"sqlite:///{tmp_path / 'c.db'}"
+    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "8", "--db", url, "--workers", "1", "--quiet"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    report = benchmark("classes", "--n", "8", "--db", url, "--sample", "2", "--no-numpy")
+    assert report["source"] == url and [(r["class"], r["clusters"], r["sampled"]) for r in report["rows"]] == [
+        ("regular", 13, 2)]
+    assert "mean_ms_numpy" not in report["rows"][0] and report["rows"][0]["share_numba"] == 1.0
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "no clusters of n = 9" in r.stderr

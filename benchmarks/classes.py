@@ -1,0 +1,196 @@
+"""Time in ``packings.workers.expand`` by class of cluster, against the code before and the numpy reference.
+
+The clusters of n spheres fall into four classes by their m contacts and their
+first-order flexes f (the null space of the pinned rigidity matrix):
+
+* regular: m = 3n − 6 and f = 0 (first-order rigid, one subset of each size 1);
+* singular: m = 3n − 6 and f > 0 (rigid only to second order);
+* hypostatic: m < 3n − 6 (always singular);
+* hyperstatic: m > 3n − 6.
+
+The clusters come from a stored catalogue (``--db URL``: the clusters of ``--n``
+in that database, e.g. the file a ``packings enumerate 12`` left), or, without
+one, from the in-memory enumeration (``packings.workers.explore``, fine up to
+n = 10).  From each class a seeded random sample of up to ``--sample`` clusters
+is expanded three ways in this process, alternating cluster by cluster,
+so that all see the same load: as a run does, with every subset decided by an
+SVD of what is left rather than by the first-order counts from the
+self-stresses (``svd``: the code before them; its endpoints must be the same),
+and with the numpy reference kernels.  A class's time is its mean time per cluster
+times its number of clusters; its share is of the sum over the classes, which
+is what ``expand`` costs a whole run.  Also printed per class: the subsets of
+contacts tried per cluster (least and most), the share of them whose set is not
+one-dimensional, and how many sampled clusters gave the same endpoints with
+both backends.  Ratios measured in one run are what compare; absolute times
+depend on the machine's load.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+CLASSES = ("regular", "singular", "hypostatic", "hyperstatic")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--n", type=int, default=10, help="number of spheres (default 10)")
+    parser.add_argument("--db", default=None, metavar="URL",
+                        help="a catalogue holding the clusters of N (default: enumerate N in memory, for N <= 10)")
+    parser.add_argument("--sample", type=int, default=20, help="clusters timed per class (default 20)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the sample (default 0)")
+    parser.add_argument("--numpy", action=argparse.BooleanOptionalAction, default=True,
+                        help="also time the numpy reference (default: yes)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
+
+
+def cluster_class(n: int, m: int, flexes: int) -> str:
+    """The class of a cluster of n spheres with m contacts and ``flexes`` first-order flexes."""
+    if m < 3 * n - 6:
+        return "hypostatic"
+    if m > 3 * n - 6:
+        return "hyperstatic"
+    return "singular" if flexes > 0 else "regular"
+
+
+def _from_database(url: str, n: int) -> list[tuple[object, str]]:
+    """(core cluster, class) of every stored cluster of n spheres."""
+    import packings
+
+    with packings.connect(url) as cat:
+        rows = list(cat.select(f"n={n}"))
+    if not rows:
+        raise SystemExit(f"no clusters of n = {n} in {url}: run `packings enumerate {n} --db {url}` first")
+    from packings.workers.cluster import Cluster
+
+    out = []
+    for r in rows:
+        c = Cluster(r.coords, tuple(tuple(int(v) for v in p) for p in r.contacts))
+        out.append((c, cluster_class(n, c.m, int(r.flexes))))
+    return out
+
+
+def _from_memory(n: int, params) -> list[tuple[object, str]]:
+    """(core cluster, class) of every cluster the in-memory enumeration of n finds."""
+    from packings.workers.expand import cluster_rank
+    from packings.workers.explore import explore
+
+    out = []
+    for c in explore(n, params).clusters:
+        flexes = 3 * n - 6 - cluster_rank(c, params)
+        out.append((c, cluster_class(n, c.m, flexes)))
+    return out
+
+
+#: what is timed: name -> (kernel backend, decide subsets by the first-order counts)
+VARIANTS = {
+    "numba": ("numba", True),  # the code a run uses
+    "svd": ("numba", False),  # every subset decided by an SVD of what is left, as before the counts
+    "numpy": ("numpy", True),  # the numpy reference kernels
+}
+
+
+def _time(cluster, params, variant: str):
+    """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`)."""
+    from packings.workers import kernels
+    from packings.workers.expand import expand
+
+    backend, first_order = VARIANTS[variant]
+    with kernels.backend(backend):
+        t0 = time.perf_counter()
+        ex = expand(cluster, params, first_order)
+        return time.perf_counter() - t0, ex
+
+
+def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, numpy: bool) -> list[dict]:
+    """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share."""
+    import numpy as np
+
+    from packings.workers.expand import NOT_1D
+
+    backends = ["numba", "svd"] + (["numpy"] if numpy else [])
+    rng = np.random.default_rng(seed)
+    rows = []
+    for name in CLASSES:
+        members = [c for c, k in clusters if k == name]
+        if not members:
+            continue
+        pick = np.sort(rng.choice(len(members), size=min(sample, len(members)), replace=False))
+        seconds = {b: [] for b in backends}
+        subsets, not_1d, same = [], 0, 0
+        for i in pick:
+            results = {b: _time(members[i], params, b) for b in backends}
+            for b, (s, _) in results.items():
+                seconds[b].append(s)
+            ex = results["numba"][1]
+            subsets.append(ex.subsets_tried)
+            not_1d += sum(1 for e in ex.endpoints if e.outcome == NOT_1D)
+            if numpy:
+                a, b = results["numba"][1], results["numpy"][1]
+                same += [e.outcome for e in a.endpoints] == [e.outcome for e in b.endpoints]
+            # deciding subsets by the first-order counts changes nothing
+            assert [e.outcome for e in ex.endpoints] == [e.outcome for e in results["svd"][1].endpoints]
+        row = {"class": name, "clusters": len(members), "sampled": len(pick),
+               "subsets_min": min(subsets), "subsets_max": max(subsets),
+               "not_1d_share": not_1d / max(1, sum(subsets))}
+        for b in backends:
+            mean = statistics.fmean(seconds[b])
+            row[f"mean_ms_{b}"] = 1e3 * mean
+            row[f"total_s_{b}"] = mean * len(members)
+        row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
+        if numpy:
+            row["same_endpoints"] = same
+            row["ratio"] = row["mean_ms_numpy"] / row["mean_ms_numba"]
+        rows.append(row)
+    for b in backends:
+        whole = sum(r[f"total_s_{b}"] for r in rows) or 1.0
+        for r in rows:
+            r[f"share_{b}"] = r[f"total_s_{b}"] / whole
+    return rows
+
+
+def run(args: argparse.Namespace) -> int:
+    from packings.workers import kernels
+    from packings.workers.expand import warm_up
+    from packings.workers.params import Params
+
+    if not kernels.numba_available():
+        print("numba is not available: nothing to measure", file=sys.stderr)
+        return 1
+    if args.sample < 1:
+        print("--sample must be at least 1", file=sys.stderr)
+        return 2
+    params = Params()
+    with kernels.backend("numba"):
+        warm_up()
+        clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
+    rows = measure(clusters, params, args.sample, args.seed, args.numpy)
+    result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed,
+              "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+              "rows": rows}
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"n = {args.n}: {len(clusters)} clusters ({result['source']}); time in expand by class, "
+          f"a sample of up to {args.sample} each")
+    head = (f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
+            f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}")
+    if args.numpy:
+        head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}"
+    print(head)
+    for r in rows:
+        line = (f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
+                f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
+                f"{r['not_1d_share']:>9.0%}{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}")
+        if args.numpy:
+            line += (f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
+                     f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}")
+        print(line)
+    print("(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
+          "times the class's clusters; svd: every subset decided by an SVD of what is left, not by the "
+          "first-order counts; svd/ = svd / ms each; ratio = numpy / compiled)")
+    return 0
