@@ -46,7 +46,7 @@ import numpy as np
 
 # Status codes returned by follow_steps (mirrored in packings.workers.paths).
 ST_HIT = 0  #: an approaching pair is within 1 + tol_a0: xn and the hit mask are the endpoint's input
-ST_NEED_SVD = 1  #: xn is projected and checked; the guard failed there, so its tangent (and first-step dimension) needs the SVD
+ST_NEED_SVD = 1  #: xn (the first step) is projected and checked; the guard failed there, so its dimension needs Python
 ST_PROJECTION_FAILED = 2
 ST_SHORTENS = 3
 ST_DIMENSION_CHANGED = 4  #: the projected tangent vanished (returned steps already counts this step)
@@ -543,6 +543,50 @@ def _project_tangent(x, edges, mask, t, ws, tn):
 
 
 @numba.njit(**_JIT)
+def _svd_tangent(x, edges, free, t, tol_n, tn):
+    """tn = V V^T t with V the right null space of R_f at x by the SVD (singular values below tol_n are
+    zero), as packings.workers.paths._svd_tangent after the first step; returns |tn| (0 when V is empty).
+
+    The tangent where the rank guard cannot certify full row rank (a self-stress persists along the
+    path), in the loop instead of a return to Python for numpy's SVD."""
+    m = edges.shape[0]
+    k = free.size
+    n3 = x.size
+    pos = np.full(n3, -1, dtype=np.int64)
+    for c in range(k):
+        pos[free[c]] = c
+    R = np.zeros((m, k))
+    for r in range(m):
+        i = edges[r, 0]
+        j = edges[r, 1]
+        for c in range(3):
+            d = x[3 * i + c] - x[3 * j + c]
+            if pos[3 * i + c] >= 0:
+                R[r, pos[3 * i + c]] = d
+            if pos[3 * j + c] >= 0:
+                R[r, pos[3 * j + c]] = -d
+    _, sv, vt = np.linalg.svd(R)
+    rank = 0
+    for q in range(sv.size):
+        if sv[q] >= tol_n:
+            rank += 1
+    for c in range(n3):
+        tn[c] = 0.0
+    if rank >= k:
+        return 0.0
+    for q in range(rank, k):
+        a = 0.0
+        for c in range(k):
+            a += vt[q, c] * t[free[c]]
+        for c in range(k):
+            tn[free[c]] += a * vt[q, c]
+    norm = 0.0
+    for c in range(n3):
+        norm += tn[c] * tn[c]
+    return np.sqrt(norm)
+
+
+@numba.njit(**_JIT)
 def follow_steps(
     x,
     t,
@@ -565,14 +609,17 @@ def follow_steps(
     max_steps,
     guard,
     stop_on_dimension_change,
+    tol_n,
 ):
     """The stepping loop of packings.workers.paths.follow_path, until Python is needed.
 
     Mirrors the reference loop step for step.  At each projected point the rank
     guard either certifies that R_f has full row rank, and the tangent is the
     projection of the previous one onto the null space (on the first step the
-    dimension is then k - m, the reference's "regular" branch), or the loop
-    returns ST_NEED_SVD and Python takes the step's tangent from the SVD.
+    dimension is then k - m, the reference's "regular" branch), or the tangent is
+    the SVD's (:func:`_svd_tangent`, singular values below ``tol_n`` zero), except
+    on the first step, where the loop returns ST_NEED_SVD and Python decides the
+    dimension (packings.workers.dimension.solution_dimension) and the tangent.
 
     Returns (status, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats)
     where x, t, d_prev, h, h_max, steps are the loop state (for resuming),
@@ -641,17 +688,20 @@ def follow_steps(
             return ST_HIT, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
         if m > k or not _full_row_rank(xn, edges, mask, guard, ws):
             stats[4] += 1
-            return ST_NEED_SVD, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
-        if first_pending:  # the reference's solution_dimension, "regular" branch: D = |V| = k - m
-            first_pending = False
-            first_dim = k - m
-            if first_dim == 0 or (first_dim > 1 and stop_on_dimension_change):
-                return ST_DIMENSION_CHANGED, x, t, d_prev, h, h_max, steps + 1, first_dim, xn, d, hit, stats
-        _project_tangent(xn, edges, mask, t, ws, tn)
-        norm = 0.0
-        for c in range(n3):
-            norm += tn[c] * tn[c]
-        norm = np.sqrt(norm)
+            if first_pending:
+                return ST_NEED_SVD, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
+            norm = _svd_tangent(xn, edges, free, t, tol_n, tn)
+        else:
+            if first_pending:  # the reference's solution_dimension, "regular" branch: D = |V| = k - m
+                first_pending = False
+                first_dim = k - m
+                if first_dim == 0 or (first_dim > 1 and stop_on_dimension_change):
+                    return ST_DIMENSION_CHANGED, x, t, d_prev, h, h_max, steps + 1, first_dim, xn, d, hit, stats
+            _project_tangent(xn, edges, mask, t, ws, tn)
+            norm = 0.0
+            for c in range(n3):
+                norm += tn[c] * tn[c]
+            norm = np.sqrt(norm)
         if norm < 1e-8:
             return ST_DIMENSION_CHANGED, x, t, d_prev, h, h_max, steps + 1, first_dim, xn, d, hit, stats
         for c in range(n3):

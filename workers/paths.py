@@ -196,12 +196,13 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
     """:func:`follow_path` with the stepping loop compiled (packings.workers._compiled.follow_steps).
 
     The compiled loop runs the same steps as :func:`_follow_numpy` and returns
-    here only to end the path or when its rank guard cannot certify that R(xn)
-    has full row rank (so that the null space is the complement of the row
-    space, and after the first step the dimension is the reference's "regular"
-    |V|).  Those steps take their tangent, and on the first step the dimension,
-    from the SVD (:func:`_svd_tangent`) exactly as the reference does, and the
-    compiled loop then resumes.
+    here only to end the path or when, on the first step, its rank guard cannot
+    certify that R(xn) has full row rank (so that the null space is the
+    complement of the row space, and the dimension is the reference's "regular"
+    |V|).  That step takes its dimension and tangent from :func:`_svd_tangent`
+    exactly as the reference does, and the compiled loop then resumes.  Later
+    steps where the guard fails (a self-stress persists along the path) take
+    the SVD's tangent inside the loop (``_compiled._svd_tangent``).
     """
     n = x.size // 3
     x = kernels.as_kernel_array(x, np.float64, (-1,))
@@ -221,7 +222,7 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
         status, x, t, d_prev, h, h_max, steps, dim, xn, d, hit, _ = _compiled.follow_steps(
             x, t, d_prev, h, h_max, steps, first_dim is None, keep, free, mask, pairs, broken_idx,
             params.ds, h_min, params.tol, params.dx_max, params.newton_max_iter, params.tol_a0,
-            params.max_path_steps, guard, params.stop_on_dimension_change,
+            params.max_path_steps, guard, params.stop_on_dimension_change, params.tol_n,
         )  # fmt: skip
         if dim >= 0:
             first_dim = int(dim)

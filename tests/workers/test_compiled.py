@@ -111,8 +111,9 @@ def test_both_backends_follow_paths_to_the_same_ends(path_sample):
 
 
 def test_the_compiled_loop_defers_to_the_svd_where_the_guard_fails(monkeypatch):
-    """With a guard no matrix passes, every Newton step is least squares and every tangent the SVD's:
-    the compiled loop then runs the reference's arithmetic, and must give its results."""
+    """With a guard no matrix passes, every Newton step is least squares and every tangent the SVD's
+    (the first step's from Python, with the dimension test; the others from the compiled SVD in the
+    loop): the compiled loop then runs the reference's arithmetic, and must give its results."""
     monkeypatch.setattr(kernels, "GUARD_FACTOR", 1e30)
     starts = _sample([p for c in _clusters_reached(9, 2) for p in path_starts(c, P)], 10, seed=1)
     starts += _sample(path_starts(Cluster.from_dict(FIXTURES["n10_m24_prestress"]), P), 6, seed=2)
@@ -125,7 +126,7 @@ def test_the_compiled_loop_defers_to_the_svd_where_the_guard_fails(monkeypatch):
 
     monkeypatch.setattr(paths_module, "_svd_tangent", counting)
     compiled = [p.follow(P) for p in starts]
-    assert len(calls) >= sum(e.steps for e in compiled) - len(starts)
+    assert len(calls) <= len(starts) < sum(e.steps for e in compiled)  # Python only for first steps
     with kernels.backend("numpy"):
         reference = [p.follow(P) for p in starts]
     for a, b in zip(compiled, reference):
