@@ -241,25 +241,32 @@ def _chol_solve(L, size, b, out):
 
 
 @numba.njit(**_JIT)
+def _fill_free_rows(x, edges, free, scale, out):
+    """out[:m] = scale R(x)[:, free] (row k = (i, j): x_i - x_j in i's free columns, x_j - x_i in j's);
+    the other entries of those rows are left as they are (zero in a new matrix)."""
+    pos = np.full(x.size, -1, dtype=np.int64)
+    for c in range(free.size):
+        pos[free[c]] = c
+    for r in range(edges.shape[0]):
+        i = edges[r, 0]
+        j = edges[r, 1]
+        for c in range(3):
+            d = scale * (x[3 * i + c] - x[3 * j + c])
+            if pos[3 * i + c] >= 0:
+                out[r, pos[3 * i + c]] = d
+            if pos[3 * j + c] >= 0:
+                out[r, pos[3 * j + c]] = -d
+
+
+@numba.njit(**_JIT)
 def _lstsq_step(x, edges, free, A, f, dx_full):
     """The reference's Newton step: minimum-norm least squares by LAPACK (as numpy.linalg.lstsq)."""
     m = edges.shape[0]
     e = A.shape[0]
     k = free.size
     n3 = x.size
-    pos = np.full(n3, -1, dtype=np.int64)
-    for c in range(k):
-        pos[free[c]] = c
     J = np.zeros((m + e, k))
-    for r in range(m):
-        i = edges[r, 0]
-        j = edges[r, 1]
-        for c in range(3):
-            d = 2.0 * (x[3 * i + c] - x[3 * j + c])
-            if pos[3 * i + c] >= 0:
-                J[r, pos[3 * i + c]] = d
-            if pos[3 * j + c] >= 0:
-                J[r, pos[3 * j + c]] = -d
+    _fill_free_rows(x, edges, free, 2.0, J)
     for r in range(e):
         for c in range(k):
             J[m + r, c] = A[r, free[c]]
@@ -549,22 +556,10 @@ def _svd_tangent(x, edges, free, t, tol_n, tn):
 
     The tangent where the rank guard cannot certify full row rank (a self-stress persists along the
     path), in the loop instead of a return to Python for numpy's SVD."""
-    m = edges.shape[0]
     k = free.size
     n3 = x.size
-    pos = np.full(n3, -1, dtype=np.int64)
-    for c in range(k):
-        pos[free[c]] = c
-    R = np.zeros((m, k))
-    for r in range(m):
-        i = edges[r, 0]
-        j = edges[r, 1]
-        for c in range(3):
-            d = x[3 * i + c] - x[3 * j + c]
-            if pos[3 * i + c] >= 0:
-                R[r, pos[3 * i + c]] = d
-            if pos[3 * j + c] >= 0:
-                R[r, pos[3 * j + c]] = -d
+    R = np.zeros((edges.shape[0], k))
+    _fill_free_rows(x, edges, free, 1.0, R)
     _, sv, vt = np.linalg.svd(R)
     rank = 0
     for q in range(sv.size):
