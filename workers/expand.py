@@ -137,22 +137,26 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
     """
     n, m = cluster.n, cluster.m
     all_edges = cluster.edges()
-    # the cluster in each pinned frame, its free coordinates, and its rigidity matrix's SVD in that frame
-    frames: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray, StressBasis | None]] = {}
+    frames: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # the cluster in each pinned frame
+    bases: dict[tuple[int, int, int], StressBasis] = {}  # its rigidity matrix's SVD in that frame
 
     def frame(tri):
         if tri not in frames:
-            x, free = kernels.to_frame(cluster.coords, tri).ravel(), kernels.free_coordinates(n, tri)
-            basis = StressBasis.of(kernels.null_spaces(x, all_edges, free, params.tol_n), params.tol_n) \
-                if first_order else None
-            frames[tri] = (x, free, basis)
+            frames[tri] = (kernels.to_frame(cluster.coords, tri).ravel(), kernels.free_coordinates(n, tri))
         return frames[tri]
 
-    own = contact_triangle(all_edges)
+    def basis(tri):
+        if tri not in bases:
+            x, free = frame(tri)
+            bases[tri] = StressBasis.of(kernels.null_spaces(x, all_edges, free, params.tol_n), params.tol_n)
+        return bases[tri]
+
     if first_order:
-        rank = 3 * n - 6 - frame(own)[2].flexes
+        own = basis(contact_triangle(all_edges))
+        rank = 3 * n - 6 - own.flexes
+        stressed = own.W.shape[1] > 0  # without a stress no count decides a subset (one break, one flex)
     else:
-        rank = cluster_rank(cluster, params)
+        rank, stressed = cluster_rank(cluster, params), False
     for k in break_sizes(m, rank, params):
         for idx in combinations(range(m), k):
             broken = all_edges[list(idx)]
@@ -162,9 +166,9 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
             if tri is None:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
                 continue
-            x, free, basis = frame(tri)
-            if basis is not None and basis.W.shape[1] and may_decide(basis, k):
-                counts = counts_after_breaking(basis, idx, params.tol_n)
+            x, free = frame(tri)
+            if stressed and may_decide(basis(tri), k):
+                counts = counts_after_breaking(basis(tri), idx, params.tol_n)
                 if counts is not None:
                     flexes, stresses = counts
                     if flexes == 0 or (stresses == 0 and flexes != 1):
