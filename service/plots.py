@@ -301,20 +301,12 @@ def best_view(coords, elevations=(15.0, 25.0, 35.0), step: float = 5.0) -> tuple
 
 def closest_pair(coords, contacts) -> tuple[int, int, float] | None:
     """(i, j, gap) of the two spheres not in contact that are closest, gap = their distance − 1 (in
-    diameters); None if every pair touches."""
+    diameters); None if every pair touches (:meth:`packings.workers.cluster.Cluster.closest_pair`)."""
     import numpy as np
 
-    x = np.asarray(coords, dtype=float)
-    n = len(x)
-    d = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(-1))
-    far = np.triu(np.ones((n, n), dtype=bool), k=1)
-    for i, j in contacts:
-        far[min(i, j), max(i, j)] = False
-    if not far.any():
-        return None
-    k = int(np.argmin(np.where(far, d, np.inf)))
-    i, j = divmod(k, n)
-    return i, j, float(d[i, j] - 1.0)
+    from packings.workers.cluster import Cluster
+
+    return Cluster(np.asarray(coords, dtype=float), tuple((int(i), int(j)) for i, j in contacts)).closest_pair()
 
 
 def _checked(coords, contacts, values):

@@ -79,11 +79,20 @@ class Cluster:
         d = pair_distances(self.coords)
         return float(d[np.triu_indices(self.n, 1)].min())
 
-    def min_gap(self) -> float:
-        """Smallest distance between two non-touching spheres, minus 1 (inf if none)."""
+    def closest_pair(self) -> tuple[int, int, float] | None:
+        """(i, j, gap) of the two spheres not in contact that are closest (i < j, the first such pair
+        in row order on a tie), gap = their distance minus 1; None if every pair touches."""
         d = pair_distances(self.coords)
         mask = np.triu(~self.adjacency(), k=1)
-        return float(d[mask].min() - 1.0) if mask.any() else float("inf")
+        if not mask.any():
+            return None
+        i, j = divmod(int(np.argmin(np.where(mask, d, np.inf))), self.n)
+        return i, j, float(d[i, j] - 1.0)
+
+    def min_gap(self) -> float:
+        """Smallest distance between two non-touching spheres, minus 1 (inf if none)."""
+        pair = self.closest_pair()
+        return float("inf") if pair is None else pair[2]
 
     def to_dict(self) -> dict:
         return {"coords": self.coords.tolist(), "contacts": [list(c) for c in self.contacts]}
