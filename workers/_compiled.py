@@ -281,6 +281,60 @@ def _lstsq_step(x, edges, free, A, f, dx_full):
         dx_full[free[c]] = sol[c]
 
 
+#: the QR step (_qr_step) is taken only where every singular value of J is at least this times its largest
+#: (by a lower bound); below, LAPACK's least squares is, which counts a singular value as zero only
+#: below eps max(rows, columns) times the largest (about 1e-14 here)
+QR_MIN_RATIO = 1e-10
+
+
+@numba.njit(**_JIT)
+def _qr_step(x, edges, free, A, f, dx_full):
+    """The same minimum-norm least-squares step as _lstsq_step, by a QR factorisation of J^T, where J has
+    full row rank with every singular value at least QR_MIN_RATIO times the largest; returns False
+    (dx_full untouched) elsewhere, and for more rows than free columns.
+
+    J^T = Q U (U upper triangular), so J = U^T Q^T and the minimum-norm solution of J dx = -f is
+    dx = Q y with U^T y = -f.  Like the SVD's it is backward stable: the two steps differ by about
+    cond(J) times the rounding unit.  U^T is the Cholesky factor of J J^T, up to the signs of its
+    columns, so 1 / ||U^-1||_F^2 bounds the smallest eigenvalue of J J^T from below.
+    """
+    m = edges.shape[0]
+    e = A.shape[0]
+    k = free.size
+    size = m + e
+    if size == 0 or size > k:
+        return False
+    Jt = np.zeros((k, size))
+    _fill_free_rows(x, edges, free, 2.0, Jt.T)
+    for r in range(e):
+        for c in range(k):
+            Jt[c, m + r] = A[r, free[c]]
+    Q, U = np.linalg.qr(Jt)
+    L = U.T.copy()
+    work = np.empty(size)
+    low = _eig_lower_bound(L, size, work)  # <= sigma_min(J)^2
+    top = 0.0
+    for i in range(size):
+        for j in range(i + 1):
+            top += L[i, j] * L[i, j]  # ||J||_F^2 >= sigma_max(J)^2
+    if not low >= QR_MIN_RATIO * QR_MIN_RATIO * top:
+        return False
+    y = np.empty(size)
+    for i in range(size):  # U^T y = -f
+        s = -f[i]
+        for p in range(i):
+            s -= L[i, p] * y[p]
+        y[i] = s / L[i, i]
+    for c in range(x.size):
+        dx_full[c] = 0.0
+    for c in range(k):
+        s = 0.0
+        for r in range(size):
+            s += Q[c, r] * y[r]
+        dx_full[free[c]] = s
+    return True
+
+
 @numba.njit(**_JIT)
 def _full_residual(x, edges, A, b, f):
     """f[:m] = contact residuals, f[m:] = A x - b; returns sum f^2."""
@@ -370,8 +424,10 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
 
     By the normal equations (J J^T) y = -f, dx = J^T y when the smallest
     eigenvalue of J J^T is certified to be at least 4 guard (J J^T = 4 R_f R_f^T
-    on the contacts); otherwise by LAPACK least squares, as the reference.
-    Returns True if the normal equations were used.
+    on the contacts); otherwise by a QR factorisation of J^T where J is far from
+    rank deficient (_qr_step), and else by LAPACK least squares, as the reference.
+    A guard of inf (the re-check of a failure) takes LAPACK's least squares at
+    every step.  Returns True if the normal equations were used.
     """
     ptr, idx, sign, D, G, L, _, y, work, dx = ws
     m = edges.shape[0]
@@ -399,7 +455,8 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
         ok = _cholesky(G, L, size) and _certify(L, size, 4.0 * guard, work)
         scale = 1.0
     if not ok:
-        _lstsq_step(x, edges, free, A, f, dx)
+        if not (guard < np.inf and _qr_step(x, edges, free, A, f, dx)):
+            _lstsq_step(x, edges, free, A, f, dx)
         return False
     for r in range(size):
         work[r] = -scale * f[r]

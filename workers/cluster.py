@@ -26,11 +26,13 @@ def contacts_from_coords(x: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
     """Pairs (i, j), i < j, with |x_i - x_j| < 1 + tol_a, sorted."""
     dist = pair_distances(x)
     i, j = np.nonzero(np.triu(dist < 1.0 + tol_a, k=1))
-    return tuple((int(a), int(b)) for a, b in zip(i, j))
+    return tuple(zip(i.tolist(), j.tolist()))
 
 
 def normalise_contacts(contacts) -> tuple[Contact, ...]:
     """Contacts as a sorted tuple of (i, j) with i < j and no repeats."""
+    if isinstance(contacts, np.ndarray):  # its rows as Python ints at once, not numpy scalars one by one
+        contacts = contacts.tolist()
     return tuple(sorted({(min(int(a), int(b)), max(int(a), int(b))) for a, b in contacts}))
 
 

@@ -98,13 +98,19 @@ class StressBasis:
     smallest: float  #: the smallest singular value counted as nonzero (inf if there is none)
     largest: float  #: the largest singular value (0 if there is none)
     noise: float  #: the largest singular value counted as zero (0 if there is none)
+    V: np.ndarray | None = None  #: 3n x f, the flexes (full coordinates), for :func:`tangent_after_breaking`
+    pinv: np.ndarray | None = None  #: 3n x m, R's pseudo-inverse (full coordinates), likewise
 
     @classmethod
     def of(cls, ns: kernels.NullSpaces, tol_n: float) -> StressBasis:
         sigma = np.asarray(ns.sigma)
         nonzero, zero = sigma[sigma >= tol_n], sigma[sigma < tol_n]
         return cls(ns.W, ns.V.shape[1], float(nonzero.min()) if nonzero.size else np.inf,
-                   float(sigma.max(initial=0.0)), float(zero.max(initial=0.0)))
+                   float(sigma.max(initial=0.0)), float(zero.max(initial=0.0)), ns.V, ns.pinv)
+
+    def certain(self, guard: float, tol_n: float) -> bool:
+        """Whether R's own singular values are far enough from ``tol_n`` for any count to be read off."""
+        return self.smallest - self.noise >= guard * tol_n and self.noise <= tol_n / guard
 
 
 def counts_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> tuple[int, int] | None:
@@ -121,20 +127,70 @@ def counts_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float =
     s - rank(W_B).  Each w must be either so large that the SVD counts its value nonzero, or so small
     that it counts it zero, both by the factor ``guard``; otherwise None (decide by the SVD).
     """
-    if not (basis.smallest - basis.noise >= guard * tol_n and basis.noise <= tol_n / guard):
+    split = _split(basis, rows, tol_n, guard, vectors=False)
+    if split is None:
+        return None
+    rank_wb = split[0]
+    return basis.flexes + len(rows) - rank_wb, basis.W.shape[1] - rank_wb
+
+
+def _split(basis: StressBasis, rows, tol_n: float, guard: float, vectors: bool) -> tuple[int, np.ndarray | None] | None:
+    """(rank of W_B as :func:`counts_after_breaking` counts it, and with ``vectors`` the |B| x (|B| - rank)
+    orthonormal basis of the y_B with W_B^T y_B = 0), or None where rounding could make an SVD count
+    otherwise."""
+    if not basis.certain(guard, tol_n):
         return None
     k = len(rows)
     w = np.zeros(k)
+    p = None
     if basis.W.shape[1]:
         wb = basis.W[list(rows)]
-        sv = np.sqrt(wb @ wb[0]) if k == 1 else np.linalg.svd(wb, compute_uv=False)
+        if vectors:
+            p, sv, _ = np.linalg.svd(wb, full_matrices=True)
+        else:
+            sv = np.sqrt(wb @ wb[0]) if k == 1 else np.linalg.svd(wb, compute_uv=False)
         w[: sv.size] = sv
     nonzero = basis.smallest * w - basis.noise >= guard * tol_n
     zero = basis.largest * w + basis.noise <= tol_n / guard
     if not np.all(nonzero | zero):
         return None
     rank_wb = int(np.count_nonzero(nonzero))
-    return basis.flexes + k - rank_wb, basis.W.shape[1] - rank_wb
+    if vectors and p is None:
+        p = np.eye(k)
+    return rank_wb, (p[:, rank_wb:] if vectors else None)
+
+
+def tangent_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> np.ndarray | None:
+    """The unit tangent (3n, full coordinates) of the set left by deleting ``rows`` where the first-order
+    count after it is one flex and no self-stress (:func:`counts_after_breaking`), read off R's SVD in
+    that frame; None elsewhere, or where rounding could make an SVD of what is left count otherwise.
+
+    Then R without B has full row rank, so :func:`solution_dimension` would say D = 1 ("regular"), its
+    tangent the null vector of R without B.  That null space is R's own flexes plus R^+ y for each
+    y in the range of R (orthogonal to every self-stress) that vanishes off B: y_B with W_B^T y_B = 0.
+    One flex and no stress left means rank(W_B) = s and f + |B| - s = 1: either f = 1 and |B| = s (the
+    tangent is R's flex, its rows of B all used by the stresses), or f = 0 and y_B spans the one
+    direction W_B^T leaves (for a regular cluster's single break, y = e_b: the column b of R^-1).  The
+    same direction as the SVD of what is left, up to sign and rounding.
+    """
+    return after_breaking(basis, rows, tol_n, guard)[1]
+
+
+def after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> tuple[tuple[int, int] | None, np.ndarray | None]:
+    """(:func:`counts_after_breaking`, :func:`tangent_after_breaking`) from one SVD of W_B."""
+    k, f, s = len(rows), basis.flexes, basis.W.shape[1]
+    vectors = f + k - s == 1 and basis.pinv is not None and basis.V is not None
+    split = _split(basis, rows, tol_n, guard, vectors)
+    if split is None:
+        return None, None
+    rank_wb, y = split
+    counts = (f + k - rank_wb, s - rank_wb)
+    if not vectors or counts != (1, 0):
+        return counts, None
+    if f == 1:
+        return counts, basis.V[:, 0].copy()
+    t = basis.pinv[:, list(rows)] @ y[:, 0]
+    return counts, t / np.linalg.norm(t)
 
 
 def may_decide(basis: StressBasis, k: int) -> bool:

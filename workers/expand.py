@@ -12,7 +12,13 @@ import numpy as np
 
 from packings.workers import kernels
 from packings.workers.cluster import Cluster
-from packings.workers.dimension import StressBasis, counts_after_breaking, may_decide, solution_dimension
+from packings.workers.dimension import (
+    Dimension,
+    StressBasis,
+    after_breaking,
+    may_decide,
+    solution_dimension,
+)
 from packings.workers.identity import ClusterIndex, certificate, same_geometry
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
     BELOW_MIN_CONTACTS,
@@ -133,7 +139,10 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
     is not one-dimensional (no flex left; or no stress left and a number of flexes other than one) is
     decided from the self-stresses of the whole cluster's rigidity matrix in that frame
     (:func:`packings.workers.dimension.counts_after_breaking`), not from an SVD of what is left; the
-    outcome is the same (where rounding could make them differ, the SVD decides).
+    outcome is the same (where rounding could make them differ, the SVD decides).  Where that count is
+    one flex and no stress, the tangent too comes from the cluster's SVD in that frame
+    (:func:`packings.workers.dimension.tangent_after_breaking`; every single break of a regular
+    cluster is such a subset): the direction the SVD of what is left gives, up to sign and rounding.
     """
     n, m = cluster.n, cluster.m
     all_edges = cluster.edges()
@@ -154,27 +163,39 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
     if first_order:
         own = basis(contact_triangle(all_edges))
         rank = 3 * n - 6 - own.flexes
-        stressed = own.W.shape[1] > 0  # without a stress no count decides a subset (one break, one flex)
+        # Which subset sizes the cluster's own SVD can decide: with a self-stress, those may_decide allows; and
+        # the size whose count can be one flex and no stress (f + |B| - s = 1), which it gives the tangent of.
+        stressed, one_flex = own.W.shape[1] > 0, own.W.shape[1] + 1 - own.flexes
     else:
-        rank, stressed = cluster_rank(cluster, params), False
+        rank, stressed, one_flex = cluster_rank(cluster, params), False, 0
+    # The first triangle of what is left is the cluster's own unless a broken contact is one of its sides:
+    # every contact before its first side had no triangle, and deleting contacts makes none.
+    own_tri = contact_triangle(all_edges)
+    own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
     for k in break_sizes(m, rank, params):
         for idx in combinations(range(m), k):
             broken = all_edges[list(idx)]
-            keep = np.delete(all_edges, list(idx), axis=0)
-            bt = tuple((int(i), int(j)) for i, j in broken)
-            tri = contact_triangle(keep)
+            kept = np.ones(m, dtype=bool)
+            kept[list(idx)] = False
+            keep = all_edges[kept]
+            bt = tuple(map(tuple, broken.tolist()))
+            tri = contact_triangle(keep) if own_sides.intersection(bt) or own_tri is None else own_tri
             if tri is None:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
                 continue
             x, free = frame(tri)
-            if stressed and may_decide(basis(tri), k):
-                counts = counts_after_breaking(basis(tri), idx, params.tol_n)
+            dim = None
+            if k == one_flex or (stressed and may_decide(basis(tri), k)):
+                counts, t = after_breaking(basis(tri), idx, params.tol_n)
                 if counts is not None:
                     flexes, stresses = counts
                     if flexes == 0 or (stresses == 0 and flexes != 1):
                         yield Endpoint(bt, 0, NOT_1D, flexes if stresses == 0 else 0)
                         continue
-            dim = solution_dimension(x, keep, free, params, limit=1)
+                    if t is not None:
+                        dim = Dimension(1, t[:, None], "regular")
+            if dim is None:
+                dim = solution_dimension(x, keep, free, params, limit=1)
             if dim.dim != 1:
                 yield Endpoint(bt, 0, NOT_1D, dim.dim)
                 continue

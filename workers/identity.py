@@ -112,8 +112,13 @@ def canonical_labelling(cluster: Cluster) -> np.ndarray:
 
 def _canonical_adjacency(cluster: Cluster, p: np.ndarray) -> np.ndarray:
     """Adjacency matrix of ``cluster`` with spheres in the order ``p``."""
-    a = cluster.adjacency()
-    return a[np.ix_(p, p)]
+    q = np.empty_like(p)
+    q[p] = np.arange(p.size)  # the new place of each sphere
+    e = q[cluster.edges()]
+    a = np.zeros((cluster.n, cluster.n), dtype=bool)
+    a[e[:, 0], e[:, 1]] = True
+    a[e[:, 1], e[:, 0]] = True
+    return a
 
 
 def _group_closure(generators: list[np.ndarray], n: int) -> list[np.ndarray]:

@@ -443,12 +443,15 @@ class NullSpaces:
     """Singular values of R[:, free], its right null space V and left null space W.
 
     V is returned in full coordinates (3n x a, zeros in pinned coordinates);
-    W is m x b.  Columns are orthonormal.
+    W is m x b.  Columns are orthonormal.  ``pinv`` is the pseudo-inverse of
+    R[:, free] on the singular values counted nonzero, in full coordinates
+    (3n x m, zero rows at the pinned coordinates).
     """
 
     sigma: np.ndarray
     V: np.ndarray
     W: np.ndarray
+    pinv: np.ndarray | None = None
 
 
 def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float) -> NullSpaces:
@@ -464,7 +467,9 @@ def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     vf = vt[rank:].T
     v = np.zeros((x.size, vf.shape[1]))
     v[free] = vf
-    return NullSpaces(s, v, u[:, rank:])
+    pinv = np.zeros((x.size, m))
+    pinv[free] = vt[:rank].T @ (u[:, :rank].T / s[:rank, None])
+    return NullSpaces(s, v, u[:, rank:], pinv)
 
 
 def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:

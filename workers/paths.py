@@ -9,7 +9,6 @@ from itertools import combinations
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import contacts_from_coords, pair_distances
 from packings.workers.dimension import solution_dimension
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
@@ -336,9 +335,9 @@ def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.nd
         break
     else:
         return None
-    constrained = {(int(i), int(j)) for i, j in cons}
+    constrained = set(map(tuple, cons.tolist()))
     for _ in range(3):
-        contacts = contacts_from_coords(pr.x.reshape(-1, 3), params.tol_a)
+        contacts = _contacts(pr.x, params.tol_a)
         if overlaps(pr.x, params):  # an overlapping pair is no contact to project onto: the caller rejects it
             return pr.x, contacts
         if set(contacts) <= constrained:
@@ -375,8 +374,8 @@ def near_pairs(x: np.ndarray, contacts, tol: float, candidates: np.ndarray | Non
     close = candidates[kernels.pair_distances_flat(x, candidates) < 1.0 + tol]
     if not close.size:
         return close
-    touching = {(int(i), int(j)) for i, j in contacts}
-    return close[[(int(i), int(j)) not in touching for i, j in close]]
+    touching = set(map(tuple, np.asarray(contacts).tolist()))
+    return close[[tuple(p) not in touching for p in close.tolist()]]
 
 
 def resolve_near_pairs(x: np.ndarray, contacts, free: np.ndarray, params: Params,
@@ -413,7 +412,7 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
     the point without them is a second solution of the same contact equations closer to it
     than the method resolves (docs/method.md, "The endpoint").
     """
-    new_t = tuple((int(i), int(j)) for i, j in pairs[hit])
+    new_t = tuple(map(tuple, pairs[hit].tolist()))
     closed = close_pairs(x_hit, keep, pairs[hit], free, params)
     if closed is None or overlaps(closed[0], params):
         y = approach_contact(x_prev, x_hit, keep, pairs, hit, free, params)
@@ -438,15 +437,19 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
 
 def _formed(contacts, keep) -> tuple[tuple[int, int], ...]:
     """The contacts of an endpoint that the path did not keep: the ones it formed."""
-    kept = {(int(i), int(j)) for i, j in keep}
+    kept = set(map(tuple, np.asarray(keep).tolist()))
     return tuple(c for c in contacts if c not in kept)
 
 
 def overlaps(x: np.ndarray, params: Params) -> bool:
     """Whether two spheres of ``x`` (flat) overlap: a pair closer than 1 - tol_a."""
-    dist = pair_distances(x.reshape(-1, 3))
-    np.fill_diagonal(dist, np.inf)
-    return bool(dist.min() < 1.0 - params.tol_a)
+    return bool(kernels.pair_distances_flat(x, _upper_pairs(x.size // 3)).min(initial=np.inf) < 1.0 - params.tol_a)
+
+
+def _contacts(x: np.ndarray, tol_a: float) -> tuple[tuple[int, int], ...]:
+    """The pairs of ``x`` (flat) closer than 1 + tol_a, sorted: contacts_from_coords by the pair-distance kernel."""
+    pairs = _upper_pairs(x.size // 3)
+    return tuple(map(tuple, pairs[kernels.pair_distances_flat(x, pairs) < 1.0 + tol_a].tolist()))
 
 
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:

@@ -207,7 +207,7 @@ def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray
 
 def contact_triangle(edges, forbidden=()) -> tuple[int, int, int] | None:
     """The lexicographically first triangle (a, b, c) of contacts, avoiding ``forbidden`` contacts."""
-    es = {(int(i), int(j)) for i, j in edges} - {tuple(e) for e in forbidden}
+    es = set(map(tuple, np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist())) - {tuple(e) for e in forbidden}
     nbr: dict[int, set[int]] = {}
     for i, j in es:
         nbr.setdefault(i, set()).add(j)

@@ -294,6 +294,62 @@ def test_tangent_projection_and_rank_certificate_match_the_svd(n, drop, eps, see
         assert kernels.regular_flexes(x, keep, free, P.tol_n) is None  # the reference always takes the SVD
 
 
+def _qr_and_lstsq(x, edges, free, A):
+    """(whether the QR step was taken, its step, LAPACK's step) for the rows ``edges`` and ``A`` at x."""
+    f = np.random.default_rng(0).standard_normal(edges.shape[0] + A.shape[0])
+    qr, ls = np.full(x.size, np.nan), np.empty(x.size)
+    taken = _compiled._qr_step(x, edges, free, A, f, qr)
+    _compiled._lstsq_step(x, edges, free, A, f, ls)
+    return taken, qr, ls
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.integers(5, 12), st.integers(0, 3), st.floats(0.0, 1e-2), st.integers(0, 1), st.integers(0, 2**31 - 1))
+def test_the_qr_step_is_lapacks_least_squares_step(n, drop, eps, extra, seed):
+    """Where J has full row rank, well away from losing it, the QR step is LAPACK's minimum-norm step (to
+    cond(J) times the rounding unit), with and without an extra linear row, and it moves no pinned
+    coordinate."""
+    x0, keep, free, _, rng = _perturbed_problem(n, drop, eps, seed)
+    A = np.zeros((extra, x0.size))
+    A[:, free] = rng.standard_normal((extra, free.size))
+    taken, qr, ls = _qr_and_lstsq(x0, keep, free, A)
+    J = np.vstack([2.0 * kernels.rigidity_matrix(x0, keep)[:, free], A[:, free]])
+    sv = np.linalg.svd(J, compute_uv=False)
+    if J.shape[0] > J.shape[1] or sv.min() < 1e-10 * sv.max():
+        assert not taken and np.isnan(qr).all()
+        return
+    assert taken
+    pinned = np.setdiff1d(np.arange(x0.size), free)
+    assert np.all(qr[pinned] == 0.0)
+    assert np.abs(qr - ls).max() <= 1e-13 * (sv.max() / sv.min()) * max(1.0, np.abs(ls).max())
+
+
+def test_the_qr_step_defers_to_lapack_where_j_is_rank_deficient():
+    """More rows than free columns (a hyperstatic cluster's contacts), or a row repeated (an exact self-stress):
+    no QR step.  24 independent rows of the same cluster: the QR step, equal to LAPACK's.  A stored
+    pre-stress stable cluster's 24 contacts, whose smallest singular value is about 1e-9 (their self-stress
+    holds to the accuracy of the coordinates): both solvers keep it, and agree to cond(J) times the
+    rounding unit."""
+    c = Cluster.from_dict(FIXTURES["n10_m25_first-order"])
+    tri = contact_triangle(c.edges())
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(c.n, tri)
+    none = np.zeros((0, x.size))
+    assert not _qr_and_lstsq(x, c.edges(), free, none)[0]  # 25 rows, 24 columns
+    taken, qr, ls = _qr_and_lstsq(x, c.edges()[1:], free, none)
+    assert taken and np.allclose(qr, ls, rtol=0, atol=1e-10)
+    repeated = np.vstack([c.edges()[2:], c.edges()[2:3]])  # 24 rows, two of them the same
+    assert not _qr_and_lstsq(x, repeated, free, none)[0]
+    stressed = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    tri = contact_triangle(stressed.edges())
+    x = kernels.to_frame(stressed.coords, tri).ravel()
+    free = kernels.free_coordinates(stressed.n, tri)
+    sv = np.linalg.svd(kernels.rigidity_matrix(x, stressed.edges())[:, free], compute_uv=False)
+    assert sv.min() < 1e-8
+    taken, qr, ls = _qr_and_lstsq(x, stressed.edges(), free, none)
+    assert taken and np.abs(qr - ls).max() <= 1e-13 * (sv.max() / sv.min()) * np.abs(ls).max()
+
+
 def test_rank_certificate_refuses_dependent_rows():
     """Contacts of a hyperstatic cluster carry a self-stress: R_f R_f^T is singular and must not be certified."""
     c = Cluster.from_dict(FIXTURES["n10_m25_first-order"])

@@ -161,17 +161,22 @@ def _basis(c: Cluster, tri) -> StressBasis:
 def test_the_first_order_counts_decide_every_subset_as_the_svd_does(name):
     """Every attempt of a cluster (regular, hyperstatic, pre-stress stable, hypostatic) is the same whether
     the subsets whose first-order count decides them are decided from the cluster's self-stresses or
-    each by an SVD of what is left: same outcomes, same dimensions, same tangents to the bit."""
+    each by an SVD of what is left: same outcomes and dimensions in the same order, and the same
+    directions followed from each subset.  Where the count is one flex and no stress the tangent comes
+    from the cluster's own SVD: its sign (hence the direction label) may differ, and the direction
+    agrees to the accuracy of the stored coordinates (1e-8 where a stress holds only to that)."""
     c = Cluster.from_dict(FIXTURES[name])
     fast, slow = list(_attempts(c, P, first_order=True)), list(_attempts(c, P, first_order=False))
-    assert len(fast) == len(slow)
-    for a, b in zip(fast, slow):
-        assert type(a) is type(b)
+    assert [type(a) for a in fast] == [type(b) for b in slow]
+    assert [a for a in fast if not isinstance(a, PathStart)] == [b for b in slow if not isinstance(b, PathStart)]
+    starts = {}
+    for a in slow:
         if isinstance(a, PathStart):
-            assert (a.broken_contacts, a.direction) == (b.broken_contacts, b.direction)
-            assert np.array_equal(a.tangent, b.tangent)
-        else:
-            assert a == b
+            starts.setdefault(a.broken_contacts, []).append(a.tangent)
+    for a in fast:
+        if isinstance(a, PathStart):
+            assert min(np.abs(a.tangent - t).max() for t in starts[a.broken_contacts]) < 1e-7
+    assert sum(isinstance(a, PathStart) for a in fast) == sum(map(len, starts.values()))
 
 
 def test_the_first_order_counts_equal_an_svd_of_what_is_left():
@@ -193,6 +198,21 @@ def test_the_first_order_counts_equal_an_svd_of_what_is_left():
     assert given_ > 0.9 * asked
 
 
+def _moved(c: Cluster, idx, rnd):
+    """(c with its spheres relabelled at random, rotated and maybe reflected; the indices of the contacts
+    ``idx`` in it; the relabelling, old sphere -> new)."""
+    from scipy.spatial.transform import Rotation
+
+    perm = list(range(c.n))
+    rnd.shuffle(perm)
+    q = Rotation.random(random_state=rnd.randint(0, 2**32 - 1)).as_matrix() * rnd.choice([1.0, -1.0])
+    moved_coords = np.empty_like(c.coords)
+    moved_coords[perm] = c.coords @ q.T
+    moved = Cluster(moved_coords, tuple(sorted((min(perm[i], perm[j]), max(perm[i], perm[j])) for i, j in c.contacts)))
+    broken = {tuple(sorted((perm[i], perm[j]))) for i, j in (c.contacts[t] for t in idx)}
+    return moved, [t for t, e in enumerate(moved.contacts) if e in broken], perm
+
+
 @settings(max_examples=25, deadline=None)
 @given(st.sampled_from(sorted(FIXTURES)), st.integers(1, 3), st.randoms(use_true_random=False))
 def test_the_first_order_counts_do_not_depend_on_labels_or_orientation(name, k, rnd):
@@ -200,16 +220,7 @@ def test_the_first_order_counts_do_not_depend_on_labels_or_orientation(name, k, 
     (under the relabelling) are the same, and they are the SVD's."""
     c = Cluster.from_dict(FIXTURES[name])
     idx = sorted(rnd.sample(range(c.m), k))
-    perm = list(range(c.n))
-    rnd.shuffle(perm)
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.random(random_state=rnd.randint(0, 2**32 - 1)).as_matrix() * rnd.choice([1.0, -1.0])
-    moved_coords = np.empty_like(c.coords)
-    moved_coords[perm] = c.coords @ q.T
-    moved = Cluster(moved_coords, tuple(sorted((min(perm[i], perm[j]), max(perm[i], perm[j])) for i, j in c.contacts)))
-    broken = {tuple(sorted((perm[i], perm[j]))) for i, j in (c.contacts[t] for t in idx)}
-    moved_idx = [t for t, e in enumerate(moved.contacts) if e in broken]
+    moved, moved_idx, _ = _moved(c, idx, rnd)
     results = []
     for cl, ix in ((c, idx), (moved, moved_idx)):
         f, s, tri = _svd_counts(cl, ix)
@@ -239,3 +250,70 @@ def test_which_subset_sizes_the_counts_can_decide():
     singular = StressBasis(np.zeros((24, 1)), 1, 1.0, 2.0, 0.0)
     assert not may_decide(singular, 1)  # a flex and a stress, or two flexes and the stress: never decided
     assert may_decide(singular, 2)  # two flexes and no stress
+
+
+def _frame(c: Cluster, tri=None):
+    tri = tri or contact_triangle(c.edges())
+    return kernels.to_frame(c.coords, tri).ravel(), kernels.free_coordinates(c.n, tri), tri
+
+
+@pytest.mark.parametrize("name", sorted(FIXTURES))
+def test_the_tangent_from_the_clusters_svd_is_the_null_vector_of_what_is_left(name):
+    """For every subset of up to s + 1 contacts (s self-stresses) whose count is one flex and no stress:
+    a unit vector, zero at the pinned coordinates, in the null space of R without B, and the tangent of
+    solution_dimension up to sign.  There are such subsets wherever s + 1 - f >= 1 (not for the hypostatic
+    fixture: f = 2, s = 1)."""
+    c = Cluster.from_dict(FIXTURES[name])
+    x, free, tri = _frame(c)
+    basis = _basis(c, tri)
+    R = kernels.rigidity_matrix(x, c.edges())
+    pinned = np.setdiff1d(np.arange(x.size), free)
+    found = 0
+    for k in range(1, basis.W.shape[1] + 2):
+        for idx in combinations(range(c.m), k):
+            t = dimension.tangent_after_breaking(basis, idx, P.tol_n)
+            counts = counts_after_breaking(basis, idx, P.tol_n)
+            if counts != (1, 0):
+                assert t is None
+                continue
+            found += 1
+            assert np.isclose(np.linalg.norm(t), 1.0) and np.all(t[pinned] == 0.0)
+            assert np.abs(np.delete(R, list(idx), axis=0) @ t).max() < 1e-8
+            keep = np.delete(c.edges(), list(idx), axis=0)
+            d = solution_dimension(x, keep, free, P)
+            assert d.dim == 1 and d.method == "regular" and abs(abs(d.tangents[:, 0] @ t) - 1.0) < 1e-12
+    assert (found > 0) == (basis.W.shape[1] + 1 - basis.flexes >= 1)
+
+
+def test_the_tangent_defers_to_the_svd_near_tol_n():
+    """A singular value of R within the guard factor of tol_n: no tangent (the SVD of what is left decides)."""
+    c = Cluster.from_dict(FIXTURES["n10_m24_first-order"])
+    x, free, tri = _frame(c)
+    smallest = np.linalg.svd(kernels.rigidity_matrix(x, c.edges())[:, free], compute_uv=False).min()
+    for tol_n, given_ in ((smallest / 5, False), (smallest / 20, True)):
+        basis = StressBasis.of(kernels.null_spaces(x, c.edges(), free, tol_n), tol_n)
+        assert (dimension.tangent_after_breaking(basis, [3], tol_n) is not None) == given_
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.sampled_from(sorted(set(FIXTURES) - {"n10_m23_prestress"})), st.randoms(use_true_random=False))
+def test_the_tangent_does_not_depend_on_labels_or_orientation(name, rnd):
+    """Relabel the spheres, rotate and reflect the cluster: breaking the same contacts (under the
+    relabelling) opens the same motion.  The rate of change of every pair's squared distance along the
+    tangent (the same in every pinned frame) agrees, up to the tangent's sign and length."""
+    c = Cluster.from_dict(FIXTURES[name])
+    basis = _basis(c, contact_triangle(c.edges()))
+    k = basis.W.shape[1] + 1 - basis.flexes
+    subsets = [idx for idx in combinations(range(c.m), k) if counts_after_breaking(basis, idx, P.tol_n) == (1, 0)]
+    idx = rnd.choice(subsets)
+    moved, moved_idx, perm = _moved(c, idx, rnd)
+    strains = []
+    for cl, ix, order in ((c, idx, list(range(c.n))), (moved, moved_idx, perm)):
+        x, free, tri = _frame(cl)
+        t = dimension.tangent_after_breaking(_basis(cl, tri), ix, P.tol_n)
+        p, v = x.reshape(-1, 3)[order], t.reshape(-1, 3)[order]
+        dp, dv = p[:, None] - p[None], v[:, None] - v[None]
+        s = np.einsum("ijk,ijk->ij", dp, dv)
+        strains.append(s / np.abs(s).max())
+    a, b = strains
+    assert min(np.abs(a - b).max(), np.abs(a + b).max()) < 1e-7

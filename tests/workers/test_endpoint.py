@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from tests.workers.test_identity import transformed
 from packings.workers import kernels
 from packings.workers.cluster import Cluster
-from packings.workers.expand import path_starts
+from packings.workers.expand import PathStart, _attempts
 from packings.workers.identity import certificate, same_geometry
 from packings.workers.params import DEFAULT as P
 from packings.workers.paths import FLOPPY, PROJECTION_FAILED, RIGID, UNDECIDED_END, close_pairs, near_pairs, resolve_near_pairs
@@ -43,7 +43,9 @@ def framed(c: Cluster) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def follow(case: dict):
     source = cluster(case["source"])
     broken = tuple(map(tuple, case["broken"]))
-    (start,) = [s for s in path_starts(source, P) if s.broken_contacts == broken and s.direction == case["direction"]]
+    # the recorded direction is relative to the tangent of an SVD of what is left: the reference's attempts
+    starts = [s for s in _attempts(source, P, first_order=False) if isinstance(s, PathStart)]
+    (start,) = [s for s in starts if s.broken_contacts == broken and s.direction == case["direction"]]
     return start.follow(P)
 
 

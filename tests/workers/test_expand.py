@@ -187,3 +187,28 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
     assert not same_geometry(*(Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))
                                for m in data["endpoints"]), DEFAULT.tol_d)  # stored: two clusters
     assert same_geometry(ends[0], ends[1], DEFAULT.tol_d)  # now: one
+
+
+def test_every_path_starts_in_the_frame_of_the_first_triangle_of_what_is_left():
+    """_attempts reuses the cluster's own triangle unless a broken contact is a side of it: every path
+    start is in the frame of contact_triangle(what is left), for clusters whose own triangle is broken
+    and whose is not, in subsets of one, two and three contacts."""
+    import json
+    from pathlib import Path
+
+    from packings.workers import kernels
+    from packings.workers.expand import PathStart, _attempts
+    from packings.workers.rigidity import contact_triangle
+
+    fixtures = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    reused = changed = 0
+    for c in [Cluster.from_dict(d) for d in fixtures.values()] + [seed_cluster(9)]:
+        own = contact_triangle(c.edges())
+        for a in _attempts(c, P):
+            if isinstance(a, PathStart):
+                tri = contact_triangle(a.keep)
+                assert np.array_equal(a.x, kernels.to_frame(c.coords, tri).ravel())
+                assert np.array_equal(a.free, kernels.free_coordinates(c.n, tri))
+                reused += tri == own
+                changed += tri != own
+    assert reused > 0 and changed > 0
