@@ -160,8 +160,9 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
             bases[tri] = StressBasis.of(kernels.null_spaces(x, all_edges, free, params.tol_n), params.tol_n)
         return bases[tri]
 
+    own_tri = contact_triangle(all_edges)
     if first_order:
-        own = basis(contact_triangle(all_edges))
+        own = basis(own_tri)
         rank = 3 * n - 6 - own.flexes
         # Which subset sizes the cluster's own SVD can decide: with a self-stress, those may_decide allows; and
         # the size whose count can be one flex and no stress (f + |B| - s = 1), which it gives the tangent of.
@@ -170,7 +171,6 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
         rank, stressed, one_flex = cluster_rank(cluster, params), False, 0
     # The first triangle of what is left is the cluster's own unless a broken contact is one of its sides:
     # every contact before its first side had no triangle, and deleting contacts makes none.
-    own_tri = contact_triangle(all_edges)
     own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
     for k in break_sizes(m, rank, params):
         for idx in combinations(range(m), k):

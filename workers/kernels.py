@@ -43,9 +43,10 @@ numba's cache) every kernel before the first path.
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
@@ -445,13 +446,23 @@ class NullSpaces:
     V is returned in full coordinates (3n x a, zeros in pinned coordinates);
     W is m x b.  Columns are orthonormal.  ``pinv`` is the pseudo-inverse of
     R[:, free] on the singular values counted nonzero, in full coordinates
-    (3n x m, zero rows at the pinned coordinates).
+    (3n x m, zero rows at the pinned coordinates), from the same SVD when first
+    asked for; None without it.
     """
 
     sigma: np.ndarray
     V: np.ndarray
     W: np.ndarray
-    pinv: np.ndarray | None = None
+    svd: tuple | None = field(default=None, repr=False, compare=False)  #: (u, vt, rank, free) of that SVD
+
+    @functools.cached_property
+    def pinv(self) -> np.ndarray | None:
+        if self.svd is None:
+            return None
+        u, vt, rank, free = self.svd
+        out = np.zeros((self.V.shape[0], u.shape[0]))
+        out[free] = vt[:rank].T @ (u[:, :rank].T / self.sigma[:rank, None])
+        return out
 
 
 def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float) -> NullSpaces:
@@ -467,9 +478,7 @@ def null_spaces(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     vf = vt[rank:].T
     v = np.zeros((x.size, vf.shape[1]))
     v[free] = vf
-    pinv = np.zeros((x.size, m))
-    pinv[free] = vt[:rank].T @ (u[:, :rank].T / s[:rank, None])
-    return NullSpaces(s, v, u[:, rank:], pinv)
+    return NullSpaces(s, v, u[:, rank:], (u, vt, rank, free))
 
 
 def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
