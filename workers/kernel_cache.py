@@ -19,10 +19,13 @@ SOURCE = Path(__file__).with_name("_compiled.py")
 
 
 def kernels_cached(source: Path = SOURCE) -> bool | None:
-    """True if the cache beside ``source`` has index files, each stamped with the source as it is
-    now; False if it has none, or a stale one (the next warm-up compiles); None where this cannot be
-    told (a cache directory set by ``NUMBA_CACHE_DIR``, or a folder numba cannot write, where it uses
-    another)."""
+    """True if the cache beside ``source`` has an index file stamped with the source as it is now; False
+    if it has none, or only stale ones (the next warm-up compiles); None where this cannot be told (a
+    cache directory set by ``NUMBA_CACHE_DIR``, or a folder numba cannot write, where it uses another).
+
+    The warm-up compiles every kernel at once, so one current index means all of them are cached.  An
+    index is named after its kernel's line in the source: a new version of the package leaves the
+    old version's index files behind, stale, beside the new ones, and numba ignores them."""
     if os.environ.get("NUMBA_CACHE_DIR"):
         return None
     cache = source.parent / "__pycache__"
@@ -30,4 +33,4 @@ def kernels_cached(source: Path = SOURCE) -> bool | None:
         return None
     indexes = list(cache.glob(f"{source.stem}.*.nbi")) if cache.is_dir() else []
     digest = hashlib.sha256(source.read_bytes()).digest()
-    return bool(indexes) and all(digest in p.read_bytes() for p in indexes)
+    return any(digest in p.read_bytes() for p in indexes)

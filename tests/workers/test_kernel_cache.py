@@ -49,3 +49,21 @@ def test_the_installed_kernels_are_cached_once_a_process_has_warmed_them_up():
     warm_up()
     if os.environ.get("NUMBA_CACHE_DIR") is None and os.access(kernel_cache.SOURCE.parent, os.W_OK):
         assert kernels_cached() is True
+
+
+def test_the_index_files_an_older_version_left_do_not_make_a_warm_cache_cold(tmp_path, monkeypatch):
+    """Upgrading the package leaves the old kernels' index files (named after their old lines, stamped
+    with the old source) beside the ones the new version's warm-up writes: the cache is warm."""
+    import hashlib
+    import pickle
+
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    src = _source(tmp_path)
+    cache = tmp_path / "__pycache__"
+    cache.mkdir()
+    old = hashlib.sha256(b"an older version").digest()
+    (cache / "_compiled.residual-10.py311.nbi").write_bytes(pickle.dumps("0.68.1") + pickle.dumps((old, {})))
+    assert kernels_cached(src) is False  # only the old version's: the next warm-up compiles
+    new = hashlib.sha256(src.read_bytes()).digest()
+    (cache / "_compiled.residual-12.py311.nbi").write_bytes(pickle.dumps("0.68.1") + pickle.dumps((new, {})))
+    assert kernels_cached(src) is True
