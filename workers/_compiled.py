@@ -226,13 +226,19 @@ def _eig_lower_bound(L, size, work):
 
 
 @numba.njit(**_JIT)
-def _chol_solve(L, size, b, out):
-    """out = (L L^T)^{-1} b[:size]."""
+def _forward_solve(L, size, b, out):
+    """out[:size] = L^{-1} b[:size] (L lower triangular)."""
     for i in range(size):
         s = b[i]
         for p in range(i):
             s -= L[i, p] * out[p]
         out[i] = s / L[i, i]
+
+
+@numba.njit(**_JIT)
+def _chol_solve(L, size, b, out):
+    """out = (L L^T)^{-1} b[:size]."""
+    _forward_solve(L, size, b, out)
     for i in range(size - 1, -1, -1):
         s = out[i]
         for p in range(i + 1, size):
@@ -319,12 +325,10 @@ def _qr_step(x, edges, free, A, f, dx_full):
             top += L[i, j] * L[i, j]  # ||J||_F^2 >= sigma_max(J)^2
     if not low >= QR_MIN_RATIO * QR_MIN_RATIO * top:
         return False
+    for i in range(size):
+        work[i] = -f[i]
     y = np.empty(size)
-    for i in range(size):  # U^T y = -f
-        s = -f[i]
-        for p in range(i):
-            s -= L[i, p] * y[p]
-        y[i] = s / L[i, i]
+    _forward_solve(L, size, work, y)  # U^T y = -f
     for c in range(x.size):
         dx_full[c] = 0.0
     for c in range(k):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,11 +23,26 @@ def pair_distances(x: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ijk,ijk->ij", d, d))
 
 
+@functools.lru_cache(maxsize=None)
+def upper_pairs(n: int) -> np.ndarray:
+    """Every pair (i < j) of n spheres, row by row (read-only, shared)."""
+    pairs = np.stack(np.triu_indices(n, 1), axis=1).astype(np.int64)
+    pairs.setflags(write=False)
+    return pairs
+
+
+def contacts_from_distances(pairs: np.ndarray, d: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
+    """The rows (i, j) of ``pairs`` whose distance ``d`` is below 1 + tol_a, in the order of ``pairs``:
+    the one rule of what is a contact, whoever computed the distances."""
+    return tuple(map(tuple, pairs[d < 1.0 + tol_a].tolist()))
+
+
 def contacts_from_coords(x: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
     """Pairs (i, j), i < j, with |x_i - x_j| < 1 + tol_a, sorted."""
-    dist = pair_distances(x)
-    i, j = np.nonzero(np.triu(dist < 1.0 + tol_a, k=1))
-    return tuple(zip(i.tolist(), j.tolist()))
+    p = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+    pairs = upper_pairs(len(p))
+    d = p[pairs[:, 0]] - p[pairs[:, 1]]
+    return contacts_from_distances(pairs, np.sqrt(np.einsum("ij,ij->i", d, d)), tol_a)
 
 
 def normalise_contacts(contacts) -> tuple[Contact, ...]:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, replace
 from itertools import combinations
 
 import numpy as np
 
 from packings.workers import kernels
+from packings.workers.cluster import contacts_from_distances, upper_pairs
 from packings.workers.dimension import solution_dimension
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
@@ -47,16 +47,8 @@ def non_contact_pairs(n: int, edges: np.ndarray) -> np.ndarray:
     adjacent = np.zeros((n, n), dtype=bool)
     adjacent[edges[:, 0], edges[:, 1]] = True
     adjacent[edges[:, 1], edges[:, 0]] = True
-    upper = _upper_pairs(n)
+    upper = upper_pairs(n)
     return upper[~adjacent[upper[:, 0], upper[:, 1]]]
-
-
-@functools.lru_cache(maxsize=None)
-def _upper_pairs(n: int) -> np.ndarray:
-    """Every pair (i < j) of n spheres, row by row (read-only, shared)."""
-    pairs = np.stack(np.triu_indices(n, 1), axis=1).astype(np.int64)
-    pairs.setflags(write=False)
-    return pairs
 
 
 def follow_path(
@@ -370,7 +362,7 @@ def near_pairs(x: np.ndarray, contacts, tol: float, candidates: np.ndarray | Non
     ``candidates`` (pairs, some of which may be contacts) if given, else among all pairs."""
     n = x.size // 3
     if candidates is None:
-        candidates = _upper_pairs(n)
+        candidates = upper_pairs(n)
     close = candidates[kernels.pair_distances_flat(x, candidates) < 1.0 + tol]
     if not close.size:
         return close
@@ -443,13 +435,13 @@ def _formed(contacts, keep) -> tuple[tuple[int, int], ...]:
 
 def overlaps(x: np.ndarray, params: Params) -> bool:
     """Whether two spheres of ``x`` (flat) overlap: a pair closer than 1 - tol_a."""
-    return bool(kernels.pair_distances_flat(x, _upper_pairs(x.size // 3)).min(initial=np.inf) < 1.0 - params.tol_a)
+    return bool(kernels.pair_distances_flat(x, upper_pairs(x.size // 3)).min(initial=np.inf) < 1.0 - params.tol_a)
 
 
 def _contacts(x: np.ndarray, tol_a: float) -> tuple[tuple[int, int], ...]:
     """The pairs of ``x`` (flat) closer than 1 + tol_a, sorted: contacts_from_coords by the pair-distance kernel."""
-    pairs = _upper_pairs(x.size // 3)
-    return tuple(map(tuple, pairs[kernels.pair_distances_flat(x, pairs) < 1.0 + tol_a].tolist()))
+    pairs = upper_pairs(x.size // 3)
+    return contacts_from_distances(pairs, kernels.pair_distances_flat(x, pairs), tol_a)
 
 
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:

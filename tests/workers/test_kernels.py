@@ -127,3 +127,24 @@ def test_null_spaces_of_isostatic_cluster_minus_one_contact():
     R = kernels.rigidity_matrix(x, np.delete(e, 5, 0))
     assert np.allclose(R @ ns1.V[:, 0], 0, atol=1e-12)
     assert np.allclose(ns1.V[kernels.pinned_coordinates(tri), 0], 0)
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(st.integers(4, 12), st.integers(0, 2**31 - 1), st.sampled_from([1e-3, 1e-5]))
+def test_an_endpoints_contacts_are_contacts_from_coords(n, seed, tol_a):
+    """The endpoint's contacts (distances by the pair-distance kernel, each backend) are what
+    contacts_from_coords finds, on clusters with pairs within 1e-9 of each side of 1 + tol_a."""
+    from packings.workers.cluster import contacts_from_coords
+    from packings.workers.paths import _contacts
+
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.0, 1.5, size=(n, 3))
+    for _ in range(3):  # move sphere j onto the threshold of sphere i, just inside or just outside
+        i, j = rng.choice(n, size=2, replace=False)
+        u = rng.normal(size=3)
+        x[j] = x[i] + (1.0 + tol_a + rng.choice([-1e-9, 1e-9])) * u / np.linalg.norm(u)
+    want = contacts_from_coords(x, tol_a)
+    assert want == tuple(sorted(want))
+    for name in kernels.BACKENDS:
+        with kernels.backend(name):
+            assert _contacts(x.ravel(), tol_a) == want
