@@ -10,13 +10,15 @@ from __future__ import annotations
 import gc
 import json
 import os
+import signal
 import sys
+import threading
 
 import click
 
 from packings.api import check_n, resolve_url
 from packings.dask_cluster import DASHBOARD_ADDRESS
-from packings.errors import Interrupted, PackingsError, UsageError
+from packings.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
 from packings.workers.params import Params
 
 # What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
@@ -102,8 +104,8 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
         result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
                                min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet,
                                dashboard_address=dashboard_address)
-    except KeyboardInterrupt:  # the run put its leases back: one line (click would print a newline first)
-        raise Interrupted() from None
+    except KeyboardInterrupt as e:  # the run put its leases back: one line (click would print a newline first)
+        raise _stopped(e) from None
     url = resolve_url(db_url)
     from packings.db import display_url, parse_url
 
@@ -514,16 +516,38 @@ def _database_error(e: Exception) -> str | None:
     return None
 
 
+def _stopped(e: BaseException | None) -> Interrupted:
+    """What stopped a command: SIGTERM (our handler's SigTerm) or Ctrl-C."""
+    return Terminated() if isinstance(e, SigTerm) else Interrupted()
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise SigTerm()
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    # SIGTERM (docker compose stop, systemd, kill) stops a command as Ctrl-C does, rather than ending
+    # the process where it stands (a handler only the main thread may set; put back when main returns)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    try:
+        _main(argv)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: list[str]) -> None:
     try:
         cli.main(args=argv or ["--help"], prog_name="packings", standalone_mode=False)
     except Interrupted as e:
         click.echo(f"packings: {e}", err=True)
-        sys.exit(130)
-    except click.exceptions.Abort:  # Ctrl-C outside a command's own handling (click printed a newline)
-        click.echo(f"packings: {Interrupted()}", err=True)
-        sys.exit(130)
+        sys.exit(e.exit_status)
+    except click.exceptions.Abort as e:  # Ctrl-C outside a command's own handling (click printed a newline)
+        stopped = _stopped(e.__cause__)
+        click.echo(f"packings: {stopped}", err=True)
+        sys.exit(stopped.exit_status)
     except click.ClickException as e:
         click.echo(f"packings: error: {e.format_message()}", err=True)
         sys.exit(e.exit_code)
@@ -536,9 +560,10 @@ def main(argv: list[str] | None = None) -> None:
             raise
         click.echo(f"packings: error: {line}", err=True)
         sys.exit(1)
-    except KeyboardInterrupt:
-        click.echo(f"packings: {Interrupted()}", err=True)
-        sys.exit(130)
+    except KeyboardInterrupt as e:
+        stopped = _stopped(e)
+        click.echo(f"packings: {stopped}", err=True)
+        sys.exit(stopped.exit_status)
 
 
 if __name__ == "__main__":

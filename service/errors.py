@@ -29,5 +29,22 @@ class StorageError(PackingsError):
 class Interrupted(PackingsError):
     """Ctrl-C: the run stopped with its leases put back; the same command resumes it (exit status 130)."""
 
+    exit_status = 130
+
     def __init__(self, message: str = "interrupted; run the same command to resume"):
         super().__init__(message)
+
+
+class Terminated(Interrupted):
+    """SIGTERM, as a process manager stops a program (``docker compose stop``, systemd, ``kill``): the
+    same as Ctrl-C, with exit status 143 (128 + SIGTERM)."""
+
+    exit_status = 143
+
+    def __init__(self, message: str = "terminated (SIGTERM); run the same command to resume"):
+        super().__init__(message)
+
+
+class SigTerm(KeyboardInterrupt):
+    """What the command line's SIGTERM handler raises in its main thread: a KeyboardInterrupt, so that
+    a run unwinds as from Ctrl-C (its leases put back, its local cluster closed)."""

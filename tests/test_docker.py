@@ -147,6 +147,14 @@ def test_the_scheduler_and_the_workers_are_started_again_when_they_end(compose):
     assert services["coordinator"]["restart"] == "no"
 
 
+def test_the_coordinator_is_stopped_with_sigterm_and_time_to_put_its_leases_back(compose):
+    """`docker compose stop` sends SIGTERM to the container's first process: packings itself (an
+    exec-form command, no shell between), which stops as on Ctrl-C, given a minute before SIGKILL."""
+    coordinator = compose["services"]["coordinator"]
+    assert argv(coordinator)[0] == "packings" and "entrypoint" not in coordinator
+    assert coordinator.get("stop_signal", "SIGTERM") == "SIGTERM" and coordinator["stop_grace_period"] == "1m"
+
+
 @pytest.mark.parametrize("service", IMAGE_SERVICES)
 def test_every_command_exists_and_accepts_its_arguments(compose, service):
     """The program each service runs is installed next to this Python, and its parser accepts the arguments.

@@ -582,6 +582,29 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10
     assert_same_clusters(db_url, 10, reference10)
 
 
+def test_sigterm_stops_a_run_as_ctrl_c_does_with_exit_143(db_url):
+    """SIGTERM to the coordinator alone (as docker compose stop or systemd send it): one line, exit
+    status 143, no traceback, the run interrupted with its leases put back, its workers gone."""
+    import psutil
+
+    proc = start("enumerate", "10", "--db", db_url, "--workers", "2", "--quiet")
+    try:
+        wait_for(lambda: done_count(db_url) >= 5, proc)
+        workers = worker_processes(proc.pid)
+        assert workers
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, (out, err)
+    lines = err.splitlines()
+    assert lines[-1] == "packings: terminated (SIGTERM); run the same command to resume" and "Traceback" not in err
+    [run] = json.loads(packings("status", "--json", "--db", db_url).stdout)
+    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 263
+    gone, alive = psutil.wait_procs(workers, timeout=30)
+    assert alive == []
+
+
 @pytest.mark.slow
 def test_a_run_restricted_to_many_contacts_finds_the_papers_clusters_with_that_many(paper_counts, tmp_path):
     """`enumerate 11 --min-contacts 28 --max-break 3` (a ground-state run: M(11) - 1, seeded from a
