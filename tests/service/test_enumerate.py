@@ -554,6 +554,13 @@ def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
     assert list(seen.values()) == [expected]
 
 
+def _sigint_by_default() -> None:
+    """In the child before exec: SIGINT back to its default action, for a terminal's Ctrl-C to reach
+    it even when the tests run in the background (a shell starts background jobs with SIGINT ignored,
+    and Python leaves an ignored SIGINT ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10):
     """Ctrl-C in a terminal signals the whole process group (the coordinator and its local workers):
     one line, exit status 130, no worker's traceback, leases put back; the same command resumes.
@@ -563,7 +570,7 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10
 
     proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "10", "--db", db_url, "--workers", "2",
                              "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=_sigint_by_default)
     try:
         wait_for(lambda: done_count(db_url) >= 5, proc)
         os.killpg(proc.pid, signal.SIGINT)
