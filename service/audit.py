@@ -13,9 +13,15 @@ stored cluster with a near contact left out (docs/method.md, "The endpoint").
 (b) every cluster decided by the pre-stress test whose margin is below
     ``PRESTRESS_FACTOR`` x ``tol_psd``;
 (c) every two stored clusters of one contact graph whose geometries differ by less
-    than ``CLOSE_FACTOR`` x ``tol_d`` (:func:`packings.workers.identity.geometry_distance`).
+    than ``CLOSE_FACTOR`` x ``tol_d`` (:func:`packings.workers.identity.geometry_distance`);
+(d) exact clusters: every cluster with no flex for which Kantorovich's theorem
+    does not prove a root of its contact equations nearby whose other pairs do not
+    touch (:func:`packings.workers.exact.exact_cluster`; with more than 3n - 6
+    contacts, of 3n - 6 independent ones), and every two clusters of one contact
+    graph whose roots it cannot prove different, with a summary per n (how many
+    proved, how close, the smallest exact gap).
 
-A clean catalogue has (a) and (c) empty.  Genuine clusters can have small gaps
+A clean catalogue has (a), (c) and (d)'s two lists empty.  Genuine clusters can have small gaps
 too (at n = 13 down to about 6e-5), which is why (a) says what adding the pair
 gives: a near copy is a cluster whose near pair, added, gives a stored cluster.
 The tolerances are those of the first run of each n (else ``Params()``).
@@ -33,6 +39,7 @@ from packings.export import table
 from packings.models import ClusterRow, Run, core_cluster
 from packings.store import stored_with
 from packings.workers.audit import RIGID, near_pairs, what_adding_gives
+from packings.workers.exact import exact_cluster, not_told_apart
 from packings.workers.identity import certificate_key, find_match, geometry_distance
 from packings.workers.params import Params
 from packings.workers.rigidity import PRESTRESS
@@ -81,14 +88,53 @@ class CloseRow:
     tol_d: float
 
 
+@dataclass(frozen=True)
+class ExactSummary:
+    """List (d)'s summary for one n: the clusters with no flex and what was proved of them."""
+
+    clusters: int  #: clusters with no flex (first-order rigid)
+    proved: int
+    max_radius: float | None  #: the largest distance within which a root was proved to lie
+    min_gap: float | None  #: the smallest lower bound of a proved root's non-contact gap
+    max_others: float | None  #: with more than 3n - 6 contacts, the largest bound on |f| of the others at the root
+    pairs: int  #: pairs of proved clusters of one contact graph compared (all told apart unless listed)
+
+
+@dataclass(frozen=True)
+class UnprovedRow:
+    """List (d): a cluster with no flex whose root was not proved (packings.workers.exact statuses)."""
+
+    id: int
+    n: int
+    contacts: int
+    status: str
+    h: float | None
+    gap: float | None
+
+
+@dataclass(frozen=True)
+class UnseparatedRow:
+    """List (d): two proved clusters of one contact graph whose roots may be the same cluster."""
+
+    n: int
+    certificate: str
+    a: int
+    b: int
+    bound: float  #: lower bound of their distance (Frobenius, best alignment and automorphism)
+    radii: float  #: the two radii within which their roots lie, summed
+
+
 @dataclass
 class AuditReport:
-    """The three lists of :func:`audit`, and the tolerances used for each n."""
+    """The four lists of :func:`audit`, and the tolerances used for each n."""
 
     tolerances: dict[int, dict[str, float]] = field(default_factory=dict)  #: n -> tol_a0, tol_psd, tol_d
     near: list[NearRow] = field(default_factory=list)
     prestress: list[PrestressRow] = field(default_factory=list)
     close: list[CloseRow] = field(default_factory=list)
+    exact: dict[int, ExactSummary] = field(default_factory=dict)
+    unproved: list[UnprovedRow] = field(default_factory=list)
+    unseparated: list[UnseparatedRow] = field(default_factory=list)
 
     @property
     def near_clusters(self) -> list[int]:
@@ -106,13 +152,16 @@ class AuditReport:
 
     @property
     def clean(self) -> bool:
-        """No near pair and no close geometries (lists (a) and (c) empty)."""
-        return not self.near and not self.close
+        """No near pair, no close geometries, every cluster with no flex proved and every two proved ones of
+        one contact graph told apart (lists (a), (c) and (d) empty)."""
+        return not self.near and not self.close and not self.unproved and not self.unseparated
 
     def to_dict(self) -> dict:
         return {"tolerances": {str(n): t for n, t in self.tolerances.items()},
                 "near": [asdict(r) for r in self.near], "prestress": [asdict(r) for r in self.prestress],
                 "close": [asdict(r) for r in self.close],
+                "exact": {str(n): asdict(e) for n, e in self.exact.items()},
+                "unproved": [asdict(r) for r in self.unproved], "unseparated": [asdict(r) for r in self.unseparated],
                 "near_copies": {str(k): v for k, v in self.near_copies.items()}, "clean": self.clean}
 
 
@@ -134,6 +183,9 @@ def audit(s: Session, n: int | None = None) -> AuditReport:
         report.near += near_rows(s, k, params)
         report.prestress += prestress_rows(s, k, params)
         report.close += close_rows(s, k, params)
+        report.exact[k], unproved, unseparated = exact_rows(s, k, params)
+        report.unproved += unproved
+        report.unseparated += unseparated
     return report
 
 
@@ -191,6 +243,36 @@ def close_rows(s: Session, n: int, params: Params) -> list[CloseRow]:
     return rows
 
 
+def exact_rows(s: Session, n: int, params: Params) -> tuple[ExactSummary, list[UnprovedRow], list[UnseparatedRow]]:
+    """List (d) for n: Kantorovich's theorem on every cluster with no flex, then every two proved clusters
+    of one contact graph compared."""
+    q = (select(ClusterRow.id, ClusterRow.certificate, ClusterRow.coords, ClusterRow.contact_list)
+         .where(ClusterRow.n == n, ClusterRow.flexes == 0).order_by(ClusterRow.id))
+    by_cert: dict[str, list] = {}
+    unproved = []
+    for id_, cert, coords, contact_list in s.execute(q).all():
+        c = core_cluster(n, coords, contact_list)
+        e = exact_cluster(c, params)
+        if not e.proved:
+            unproved.append(UnprovedRow(id_, n, c.m, e.status, e.h, e.gap))
+        by_cert.setdefault(cert, []).append((id_, c, e))
+    proved = [e for group in by_cert.values() for _, _, e in group if e.proved]
+    unseparated, pairs = [], 0
+    for cert, group in by_cert.items():
+        if len(group) < 2:
+            continue
+        k = sum(e.proved for _, _, e in group)
+        pairs += k * (k - 1) // 2
+        for i, j, bound in not_told_apart([c for _, c, _ in group], [e for _, _, e in group]):
+            unseparated.append(UnseparatedRow(n, cert, group[i][0], group[j][0], bound,
+                                              group[i][2].radius + group[j][2].radius))
+    summary = ExactSummary(
+        clusters=sum(len(g) for g in by_cert.values()), proved=len(proved),
+        max_radius=max((e.radius for e in proved), default=None), min_gap=min((e.gap for e in proved), default=None),
+        max_others=max((e.others for e in proved), default=None), pairs=pairs)
+    return summary, unproved, unseparated
+
+
 # --------------------------------------------------------------------------- text
 
 
@@ -227,6 +309,20 @@ def format_audit(r: AuditReport) -> str:
                          [[x.n, x.a, x.b, _g(x.distance), f"{x.distance / x.tol_d:.3g}",
                            x.certificate if len(x.certificate) <= 16 else x.certificate[:13] + "..."]
                           for x in r.close]))
+    out.append("\nexact clusters (Kantorovich; clusters with no flex): " + "; ".join(
+        f"n = {n}: {e.proved} of {e.clusters} proved"
+        + (f" within {e.max_radius:.2g}, exact gaps >= {e.min_gap:.3g}"
+           + (f", other contacts' |f| <= {e.max_others:.2g}" if e.max_others else "")
+           + f", {e.pairs} pair{'s' if e.pairs != 1 else ''} of one contact graph compared" if e.proved else "")
+        for n, e in r.exact.items()))
+    if r.unproved:
+        out.append(table(["id", "n", "contacts", "status", "h", "gap"],
+                         [[x.id, x.n, x.contacts, x.status, _g(x.h), _g(x.gap)] for x in r.unproved]))
+    if r.unseparated:
+        out.append(table(["n", "a", "b", "distance >=", "radii", "certificate"],
+                         [[x.n, x.a, x.b, _g(x.bound), _g(x.radii),
+                           x.certificate if len(x.certificate) <= 16 else x.certificate[:13] + "..."]
+                          for x in r.unseparated]))
     out.append("\n" + verdict(r))
     return "\n".join(out)
 
@@ -246,4 +342,9 @@ def verdict(r: AuditReport) -> str:
                                           if copies else ""))
     if r.close:
         parts.append(f"{len(r.close)} pair{'s' if len(r.close) != 1 else ''} of close geometries")
+    if r.unproved:
+        parts.append(f"{len(r.unproved)} cluster{'s' if len(r.unproved) != 1 else ''} with no flex and no root "
+                     "proved")
+    if r.unseparated:
+        parts.append(f"{len(r.unseparated)} pair{'s' if len(r.unseparated) != 1 else ''} of roots not told apart")
     return "not clean: " + "; ".join(parts)

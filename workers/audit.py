@@ -7,6 +7,9 @@ have small gaps too (at n = 13 down to about 6e-5), so each near pair is tested:
 the cluster is projected onto its contacts and the pair(s), and the result, if it
 is rigid, is looked up among the stored clusters by the caller
 (:mod:`packings.audit`).
+
+Whether a cluster stands for an exact one is :mod:`packings.workers.exact`'s
+question (docs/method.md, "Exact clusters").
 """
 
 from __future__ import annotations

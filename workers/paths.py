@@ -19,9 +19,17 @@ from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, 
     SHORTENS,
     TOO_LONG,
     UNDECIDED_END,
+    UNPROVED,
 )
+from packings.workers.exact import kantorovich
 from packings.workers.params import Params
-from packings.workers.rigidity import UNDECIDED, Rigidity, rigidity_from_null_spaces, rigidity_without_stress
+from packings.workers.rigidity import (
+    FIRST_ORDER,
+    UNDECIDED,
+    Rigidity,
+    rigidity_from_null_spaces,
+    rigidity_without_stress,
+)
 
 try:  # numba is a dependency; without it (or with a broken install) the reference still runs
     from packings.workers import _compiled
@@ -423,7 +431,8 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
     if overlaps(xe, params):
         return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
     rig = endpoint_rigidity(xe, contacts, free, params)
-    outcome = RIGID if rig.rigid else (UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
+    outcome = RIGID if rig.rigid else (
+        UNPROVED if rig.method == UNPROVED_METHOD else UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
     return PathEnd(outcome, steps, coords, contacts, rig, _formed(contacts, keep))
 
 
@@ -444,12 +453,24 @@ def _contacts(x: np.ndarray, tol_a: float) -> tuple[tuple[int, int], ...]:
     return contacts_from_distances(pairs, kernels.pair_distances_flat(x, pairs), tol_a)
 
 
+UNPROVED_METHOD = "unproved"  #: Rigidity.method of a first-order verdict Kantorovich's theorem did not bear out
+
+
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
     """The rigidity test of an endpoint (x flat, in the pinned frame of ``free``): without the SVD
     where the compiled kernels certify full row rank, and with the isolation probe for a
-    pre-stress verdict (packings.workers.rigidity.rigidity_from_null_spaces)."""
+    pre-stress verdict (packings.workers.rigidity.rigidity_from_null_spaces).
+
+    A first-order verdict stands only where Kantorovich's theorem proves a root of the contact
+    equations near x (:func:`packings.workers.exact.kantorovich`); otherwise x only satisfied Newton's
+    tolerance, near no cluster, and the verdict is undecided, method ``unproved``
+    (docs/method.md, "Exact clusters")."""
     edges = np.array(contacts, dtype=np.int64)
     flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
     if flexes is not None:  # certified full row rank: what the SVD would find, without it
-        return rigidity_without_stress(flexes)
-    return rigidity_from_null_spaces(kernels.null_spaces(x, edges, free, params.tol_n), edges, params, x, free)
+        rig = rigidity_without_stress(flexes)
+    else:
+        rig = rigidity_from_null_spaces(kernels.null_spaces(x, edges, free, params.tol_n), edges, params, x, free)
+    if rig.kind == FIRST_ORDER and not kantorovich(x, edges, free, params.tol_n).exists:
+        return Rigidity(False, UNDECIDED, 0, rig.stresses, UNPROVED_METHOD)
+    return rig

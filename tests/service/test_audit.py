@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from packings.audit import audit, format_audit
@@ -58,6 +59,11 @@ def test_an_enumerated_catalogue_audits_clean(catalog):
     assert sorted(r.tolerances) == [7, 8]
     assert r.tolerances[8] == {"tol_a0": 1e-3, "tol_psd": 1e-5, "tol_d": 1e-5}
     assert r.near == [] and r.prestress == [] and r.close == [] and r.clean
+    # every cluster of n = 7 and 8 is regular, and each is proved to stand for an exact cluster
+    assert {n: (e.clusters, e.proved, e.pairs) for n, e in r.exact.items()} == {7: (5, 5, 0), 8: (13, 13, 0)}
+    assert all(0 < e.max_radius < 1e-12 and 0.05 < e.min_gap < 0.052 and e.max_others == 0 for e in r.exact.values())
+    assert r.unproved == [] and r.unseparated == []
+    assert "n = 8: 13 of 13 proved within " in format_audit(r)
     assert format_audit(r).endswith("\nclean")
     assert audited(catalog.engine, 8).tolerances.keys() == {8}
     assert audited(catalog.engine, 9).tolerances == {}
@@ -88,9 +94,12 @@ def test_a_junk_near_copy_is_reported_with_the_cluster_it_copies(engine):
     assert not r.clean
     text = format_audit(r)
     assert "near pairs (gap < tol_a0): 2 clusters, 6 additions" in text
+    # and no root of their contact equations is proved near either (list (d)); the real cluster's is
+    assert [(x.id, x.status) for x in r.unproved] == [(j, "too-far") for j in junk_ids]
+    assert r.exact[12].clusters == 3 and r.exact[12].proved == 1
     assert text.splitlines()[-1] == ("not clean: 2 clusters with a near pair, 2 of them near copies of stored "
                                      f"clusters: {junk_ids[0]} -> {real_id}, {junk_ids[1]} -> {real_id}; "
-                                     "1 pair of close geometries")
+                                     "1 pair of close geometries; 2 clusters with no flex and no root proved")
 
 
 def test_a_near_pair_whose_cluster_is_not_stored_says_so(engine):
@@ -99,8 +108,9 @@ def test_a_near_pair_whose_cluster_is_not_stored_says_so(engine):
     assert [x.id for x in r.near] == [junk_id] * 3
     assert all(x.status == RIGID and x.match is None for x in r.near) and r.near_copies == {}
     assert "not stored" in format_audit(r)
+    assert [x.id for x in r.unproved] == [junk_id]
     assert format_audit(r).splitlines()[-1] == ("not clean: 1 cluster with a near pair, 0 of them near copies of "
-                                                "stored clusters")
+                                                "stored clusters; 1 cluster with no flex and no root proved")
 
 
 # --------------------------------------------------------------------------- close geometries
@@ -122,8 +132,38 @@ def test_two_geometries_of_one_graph_1e4_apart_are_reported(engine):
     assert 1e-5 < c.distance < 1e-4 + 1e-12 and c.certificate == certificate_key(real)
     assert r.near == [] and not r.clean
     assert "close geometries of one contact graph (< 100 tol_d): 1 pair" in format_audit(r)
-    assert format_audit(r).splitlines()[-1] == "not clean: 1 pair of close geometries"
+    # the moved copy's root is the real cluster's: list (d) cannot tell them apart either
+    assert [(u.a, u.b) for u in r.unseparated] == [(a, b)] and r.unproved == []
+    assert format_audit(r).splitlines()[-1] == "not clean: 1 pair of close geometries; 1 pair of roots not told apart"
     assert audited(engine, 11).close == [] and audited(engine, 11).clean  # 0.79 apart
+
+
+# --------------------------------------------------------------------------- exact clusters
+
+
+def test_a_regular_cluster_far_from_any_exact_one_and_a_copy_within_the_radius_are_reported(engine):
+    """List (d): a regular n = 11 cluster with its spheres moved 0.05 at random (no exact cluster proved:
+    too far), and one moved 5e-5 (proved, but its exact cluster may be the original's: not told apart),
+    beside the two genuine geometries of one n = 11 graph (proved and told apart)."""
+    a, b = two_geometries()
+    rng = np.random.default_rng(0)
+    far = CoreCluster(a.coords + 0.05 * rng.normal(size=a.coords.shape), a.contacts)
+    x = a.coords.copy()
+    x[3] += 5e-5
+    near = CoreCluster(x, a.contacts)
+    ida, idb, idfar, idnear = store(engine, [a, b, far, near])
+    r = audited(engine)
+    e = r.exact[11]
+    assert (e.clusters, e.proved, e.pairs) == (4, 3, 3)
+    assert [(x.id, x.status) for x in r.unproved] == [(idfar, "too-far")] and r.unproved[0].h > 0.5
+    (u,) = r.unseparated
+    assert (u.a, u.b) == (ida, idnear) and u.bound <= u.radii and u.certificate == certificate_key(a)
+    assert not r.clean
+    text = format_audit(r)
+    assert "n = 11: 3 of 4 proved within " in text and "too-far" in text
+    assert text.splitlines()[-1].endswith("1 cluster with no flex and no root proved; 1 pair of roots not told apart")
+    d = r.to_dict()
+    assert d["exact"]["11"]["proved"] == 3 and d["unproved"][0]["id"] == idfar and d["unseparated"][0]["b"] == idnear
 
 
 # --------------------------------------------------------------------------- pre-stress margins
@@ -158,11 +198,13 @@ def test_audit_command_text_and_json(catalog):
     text = ok("audit", "--db", catalog.url)
     assert [line.split(":")[0] for line in text.splitlines() if ": " in line and not line.startswith("audit")] == [
         "near pairs (gap < tol_a0)", "pre-stress margins (< 10 tol_psd)",
-        "close geometries of one contact graph (< 100 tol_d)"]
+        "close geometries of one contact graph (< 100 tol_d)", "exact clusters (Kantorovich; clusters with no flex)"]
     assert text.splitlines()[-1] == "clean"
     d = json.loads(ok("audit", "--n", "7", "--json", "--db", catalog.url))
+    exact = d.pop("exact")
     assert d == {"tolerances": {"7": {"tol_a0": 1e-3, "tol_psd": 1e-5, "tol_d": 1e-5}}, "near": [], "prestress": [],
-                 "close": [], "near_copies": {}, "clean": True}
+                 "close": [], "unproved": [], "unseparated": [], "near_copies": {}, "clean": True}
+    assert list(exact) == ["7"] and exact["7"]["clusters"] == exact["7"]["proved"] == 5
 
 
 def test_audit_command_reports_a_near_copy_and_exits_0(engine):
