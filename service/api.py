@@ -101,6 +101,18 @@ class Row:
         ``packings select --json`` prints it."""
         return {**self.facts, "coords": self.coords.tolist(), "contact_list": self.contacts.tolist()}
 
+    def exact(self):
+        """What Kantorovich's theorem proves of this cluster's coordinates
+        (:class:`packings.workers.exact.Exact`: a root of its contact equations within ``radius``, its
+        smallest gap there at least ``gap``), or None for a cluster with a flex, whose rigidity rests
+        on the pre-stress test instead (docs/method.md, "Exact clusters")."""
+        if self.facts["flexes"]:
+            return None
+        from packings.workers.cluster import Cluster
+        from packings.workers.exact import exact_cluster
+
+        return exact_cluster(Cluster(self.coords, tuple(map(tuple, self.contacts.tolist()))))
+
     def to_atoms(self):
         """The cluster as an :class:`ase.Atoms` (every sphere the dummy element ``X``), with its facts in
         ``info`` (those that are not None; ``id`` and ``stresses``, which ASE's database reserves, as

@@ -444,13 +444,23 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     """Cluster ID in full: every fact, the exact coordinates, the contacts, the
     paths leaving and reaching it, and the runs whose frontier holds it."""
     with _catalogue(db_url) as cat:
-        rec, info = cat.get(cluster_id).record(), cat.links(cluster_id)
+        row = cat.get(cluster_id)
+        rec, info = row.record(), cat.links(cluster_id)
+        exact = _exact(row)
     if as_json:
-        click.echo(json.dumps({**rec, **info}))
+        click.echo(json.dumps({**rec, **info, "exact": exact}))
         return
     out = [f"cluster {rec['id']}: n = {rec['n']}, {rec['contacts']} contacts (3n-6{rec['excess']:+d}, {rec['static']})"]
     out += [f"  {k:<13} {'' if rec[k] is None else repr(rec[k]) if isinstance(rec[k], float) else rec[k]}"
             for k in _export.FACTS]
+    if exact is None:
+        out.append("  exact root    - (a flex: rigid by the pre-stress test, which this proof does not cover)")
+    elif exact["status"] in ("proved", "gap"):
+        out.append(f"  exact root    {exact['status']}: within {exact['radius']:.2g} of these coordinates "
+                   f"(Kantorovich, h = {exact['h']:.2g}), smallest gap there >= {exact['gap']:.3g}"
+                   + (f", other contacts' |f| <= {exact['others']:.2g}" if exact["others"] else ""))
+    else:
+        out.append(f"  exact root    not proved ({exact['status']}" + (f", h = {exact['h']:.2g}" if exact["h"] else "") + ")")
     out += ["coordinates (unit: sphere diameter):",
             _export.table(["i", "x", "y", "z"], [[i, *map(repr, x)] for i, x in enumerate(rec["coords"])])]
     pairs = [f"{i}-{j}" for i, j in rec["contact_list"]]
@@ -461,6 +471,14 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     out += [f"run {r['run']} (n = {r['n']}, {r['run_status']}): expansion {r['expansion']}"
             + ("" if r["paths"] is None else f", {r['paths']} paths") for r in info["runs"]] or ["in no run's frontier"]
     click.echo("\n".join(out))
+
+
+def _exact(row) -> dict | None:
+    """:meth:`packings.api.Row.exact` as a dict (None for a cluster with a flex)."""
+    from dataclasses import asdict
+
+    e = row.exact()
+    return None if e is None else asdict(e)
 
 
 @cli.command("export", cls=_SelectionCommand)

@@ -3,6 +3,7 @@ selection language, facts and errors as the command line, whose JSON output it m
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -81,7 +82,20 @@ def test_what_the_api_returns_is_what_the_command_line_prints(cat):
     assert cat.runs() == cli_json(url, "status")
     assert [r.record() for r in cat.select("n=7")] == cli_json(url, "select", "n=7")
     show = cli_json(url, "show", "4")
-    assert {**cat.get(4).record(), **cat.links(4)} == show
+    assert {**cat.get(4).record(), **cat.links(4), "exact": dataclasses.asdict(cat.get(4).exact())} == show
+
+
+def test_a_rows_exact_root_is_proved_where_it_has_no_flex(cat):
+    """Row.exact(): Kantorovich's theorem on the stored coordinates (packings.workers.exact); None where the
+    cluster has a flex.  Every cluster of the filled catalogue is proved, its gap bound its min_gap."""
+    rows = cat.select("")
+    assert rows
+    for row in rows:
+        e = row.exact()
+        if row.flexes:
+            assert e is None
+        else:
+            assert e.proved and 0 < e.radius < 1e-12 and abs(e.gap - row.min_gap) < 1e-12
 
 
 def test_transitions_are_the_paths_leaving_and_reaching_a_cluster(cat):

@@ -175,9 +175,12 @@ def test_show(catalog, stored):
         assert all(repr(float(v)) in out for v in row)
     assert f"contacts ({c.contacts}):" in out
     assert f"run {catalog.runs[8]} (n = 8, complete): expansion done" in out
+    assert "\n  exact root    proved: within " in out  # regular: Kantorovich's theorem proves its root
 
     info = json.loads(ok("show", str(cid), "--json", "--db", catalog.url))
     assert np.array_equal(np.array(info["coords"]), x)
+    assert info["exact"]["status"] == "proved" and 0 < info["exact"]["radius"] < 1e-12
+    assert info["exact"]["gap"] == pytest.approx(c.min_gap, abs=1e-12)
     with sessions(catalog.engine)() as s:
         leaving = s.execute(select(func.count()).where(Transition.source_id == cid,
                                                        Transition.direction != 0)).scalar_one()
