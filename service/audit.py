@@ -268,7 +268,7 @@ def exact_rows(s: Session, n: int, params: Params) -> tuple[ExactSummary, list[U
                                               group[i][2].radius + group[j][2].radius))
     summary = ExactSummary(
         clusters=sum(len(g) for g in by_cert.values()), proved=len(proved),
-        max_radius=max((e.radius for e in proved), default=None), min_gap=min((e.gap for e in proved), default=None),
+        max_radius=max((e.radius for e in proved), default=None), min_gap=min((e.gap for e in proved if e.gap is not None), default=None),
         max_others=max((e.others for e in proved), default=None), pairs=pairs)
     return summary, unproved, unseparated
 
@@ -311,7 +311,7 @@ def format_audit(r: AuditReport) -> str:
                           for x in r.close]))
     out.append("\nexact clusters (Kantorovich; clusters with no flex): " + "; ".join(
         f"n = {n}: {e.proved} of {e.clusters} proved"
-        + (f" within {e.max_radius:.2g}, exact gaps >= {e.min_gap:.3g}"
+        + (f" within {e.max_radius:.2g}" + (f", exact gaps >= {e.min_gap:.3g}" if e.min_gap is not None else "")
            + (f", other contacts' |f| <= {e.max_others:.2g}" if e.max_others else "")
            + f", {e.pairs} pair{'s' if e.pairs != 1 else ''} of one contact graph compared" if e.proved else "")
         for n, e in r.exact.items()))

@@ -457,7 +457,8 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
         out.append("  exact root    - (a flex: rigid by the pre-stress test, which this proof does not cover)")
     elif exact["status"] in ("proved", "gap"):
         out.append(f"  exact root    {exact['status']}: within {exact['radius']:.2g} of these coordinates "
-                   f"(Kantorovich, h = {exact['h']:.2g}), smallest gap there >= {exact['gap']:.3g}"
+                   f"(Kantorovich, h = {exact['h']:.2g})"
+                   + ("" if exact["gap"] is None else f", smallest gap there >= {exact['gap']:.3g}")
                    + (f", other contacts' |f| <= {exact['others']:.2g}" if exact["others"] else ""))
     else:
         out.append(f"  exact root    not proved ({exact['status']}" + (f", h = {exact['h']:.2g}" if exact["h"] else "") + ")")

@@ -57,7 +57,7 @@ class Exact:
     h: float | None = None
     radius: float | None = None
     unique: float | None = None
-    gap: float | None = None  #: lower bound of the root's smallest non-contact gap (distance - 1)
+    gap: float | None = None  #: lower bound of the root's smallest non-contact gap (distance - 1); None if none
     others: float = 0.0  #: bound on |f| at the root of the contacts beyond the 3n - 6 proved (0 if none)
 
     @property
@@ -113,13 +113,15 @@ def kantorovich(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     d = np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)
     touching = np.zeros((p.shape[0], p.shape[0]), dtype=bool)
     touching[edges[:, 0], edges[:, 1]] = touching[edges[:, 1], edges[:, 0]] = True
-    gap = float(np.min(d[~touching[pairs[:, 0], pairs[:, 1]]], initial=np.inf)) - 1.0 - move
+    apart = d[~touching[pairs[:, 0], pairs[:, 1]]]
+    gap = float(apart.min()) - 1.0 - move if apart.size else None  # None: every pair touches
     rest = np.setdiff1d(np.arange(edges.shape[0]), rows)
     others = 0.0
     if rest.size:
         dr = np.linalg.norm(p[edges[rest, 0]] - p[edges[rest, 1]], axis=1)
         others = float(np.max(np.abs(f[rest]) + RESIDUAL_ROUNDING + 2.0 * dr * move + move * move))
-    return Exact(PROVED if gap > 0.0 else GAP, h=h, radius=radius, unique=unique, gap=gap, others=others)
+    return Exact(PROVED if gap is None or gap > 0.0 else GAP, h=h, radius=radius, unique=unique, gap=gap,
+                 others=others)
 
 
 def exact_cluster(cluster: Cluster, params: Params = DEFAULT) -> Exact:

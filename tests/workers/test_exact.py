@@ -89,6 +89,12 @@ def test_the_root_is_within_the_radius_and_its_gaps_above_the_bound_for_every_pe
     assert seen == {PROVED, GAP, TOO_FAR}
 
 
+def test_a_cluster_whose_spheres_all_touch_is_proved_with_no_gap() -> None:
+    """The tetrahedron: no non-contact pair, so no gap (None, as the min_gap column has it), and proved."""
+    e = exact_cluster(CLUSTERS["tetrahedron"])
+    assert e.proved and e.gap is None and e.radius < 1e-12 and e.others == 0.0
+
+
 def test_singular_clusters_and_too_few_contacts_are_not_tried() -> None:
     from packings.workers.explore import explore
 
