@@ -124,6 +124,25 @@ def kantorovich(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
                  others=others)
 
 
+def root_exists(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float = DEFAULT.tol_n,
+                sigma_min: float | None = None) -> bool:
+    """Whether :func:`kantorovich` proves a root near ``x`` (``.exists``), cheaply where it can.
+
+    ``sigma_min``: a lower bound of the smallest singular value of R_f that the caller already has
+    (the compiled rigidity test's certificate, or its SVD).  With 3n - 6 contacts, β = 1 / (2
+    sigma_min) bounds ||J^-1|| and h <= β L β (|F| + rounding) needs only the residuals: at a regular
+    point (|F| at round-off) that settles it, with no SVD.  Otherwise the whole theorem decides.
+    """
+    edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    if sigma_min is not None and sigma_min > 0.0 and edges.shape[0] == free.size:
+        beta = 1.0 / (2.0 * sigma_min)
+        lip = 4.0 * math.sqrt(int(np.bincount(edges.ravel()).max()))
+        f = float(np.linalg.norm(kernels.residual(x, edges)))
+        if beta * lip * beta * (f + RESIDUAL_ROUNDING * math.sqrt(free.size)) <= 0.5:
+            return True
+    return kantorovich(x, edges, free, tol_n).exists
+
+
 def exact_cluster(cluster: Cluster, params: Params = DEFAULT) -> Exact:
     """:func:`kantorovich` for a stored cluster, pinned at its :func:`contact_triangle` as the rigidity
     test pins it."""

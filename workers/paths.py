@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from itertools import combinations
 
@@ -21,7 +22,7 @@ from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, 
     UNDECIDED_END,
     UNPROVED,
 )
-from packings.workers.exact import kantorovich
+from packings.workers.exact import SVD_ROUNDING, root_exists
 from packings.workers.params import Params
 from packings.workers.rigidity import (
     FIRST_ORDER,
@@ -469,8 +470,11 @@ def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params)
     flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
     if flexes is not None:  # certified full row rank: what the SVD would find, without it
         rig = rigidity_without_stress(flexes)
+        sigma_min = math.sqrt(kernels.guard_threshold(params.tol_n))  # what the certificate proves
     else:
-        rig = rigidity_from_null_spaces(kernels.null_spaces(x, edges, free, params.tol_n), edges, params, x, free)
-    if rig.kind == FIRST_ORDER and not kantorovich(x, edges, free, params.tol_n).exists:
+        ns = kernels.null_spaces(x, edges, free, params.tol_n)
+        rig = rigidity_from_null_spaces(ns, edges, params, x, free)
+        sigma_min = float(ns.sigma[-1] - SVD_ROUNDING * ns.sigma[0]) if ns.sigma.size else None
+    if rig.kind == FIRST_ORDER and not root_exists(x, edges, free, params.tol_n, sigma_min):
         return Rigidity(False, UNDECIDED, 0, rig.stresses, UNPROVED_METHOD)
     return rig

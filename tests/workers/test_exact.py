@@ -209,3 +209,25 @@ def test_the_endpoint_rule_keeps_every_first_order_cluster_of_n_9() -> None:
             if rig.flexes == 0:
                 e = kantorovich(x, c.edges(), free)
                 assert rig.rigid and e.proved and e.h < 1e-6
+
+
+def test_root_exists_agrees_with_the_theorem_with_or_without_a_bound_on_sigma() -> None:
+    """The endpoint rule's cheap route (a lower bound of σ_min from the rigidity test, then only the
+    residuals) says what the whole theorem says: yes for every regular n = 9 cluster, no for the n = 13
+    point, whose residual no bound on σ_min can make small enough."""
+    import math
+
+    from packings.workers.exact import root_exists
+    from packings.workers.explore import explore
+
+    certified = math.sqrt(kernels.guard_threshold(DEFAULT.tol_n))
+    for c in explore(9).clusters:
+        tri = contact_triangle(c.edges())
+        x, free = kernels.to_frame(c.coords, tri).ravel(), kernels.free_coordinates(c.n, tri)
+        whole = kantorovich(x, c.edges(), free).exists
+        assert root_exists(x, c.edges(), free, DEFAULT.tol_n, certified) is (whole or c.m != 3 * c.n - 6 or
+                                                                             exact_cluster(c).status == SINGULAR)
+        assert root_exists(x, c.edges(), free, DEFAULT.tol_n) is whole
+    point, _ = unproved_point()
+    for tri, x, free in list(pinnings(point))[:10]:
+        assert not root_exists(x, point.edges(), free, DEFAULT.tol_n, certified)
