@@ -23,7 +23,7 @@ import scipy.linalg
 
 from packings.workers import kernels
 from packings.workers.cluster import Cluster, upper_pairs
-from packings.workers.identity import _canonical, _group
+from packings.workers.identity import _Canonical, _canonical, _group
 from packings.workers.params import DEFAULT, Params
 from packings.workers.rigidity import contact_triangle
 
@@ -108,17 +108,16 @@ def kantorovich(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     radius = 2.0 * eta / (1.0 + root)
     unique = (1.0 + root) / (beta * lip)
     move = math.sqrt(2.0) * radius
-    p = x.reshape(-1, 3)
-    pairs = upper_pairs(p.shape[0])
-    d = np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)
-    touching = np.zeros((p.shape[0], p.shape[0]), dtype=bool)
+    n = x.size // 3
+    pairs = upper_pairs(n)
+    touching = np.zeros((n, n), dtype=bool)
     touching[edges[:, 0], edges[:, 1]] = touching[edges[:, 1], edges[:, 0]] = True
-    apart = d[~touching[pairs[:, 0], pairs[:, 1]]]
+    apart = kernels.pair_distances_flat(x, pairs[~touching[pairs[:, 0], pairs[:, 1]]])
     gap = float(apart.min()) - 1.0 - move if apart.size else None  # None: every pair touches
     rest = np.setdiff1d(np.arange(edges.shape[0]), rows)
     others = 0.0
     if rest.size:
-        dr = np.linalg.norm(p[edges[rest, 0]] - p[edges[rest, 1]], axis=1)
+        dr = kernels.pair_distances_flat(x, edges[rest])
         others = float(np.max(np.abs(f[rest]) + RESIDUAL_ROUNDING + 2.0 * dr * move + move * move))
     return Exact(PROVED if gap is None or gap > 0.0 else GAP, h=h, radius=radius, unique=unique, gap=gap,
                  others=others)
@@ -154,25 +153,21 @@ def exact_cluster(cluster: Cluster, params: Params = DEFAULT) -> Exact:
     return kantorovich(x, edges, kernels.free_coordinates(cluster.n, tri), params.tol_n)
 
 
-def distance_lower_bound(a: np.ndarray, b: np.ndarray, autos: np.ndarray) -> float:
-    """A lower bound of min over s in ``autos``, rotations and reflections Q and translations t of
-    ||a - b[s] Q - t||_F, for two n x 3 configurations of one labelled contact graph.
+def distance_lower_bound(a: _Canonical, b: _Canonical) -> float:
+    """A lower bound of min over automorphisms s, rotations and reflections Q and translations t of
+    ||x_a - x_b[s] Q - t||_F, for two clusters of one contact graph in canonical form
+    (:func:`packings.workers.identity._canonical`: centred, canonically ordered, distances sorted).
 
     First from the sorted pair distances (a pair's distance changes by at most sqrt(2) times the
     Frobenius distance, and sorting does not increase the largest difference); where that is not
-    enough to tell them apart, the orthogonal Procrustes minimum for each automorphism, ||a||^2 + ||b||^2
-    - 2 Σ σ(b^T a) (centred), less its rounding.
+    enough to tell them apart, the orthogonal Procrustes minimum for each automorphism of a's graph,
+    ||x_a||^2 + ||x_b||^2 - 2 Σ σ(x_b[s]^T x_a), less its rounding.
     """
-    pairs = upper_pairs(a.shape[0])
-    da = np.sort(np.linalg.norm(a[pairs[:, 0]] - a[pairs[:, 1]], axis=1))
-    db = np.sort(np.linalg.norm(b[pairs[:, 0]] - b[pairs[:, 1]], axis=1))
-    by_distances = float(np.max(np.abs(da - db), initial=0.0)) / math.sqrt(2.0)
-    a = a - a.mean(axis=0)
-    b = b - b.mean(axis=0)
-    norms = float(np.sum(a * a) + np.sum(b * b))
+    by_distances = float(np.max(np.abs(a.sorted_dist - b.sorted_dist), initial=0.0)) / math.sqrt(2.0)
+    norms = float(np.sum(a.x * a.x) + np.sum(b.x * b.x))
     best = np.inf
-    for s in autos:
-        sq = norms - 2.0 * float(np.sum(np.linalg.svd(b[s].T @ a, compute_uv=False)))
+    for s in _group(a):
+        sq = norms - 2.0 * float(np.sum(np.linalg.svd(b.x[s].T @ a.x, compute_uv=False)))
         best = min(best, math.sqrt(max(0.0, sq - 1e-12 * norms)))
     return max(by_distances, best)
 
@@ -196,7 +191,7 @@ def not_told_apart(clusters: list[Cluster], exacts: list[Exact]) -> list[tuple[i
             ea, eb = exacts[i], exacts[j]
             if not (ea.exists and eb.exists):
                 continue
-            bound = distance_lower_bound(canon[i].x, canon[j].x, _group(canon[i]))
+            bound = distance_lower_bound(canon[i], canon[j])
             if not bound > ea.radius + eb.radius:
                 out.append((i, j, bound))
     return out
