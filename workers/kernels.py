@@ -374,42 +374,42 @@ def project_numpy(
     return Projection(x, False, max_iter, fsq)
 
 
-def refine_singular(x: np.ndarray, edges: np.ndarray, free: np.ndarray, max_iter: int = 100) -> np.ndarray:
-    """x moved to where E = sum_k f_k^2 is smallest, by Newton's method on E with its full Hessian.
+def refine_singular(x: np.ndarray, edges: np.ndarray, free: np.ndarray, max_iter: int = 200) -> np.ndarray:
+    """x moved to where E = sum_k f_k^2 is smallest: Newton's method on E along the flexes, each step
+    followed by Gauss-Newton steps back onto the valley floor of E.
 
     At a singular solution (a flex held by a stress) the least-squares Newton step of
     :func:`project` is orthogonal to the flexes, so it cannot correct an error along them: the
     part of f it cannot reduce is of second order in that error, and a polished singular point
-    keeps coordinates accurate only to about sqrt(|f|), which can exceed tol_d (one cluster then
-    stored twice).  The Hessian of E, R^T R + sum_k f_k grad^2 f_k (each grad^2 f_k a constant
-    Laplacian block), sees that curvature: each step solves H dx = -grad E with |H|'s
-    eigenvalues (those below 1e-16 of the largest, round-off, left out), halved until E decreases; the
-    iteration ends when no halving does.  Numpy only: it runs for the few singular endpoints.
+    keeps coordinates accurate only to about sqrt(|f| / margin), which can exceed tol_d (one
+    cluster then stored twice).  Along the flexes E is a flat quartic at the bottom of a curved
+    valley whose walls rise like R^T R, so each iteration
+
+    1. takes the Newton step of E with its full Hessian R^T R + sum_k f_k grad^2 f_k (each
+       grad^2 f_k a constant Laplacian block) written in the basis of J's right singular vectors
+       and scaled to unit diagonal (:func:`_newton_step_of_e`), so that the small curvature along
+       a flex is resolved relative to itself, not to |R|^2;
+    2. returns to the floor of the valley by Gauss-Newton steps on J's regular singular values
+       only (:func:`_onto_the_valley_floor`), which a curved valley needs: without them E rises
+       along the step's straight line and the step is halved to nothing;
+
+    halving the step (at most ten times) until E decreases, and ending when no halving does.  Along the flexes this
+    converges linearly (the error two thirds of itself per step), down to about
+    sqrt(1e-15 / margin), where E reaches round-off.  Numpy only: it runs for the few singular
+    endpoints.
     """
-    n = x.size // 3
     x = np.array(x, dtype=np.float64, copy=True)
     f = residual_numpy(x, edges)
     e0 = float(f @ f)
-    eye = np.eye(3)
     for _ in range(max_iter):
         if e0 == 0.0:
             break
-        j = 2.0 * rigidity_matrix_numpy(x, edges)[:, free]
-        grad = j.T @ f
-        lap = np.zeros((n, n))
-        np.add.at(lap, (edges[:, 0], edges[:, 0]), f)
-        np.add.at(lap, (edges[:, 1], edges[:, 1]), f)
-        np.add.at(lap, (edges[:, 0], edges[:, 1]), -f)
-        np.add.at(lap, (edges[:, 1], edges[:, 0]), -f)
-        h = j.T @ j + 2.0 * np.kron(lap, eye)[np.ix_(free, free)]
-        w, u = np.linalg.eigh(h)
-        w = np.abs(w)
-        w[w < 1e-16 * w.max()] = np.inf
-        dx = -u @ ((u.T @ grad) / w)
+        dx = _newton_step_of_e(x, f, edges, free)
         t = 1.0
-        while t > 1e-6:
+        while t > 1e-3:
             y = x.copy()
             y[free] += t * dx
+            y = _onto_the_valley_floor(y, edges, free)
             fy = residual_numpy(y, edges)
             ey = float(fy @ fy)
             if ey < e0:
@@ -418,6 +418,47 @@ def refine_singular(x: np.ndarray, edges: np.ndarray, free: np.ndarray, max_iter
         else:
             break
         x, f, e0 = y, fy, ey
+    return x
+
+
+def _newton_step_of_e(x: np.ndarray, f: np.ndarray, edges: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """The Newton step dx (on the free coordinates) of E = |f|^2, with |H|'s eigenvalues (round-off ones
+    left out); H in the basis of J's right singular vectors (the flexes last), scaled to unit diagonal."""
+    n = x.size // 3
+    j = 2.0 * rigidity_matrix_numpy(x, edges)[:, free]
+    v = np.linalg.svd(j)[2].T
+    jv = j @ v
+    lap = np.zeros((n, n))
+    np.add.at(lap, (edges[:, 0], edges[:, 0]), f)
+    np.add.at(lap, (edges[:, 1], edges[:, 1]), f)
+    np.add.at(lap, (edges[:, 0], edges[:, 1]), -f)
+    np.add.at(lap, (edges[:, 1], edges[:, 0]), -f)
+    h = jv.T @ jv + 2.0 * v.T @ np.kron(lap, np.eye(3))[np.ix_(free, free)] @ v
+    d = np.sqrt(np.abs(np.diag(h)))
+    d = 1.0 / np.where(d > 0.0, d, 1.0)
+    w, u = np.linalg.eigh(d[:, None] * h * d[None, :])
+    w = np.abs(w)
+    w[w < 1e-15 * w.max()] = np.inf
+    return -v @ (d * (u @ ((u.T @ (d * (jv.T @ f))) / w)))
+
+
+#: singular values of J below this fraction of the largest count as flexes in :func:`_onto_the_valley_floor`
+_FLEX_RATIO = 1e-3
+
+
+def _onto_the_valley_floor(x: np.ndarray, edges: np.ndarray, free: np.ndarray, steps: int = 4) -> np.ndarray:
+    """x after Gauss-Newton steps that leave the flexes alone: the least-squares step on J's singular
+    values above ``_FLEX_RATIO`` of the largest only (a step along a flex is f's stress part divided
+    by a tiny singular value, which is what keeps plain Gauss-Newton from converging there)."""
+    x = x.copy()
+    for _ in range(steps):
+        f = residual_numpy(x, edges)
+        u, s, vt = np.linalg.svd(2.0 * rigidity_matrix_numpy(x, edges)[:, free], full_matrices=False)
+        keep = s > _FLEX_RATIO * s[0]
+        dx = vt[keep].T @ ((u[:, keep].T @ f) / s[keep])
+        x[free] -= dx
+        if np.abs(dx).max() < 1e-8:  # Gauss-Newton converges quadratically: a further step would be round-off
+            break
     return x
 
 

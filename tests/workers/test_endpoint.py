@@ -9,6 +9,7 @@ points whose pre-stress margin was noise.
 from __future__ import annotations
 
 import json
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from tests.workers.test_identity import transformed
 from packings.workers import kernels
 from packings.workers.cluster import Cluster
 from packings.workers.expand import PathStart, _attempts
-from packings.workers.identity import certificate, same_geometry
+from packings.workers.identity import certificate, geometry_distance, same_geometry
 from packings.workers.params import DEFAULT as P
 from packings.workers.paths import FLOPPY, PROJECTION_FAILED, RIGID, UNDECIDED_END, close_pairs, near_pairs, resolve_near_pairs
 from packings.workers.rigidity import contact_triangle, on_a_curve, rigidity
@@ -152,6 +153,55 @@ def test_two_copies_of_a_singular_cluster_agree_once_refined_along_their_flexes(
         assert float(f @ f) <= float(kernels.residual(x, edges) @ kernels.residual(x, edges))
         refined.append(Cluster(y.reshape(-1, 3), c.contacts))
     assert same_geometry(refined[0], refined[1], P.tol_d / 10)  # before: 1.08 tol_d apart
+
+
+SINGULAR_13 = json.loads((Path(__file__).parents[1] / "data" / "n13_singular.json").read_text())["clusters"][0]
+
+
+def copies_along_the_flexes(c: Cluster, count: int, seed: int = 0) -> list[np.ndarray]:
+    """``count`` copies of ``c`` (framed) as an endpoint projection leaves them: moved 1e-5 ... 3e-3 along a
+    random combination of its flexes, then projected onto its contacts and polished, not refined."""
+    x, edges, free = framed(c)
+    flexes = kernels.null_spaces(x, edges, free, P.tol_n).V
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        d = flexes @ rng.normal(size=flexes.shape[1])
+        y = x + 10 ** rng.uniform(-5, -2.5) * d / np.abs(d).max()
+        out.append(kernels.project(y, edges, free, polish=True, **P.newton()).x)
+    return out
+
+
+def test_copies_of_an_n13_singular_cluster_with_a_small_margin_agree_once_refined():
+    """Two flexes, one stress, margin 4e-3: the Newton step of sum f^2 alone left copies up to 9.6e-5
+    apart (the curved valley along the flexes halved its steps to nothing); with the return to the
+    valley floor after each step they agree within 5e-7."""
+    c = cluster(SINGULAR_13)
+    assert (SINGULAR_13["flexes"], SINGULAR_13["stresses"]) == (2, 1) and SINGULAR_13["margin"] < 5e-3
+    x, edges, free = framed(c)
+    polished = copies_along_the_flexes(c, 6)
+    spread = max(geometry_distance(c, Cluster(y.reshape(-1, 3), c.contacts)) for y in polished)
+    assert spread > P.tol_d  # as an endpoint projection leaves them: further apart than tol_d
+    refined = [Cluster(kernels.refine_singular(y, edges, free).reshape(-1, 3), c.contacts) for y in [x, *polished]]
+    for r in refined:
+        f = kernels.residual(r.coords.ravel(), edges)
+        assert float(f @ f) < 1e-28
+    assert max(geometry_distance(a, b) for a, b in combinations(refined, 2)) < P.tol_d / 10
+
+
+@settings(max_examples=5, deadline=None)
+@given(seeds, st.booleans())
+def test_refining_commutes_with_rotation_reflection_and_relabelling(seed, reflect):
+    c = cluster(SINGULAR_13)
+    (y,) = copies_along_the_flexes(c, 1, seed % 1000)
+    copy = Cluster(y.reshape(-1, 3), c.contacts)
+    moved = transformed(copy, seed, reflect)
+    refined = []
+    for a in (copy, moved):
+        x, edges, free = framed(a)
+        refined.append(Cluster(kernels.refine_singular(x, edges, free).reshape(-1, 3), a.contacts))
+    assert geometry_distance(refined[0], refined[1]) < P.tol_d / 10
+    assert geometry_distance(refined[0], c) < P.tol_d / 2
 
 
 def test_refining_a_regular_cluster_leaves_it_where_it_is():
