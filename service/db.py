@@ -370,6 +370,14 @@ def preflight(url: str, check: Callable[[Engine], None] | None = None) -> None:
 
 
 def sessions(engine: Engine, readonly: bool = False) -> sessionmaker[Session]:
-    """Sessions on ``engine``; ``readonly`` ones must not write (on SQLite they
-    begin DEFERRED and so never wait for, or block, a writer)."""
-    return sessionmaker(engine.execution_options(**{READONLY: True}) if readonly else engine, expire_on_commit=False)
+    """Sessions on ``engine``; ``readonly`` ones must not write, and every read of one sees the
+    database as it was at its first: on SQLite they begin DEFERRED (a WAL snapshot, which never
+    waits for, or blocks, a writer), on PostgreSQL REPEATABLE READ (under the default READ
+    COMMITTED each statement would see the write-backs committed since the one before, and a
+    page that counts clusters and expansions in two statements would disagree with itself)."""
+    if readonly:
+        options = {READONLY: True}
+        if engine.dialect.name == "postgresql":
+            options["isolation_level"] = "REPEATABLE READ"
+        engine = engine.execution_options(**options)
+    return sessionmaker(engine, expire_on_commit=False)

@@ -177,6 +177,23 @@ def test_sqlite_readers_do_not_wait_for_a_writer(sqlite_url):
     eng.dispose()
 
 
+def test_a_readonly_session_reads_one_snapshot(db_url):
+    """Every read of a readonly session sees the database as at its first read, whatever writers commit
+    meanwhile (the dashboard counts clusters and expansions in separate statements)."""
+    from packings.db import sessions
+    from packings.models import Run
+
+    eng = open_database(db_url, create=True)
+    with sessions(eng, readonly=True)() as r:
+        before = r.query(Run).count()
+        with sessions(eng).begin() as w:
+            w.add(Run(n=5, params="{}", code_version="t"))
+        assert r.query(Run).count() == before == 0
+    with sessions(eng, readonly=True)() as r:
+        assert r.query(Run).count() == 1  # a new session sees the commit
+    eng.dispose()
+
+
 def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url, monkeypatch):
     """A writer waits (polling) for another's write lock and gets it once that one commits; if the
     lock is not given back within the busy timeout, BEGIN fails with SQLite's "database is locked".
