@@ -393,10 +393,10 @@ def refine_singular(x: np.ndarray, edges: np.ndarray, free: np.ndarray, max_iter
        only (:func:`_onto_the_valley_floor`), which a curved valley needs: without them E rises
        along the step's straight line and the step is halved to nothing;
 
-    halving the step (at most ten times) until E decreases, and ending when no halving does.  Along the flexes this
-    converges linearly (the error two thirds of itself per step), down to about
-    sqrt(1e-15 / margin), where E reaches round-off.  Numpy only: it runs for the few singular
-    endpoints.
+    halving the step (at most ten times) until E decreases, and ending when no halving does.
+    Along the flexes this converges linearly (the error two thirds of itself per step), down to
+    about sqrt(1e-15 / margin), where E reaches round-off.  Numpy only: it runs for the few
+    singular endpoints.
     """
     x = np.array(x, dtype=np.float64, copy=True)
     f = residual_numpy(x, edges)
