@@ -268,7 +268,8 @@ def exact_rows(s: Session, n: int, params: Params) -> tuple[ExactSummary, list[U
                                               group[i][2].radius + group[j][2].radius))
     summary = ExactSummary(
         clusters=sum(len(g) for g in by_cert.values()), proved=len(proved),
-        max_radius=max((e.radius for e in proved), default=None), min_gap=min((e.gap for e in proved if e.gap is not None), default=None),
+        max_radius=max((e.radius for e in proved), default=None),
+        min_gap=min((e.gap for e in proved if e.gap is not None), default=None),
         max_others=max((e.others for e in proved), default=None), pairs=pairs)
     return summary, unproved, unseparated
 

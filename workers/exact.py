@@ -70,6 +70,12 @@ class Exact:
         return self.status == PROVED
 
 
+def _lipschitz(edges: np.ndarray) -> float:
+    """L = 4 sqrt(Δ), a Lipschitz constant of J = 2 R_f for the contacts ``edges`` (Δ the largest number
+    of them at one sphere): ||J(u)||_F^2 = 8 Σ |u_i - u_j|^2 <= 16 Δ |u|^2."""
+    return 4.0 * math.sqrt(int(np.bincount(np.asarray(edges).ravel()).max()))
+
+
 def kantorovich(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float = DEFAULT.tol_n) -> Exact:
     """Kantorovich's theorem on the contact equations at ``x`` (flat, pinned frame of ``free``).
 
@@ -99,7 +105,7 @@ def kantorovich(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     if smin <= 0.0 or s[-1] / 2.0 < tol_n:  # the rigidity test's singular values are R's, J = 2R
         return Exact(SINGULAR)
     beta = 1.0 / smin
-    lip = 4.0 * math.sqrt(int(np.bincount(edges[rows].ravel()).max()))
+    lip = _lipschitz(edges[rows])
     eta = beta * (float(np.linalg.norm(f[rows])) + RESIDUAL_ROUNDING * math.sqrt(k))
     h = float(beta * lip * eta)
     if h > 0.5:
@@ -135,7 +141,7 @@ def root_exists(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
     if sigma_min is not None and sigma_min > 0.0 and edges.shape[0] == free.size:
         beta = 1.0 / (2.0 * sigma_min)
-        lip = 4.0 * math.sqrt(int(np.bincount(edges.ravel()).max()))
+        lip = _lipschitz(edges)
         f = float(np.linalg.norm(kernels.residual(x, edges)))
         if beta * lip * beta * (f + RESIDUAL_ROUNDING * math.sqrt(free.size)) <= 0.5:
             return True
