@@ -19,7 +19,8 @@ from __future__ import annotations
 import hashlib
 import os
 import time
-from typing import Callable
+from itertools import islice
+from typing import Callable, Iterable
 from importlib import resources
 from pathlib import Path
 
@@ -205,17 +206,23 @@ def transaction_locks(conn, keys) -> None:
         conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key(*key)})
 
 
-def insert_many(conn, table, columns: tuple[str, ...], rows: list[tuple]) -> None:
-    """Insert ``rows`` (tuples of ``columns``' values) into ``table``.  On SQLite straight through the
-    driver's ``executemany`` (SQLAlchemy's processing of each row's parameters costs more than the
-    insert); elsewhere as a Core insert (on PostgreSQL SQLAlchemy sends many rows in each statement)."""
-    if not rows:
-        return
-    if conn.dialect.name == "sqlite":
-        conn.exec_driver_sql(f"INSERT INTO {table.name} ({', '.join(columns)}) "
-                             f"VALUES ({', '.join('?' * len(columns))})", rows)
-    else:
-        conn.execute(table.insert(), [dict(zip(columns, r)) for r in rows])
+#: rows an insert_many statement takes at once: an expansion of a cluster with many contacts writes
+#: hundreds of thousands of transitions, made as they are inserted rather than all held at once
+INSERT_CHUNK = 10_000
+
+
+def insert_many(conn, table, columns: tuple[str, ...], rows: Iterable[tuple]) -> None:
+    """Insert ``rows`` (tuples of ``columns``' values; any iterable, consumed ``INSERT_CHUNK`` rows at a
+    time) into ``table``.  On SQLite straight through the driver's ``executemany`` (SQLAlchemy's
+    processing of each row's parameters costs more than the insert); elsewhere as a Core insert (on
+    PostgreSQL SQLAlchemy sends many rows in each statement)."""
+    rows = iter(rows)
+    while chunk := list(islice(rows, INSERT_CHUNK)):
+        if conn.dialect.name == "sqlite":
+            conn.exec_driver_sql(f"INSERT INTO {table.name} ({', '.join(columns)}) "
+                                 f"VALUES ({', '.join('?' * len(columns))})", chunk)
+        else:
+            conn.execute(table.insert(), [dict(zip(columns, r)) for r in chunk])
 
 
 def advisory_key(*parts) -> int:

@@ -29,7 +29,8 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass, replace
 from importlib import metadata
-from typing import TYPE_CHECKING
+from itertools import chain
+from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
 from sqlalchemy import Connection, bindparam, case, func, insert, select, update
@@ -571,21 +572,26 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                     others.setdefault(task.run_id, []).append(cid)
             targets = {i: ids[j] for i, j in which.items()}
             targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
-            transitions.extend(
-                (task.run_id, task.cluster_id, contacts_json(e.broken), e.direction, e.outcome, targets.get(i),
-                 e.steps, contacts_json(e.new_contacts))
-                for i, e in enumerate(ex.endpoints))
+            transitions.append(_transition_rows(task, ex, targets))
             summaries[k] = {"expansion": task.expansion_id, "new_clusters": new_clusters,
                             "paths": ex.paths_followed, "seconds": f.seconds}
         for run_id in sorted(inserted.keys() | others.keys()):
             ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
-        insert_transitions(s, transitions)
+        insert_transitions(s, chain.from_iterable(transitions))
     return summaries
 
 
-def insert_transitions(conn: Connection, rows: list[tuple]) -> None:
+def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int]) -> Iterator[tuple]:
+    """The transitions of ``ex``, one row (:data:`TRANSITION_COLUMNS`) per attempt, made as they are inserted."""
+    for i, e in enumerate(ex.endpoints):
+        yield (task.run_id, task.cluster_id, contacts_json(e.broken), e.direction, e.outcome, targets.get(i),
+               e.steps, contacts_json(e.new_contacts))
+
+
+def insert_transitions(conn: Connection, rows: Iterable[tuple]) -> None:
     """Insert transitions, each a tuple of :data:`TRANSITION_COLUMNS`' values (a write-back inserts a
-    few dozen a cluster: :func:`packings.db.insert_many`)."""
+    few dozen a cluster, and up to hundreds of thousands for one with many contacts:
+    :func:`packings.db.insert_many`)."""
     insert_many(conn, _T, TRANSITION_COLUMNS, rows)
 
 

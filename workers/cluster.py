@@ -31,10 +31,22 @@ def upper_pairs(n: int) -> np.ndarray:
     return pairs
 
 
+#: every contact pair made so far, each once: clusters, broken subsets and formed contacts hold these
+#: very tuples rather than copies (an expansion of a cluster with many contacts holds hundreds of
+#: thousands of subsets and endpoints; n spheres have only n(n - 1)/2 pairs)
+_PAIRS: dict[Contact, Contact] = {}
+
+
+def pair(i: int, j: int) -> Contact:
+    """The contact (min, max) of spheres i and j, as the one shared tuple of that pair."""
+    p = (i, j) if i < j else (j, i)
+    return _PAIRS.setdefault(p, p)
+
+
 def contacts_from_distances(pairs: np.ndarray, d: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
     """The rows (i, j) of ``pairs`` whose distance ``d`` is below 1 + tol_a, in the order of ``pairs``:
     the one rule of what is a contact, whoever computed the distances."""
-    return tuple(map(tuple, pairs[d < 1.0 + tol_a].tolist()))
+    return tuple(pair(i, j) for i, j in pairs[d < 1.0 + tol_a].tolist())
 
 
 def contacts_from_coords(x: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
@@ -49,7 +61,7 @@ def normalise_contacts(contacts) -> tuple[Contact, ...]:
     """Contacts as a sorted tuple of (i, j) with i < j and no repeats."""
     if isinstance(contacts, np.ndarray):  # its rows as Python ints at once, not numpy scalars one by one
         contacts = contacts.tolist()
-    return tuple(sorted({(min(int(a), int(b)), max(int(a), int(b))) for a, b in contacts}))
+    return tuple(sorted({pair(int(a), int(b)) for a, b in contacts}))
 
 
 @dataclass(frozen=True, eq=False)

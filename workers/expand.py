@@ -19,7 +19,7 @@ from packings.workers.dimension import (
     may_decide,
     solution_dimension,
 )
-from packings.workers.identity import ClusterIndex, certificate, same_geometry
+from packings.workers.identity import ClusterIndex, certificate, forget_canonical, same_geometry
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
     BELOW_MIN_CONTACTS,
     CIRCULAR,
@@ -34,7 +34,7 @@ from packings.workers.paths import PathEnd, follow_path
 from packings.workers.rigidity import Rigidity, contact_triangle
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)  # slots: an expansion may hold hundreds of thousands
 class Endpoint:
     """One attempt: the broken contacts, the direction taken, and what came of it.
 
@@ -145,7 +145,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
     cluster is such a subset): the direction the SVD of what is left gives, up to sign and rounding.
     """
     n, m = cluster.n, cluster.m
-    all_edges = cluster.edges()
+    all_edges, pairs = cluster.edges(), cluster.contacts
     frames: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # the cluster in each pinned frame
     bases: dict[tuple[int, int, int], StressBasis] = {}  # its rigidity matrix's SVD in that frame
 
@@ -178,7 +178,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
             kept = np.ones(m, dtype=bool)
             kept[list(idx)] = False
             keep = all_edges[kept]
-            bt = tuple(map(tuple, broken.tolist()))
+            bt = tuple(pairs[q] for q in idx)  # the cluster's own contact tuples, shared
             tri = contact_triangle(keep) if own_sides.intersection(bt) or own_tri is None else own_tri
             if tri is None:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
@@ -231,7 +231,11 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True) -> Expans
             out.append(a)
         else:
             out.append(_classify(cluster, cert, a.broken_contacts, a.direction, a.follow(params), params))
-    return Expansion(cluster, tuple(out), same_as(out, params.tol_d))
+    first = same_as(out, params.tol_d)
+    for i, e in enumerate(out):  # only the distinct rigid endpoints are compared again (the write-back)
+        if e.cluster is not None and first[i] != i:
+            forget_canonical(e.cluster)
+    return Expansion(cluster, tuple(out), first)
 
 
 def same_as(endpoints, tol_d: float) -> tuple[int | None, ...]:

@@ -216,6 +216,12 @@ def _canonical(cluster: Cluster) -> _Canonical:
     return c
 
 
+def forget_canonical(cluster: Cluster) -> None:
+    """Drop what :func:`_canonical` keeps for ``cluster`` (about 3 kB), for a cluster that lives on but
+    will not be compared again (an expansion's endpoints that repeat an earlier one)."""
+    _CANONICAL.pop(cluster, None)
+
+
 def _compute_canonical(cluster: Cluster) -> _Canonical:
     g = _nauty_graph(cluster)
     p = np.asarray(pynauty.canon_label(g), dtype=np.int64)

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import event, func, select
 
 from packings import store
 from packings.owners import RunBusy
@@ -360,17 +360,35 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
             == s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == first)).scalar_one()
 
 
-def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine):
+def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine, monkeypatch):
     """store.insert_transitions (the driver's executemany on SQLite, a Core insert elsewhere) puts each
-    value of a row's tuple in its column, in the order of TRANSITION_COLUMNS."""
+    value of a row's tuple in its column, in the order of TRANSITION_COLUMNS; rows may come from a
+    generator, taken a chunk at a time (here chunks of 2), none lost or repeated."""
+    import packings.db
+
     S, info = run8
     with S() as s:
         seed = s.execute(select(ClusterRow.id)).scalar_one()
     rows = [(info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]"),
             (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]")]
+    more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]") for k in range(5)]
+    monkeypatch.setattr(packings.db, "INSERT_CHUNK", 2)
+    statements = []
+
+    def count(conn, cursor, statement, *args):
+        if statement.lstrip().upper().startswith("INSERT INTO TRANSITIONS"):
+            statements.append(statement)
+
     with engine.begin() as conn:
         store.insert_transitions(conn, rows)
         store.insert_transitions(conn, [])
+        event.listen(engine, "before_cursor_execute", count)
+        try:
+            store.insert_transitions(conn, (r for r in more))
+        finally:
+            event.remove(engine, "before_cursor_execute", count)
+    assert len(statements) == 3  # 5 rows in chunks of 2
+    rows += more
     cols = [getattr(Transition, c) for c in store.TRANSITION_COLUMNS]
     with S() as s:
         back = sorted(tuple(r) for r in s.execute(select(*cols)).all())

@@ -92,6 +92,28 @@ def test_the_endpoints_that_are_one_cluster_point_at_the_first_of_them():
         assert not any(same_geometry(ex.endpoints[i].cluster, ex.endpoints[j].cluster, P.tol_d) for j in first[:k])
 
 
+def test_an_expansion_holds_each_contact_pair_once_and_canonical_forms_of_distinct_endpoints_only():
+    """What keeps a worker's memory down when one expansion has hundreds of thousands of attempts: every
+    broken subset, endpoint contact and formed contact is made of the one shared tuple of its pair, an
+    endpoint has no per-instance dict, and only the distinct rigid endpoints keep their canonical forms
+    (the write-back compares only those again)."""
+    from packings.workers.cluster import pair
+    from packings.workers.explore import explore
+    from packings.workers.identity import _CANONICAL
+
+    c = max(explore(9).clusters, key=lambda c: c.m)
+    assert Cluster(c.coords.copy(), [(j, i) for i, j in c.contacts]).contacts[0] is c.contacts[0]
+    ex = expand(c, P)
+    own = {id(p) for p in c.contacts}
+    assert all(id(p) in own for e in ex.endpoints for p in e.broken)
+    held = [p for e in ex.endpoints if e.cluster is not None for p in e.cluster.contacts + e.new_contacts]
+    assert held and all(p is pair(*p) for p in held)
+    assert not hasattr(ex.endpoints[0], "__dict__")
+    rigid = [i for i, e in enumerate(ex.endpoints) if e.outcome == RIGID]
+    assert len(rigid) > len(ex.distinct())
+    assert all((ex.endpoints[i].cluster in _CANONICAL) == (ex.same_as[i] == i) for i in rigid)
+
+
 def test_hyperstatic_cluster_breaks_pairs():
     import json
     from pathlib import Path
