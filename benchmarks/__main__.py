@@ -9,13 +9,14 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import classes, enumeration, paths, screenshot, soak
+from benchmarks import classes, enumeration, memory, paths, screenshot, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
     "paths": paths,
     "classes": classes,
     "enumerate": enumeration,
+    "memory": memory,
     "soak": soak,
     "screenshot": screenshot,
 }

@@ -89,3 +89,12 @@ def test_the_classes_benchmark_reads_a_stored_catalogue(tmp_path):
     r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "no clusters of n = 9" in r.stderr
+
+
+def test_the_memory_benchmark_reports_what_one_expansion_holds():
+    """n = 10's close-packed fragment (24 contacts, regular: one attempt a contact), in a fresh process."""
+    row = benchmark("memory", "--n", "10")
+    assert row["n"] == 10 and row["contacts"] == 24 and row["attempts"] == 24
+    assert row["rigid_endpoints"] >= row["distinct"] > 0 and row["paths"] >= row["rigid_endpoints"]
+    assert 0 < row["retained_mib"] <= row["traced_peak_mib"] and row["retained_bytes_per_attempt"] > 0
+    assert row["max_rss_mib_after"] >= row["max_rss_mib_before"] > 0
