@@ -22,7 +22,7 @@ from packings.workers.cluster import Cluster
 from packings.workers.expand import PathStart, _attempts
 from packings.workers.identity import certificate, geometry_distance, same_geometry
 from packings.workers.params import DEFAULT as P
-from packings.workers.paths import FLOPPY, PROJECTION_FAILED, RIGID, UNDECIDED_END, close_pairs, near_pairs, resolve_near_pairs
+from packings.workers.paths import PROJECTION_FAILED, RIGID, close_pairs, near_pairs, resolve_near_pairs
 from packings.workers.rigidity import contact_triangle, on_a_curve, rigidity
 
 DATA = json.loads((Path(__file__).parents[1] / "data" / "n12_junk.json").read_text())
@@ -78,10 +78,14 @@ def test_a_path_that_ended_at_a_near_copy_ends_at_the_cluster_it_stands_for():
 
 
 def test_a_path_onto_a_curve_of_singular_points_ends_without_a_cluster():
+    """The margin alone said rigid.  On a curve there is no isolated point for the refinement along the
+    flexes to converge to: it slides along the curve (1.2e-2 here), beyond tol_a0, so no projection
+    counts, there or after walking to the contact."""
     end = follow(ON_A_CURVE)
-    # the margin alone said rigid; the coordinates do not resolve it, and the point lies on a curve
-    assert end.outcome in (FLOPPY, UNDECIDED_END) and end.rigidity.margin > P.tol_psd
-    assert end.rigidity.method in ("probe", "unresolved")
+    assert end.outcome == PROJECTION_FAILED and end.coords is None
+    x, edges, free = framed(cluster(ON_A_CURVE["stored"]))
+    y = kernels.refine_singular(x, edges, free)
+    assert np.abs(y - x).max() > P.tol_a0
 
 
 def test_a_stored_near_copy_resolves_to_the_cluster_with_its_near_pairs():
@@ -202,6 +206,24 @@ def test_refining_commutes_with_rotation_reflection_and_relabelling(seed, reflec
         refined.append(Cluster(kernels.refine_singular(x, edges, free).reshape(-1, 3), a.contacts))
     assert geometry_distance(refined[0], refined[1]) < P.tol_d / 10
     assert geometry_distance(refined[0], c) < P.tol_d / 2
+
+
+def test_an_endpoint_whose_refinement_leaves_tol_a0_walks_to_the_contact_and_is_not_a_copy():
+    """tests/data/n13_refine_far.json: a path that stopped 9.8e-4 from a singular 32-contact cluster,
+    whose polished endpoint refined to a point just beyond tol_a0 from the stopping point.  Keeping the
+    polished point there stored a second copy of the cluster (residuals 2.3e-10, 1.46e-5 away); now
+    that projection does not count, the path walks to the contact, and its endpoint is the cluster
+    itself, refined to round-off."""
+    d = json.loads((Path(__file__).parents[1] / "data" / "n13_refine_far.json").read_text())
+    parent, target = cluster(d["parent"]), cluster(d["cluster"])
+    broken = tuple(map(tuple, d["broken"]))
+    ends = [a.follow(P) for a in _attempts(parent, P) if isinstance(a, PathStart) and a.broken_contacts == broken]
+    reached = [Cluster(e.coords, e.contacts) for e in ends if e.outcome == RIGID and len(e.contacts) == target.m]
+    assert reached
+    for r in reached:
+        f = kernels.residual(r.coords.ravel(), r.edges())
+        assert np.abs(f).max() < 1e-14
+        assert geometry_distance(r, target) < P.tol_d / 10
 
 
 def test_refining_a_regular_cluster_leaves_it_where_it_is():
