@@ -67,7 +67,7 @@ def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
         assert abs(sum(r[f"share_{b}"] for r in rows.values()) - 1.0) < 1e-9
     for r in rows.values():
         assert r["same_endpoints"] == r["sampled"] and r["mean_ms_numba"] > 0 and r["mean_ms_numpy"] > 0
-        assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0
+        assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0 and r["svd_paths_differing"] == 0
 
 
 def test_the_classes_of_a_cluster():
