@@ -365,9 +365,8 @@ def _refined(pr: kernels.Projection, edges: np.ndarray, free: np.ndarray, x0: np
 
     The refined point is the solution the polished one only approximates (along the flexes to about
     sqrt(|f| / margin)), so the projection counts only if it is within tol_a0 (:func:`close_pairs`).  The
-    polished point is never kept in its place: one that was (n = 13, 9.8e-4 from x0, its refinement
-    just beyond 1e-3) was stored as a second copy of a 32-contact cluster, 1.5 tol_d from the first,
-    with residuals of 2.3e-10 (docs/method.md, "The endpoint")."""
+    polished point is never kept in its place: it would be stored as a second copy of the cluster, more
+    than tol_d from the first (docs/method.md, "The endpoint", step 5)."""
     if pr.residual <= _ROUND_OFF:
         return pr.x
     y = kernels.refine_singular(pr.x, edges, free)
