@@ -10,6 +10,11 @@ stored by another run of n gets an expansion in this run as well, as the write-b
 endpoint.  A run that was complete and gets expansions is marked running again (the coordinator
 expands the pending expansions of any run it resumes, complete or not).
 
+With ``glued``, the parents are made, not read: :func:`packings.workers.catalysis.moved_remainders`
+moves each sphere of every stored cluster of n onto each of its contact triangles, so that no run of
+n + 1 is needed; a remainder whose contact graph and pair distances are those of a stored cluster,
+or of one decided earlier in the pass, is not decided again.
+
 Writes are batched: one transaction per batch of parents, taking the certificate locks
 (:func:`packings.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
 being enumerated, and an interrupted catalysis keeps what it committed (running it again finds those
@@ -18,17 +23,20 @@ stored: it is idempotent).
 
 from __future__ import annotations
 
+import json
 import uuid
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
+import numpy as np
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import sessionmaker
 
 from packings import store
 from packings.owners import process_name
 from packings.models import FOUND_CATALYSIS, RUNNING, ClusterRow, Run, core_cluster
-from packings.workers.catalysis import remainder_count, rigid_remainders
+from packings.workers.catalysis import Seen, moved_remainders, remainder_count, rigid_remainders
+from packings.workers.cluster import Cluster
 from packings.workers.identity import certificate_key
 from packings.workers.params import Params
 
@@ -41,23 +49,30 @@ class NoParents(Exception):
 
 @dataclass(frozen=True)
 class Found:
-    """A cluster catalysis stored: its id, the parent's id and the parent's spheres deleted."""
+    """A cluster catalysis stored: its id, the parent's id and the parent's spheres deleted (with
+    ``glued``: the parent is the stored cluster of n, and its sphere ``deleted`` was moved onto the
+    contact triangle ``moved_onto``)."""
 
     id: int
     parent_id: int
     deleted: tuple[int, ...]
     contacts: int
     lattice: str
+    moved_onto: tuple[int, int, int] | None = None
 
 
 @dataclass
 class CatalysisReport:
-    """What :func:`catalyse` did: parents read, remainders tested (every deleted set of every parent),
-    rigid remainders (by the endpoint rule), rigid remainders already stored, and the new clusters."""
+    """What :func:`catalyse` did: parents read, remainders tested (every deleted set of every parent;
+    with ``glued``, those decided), rigid remainders (by the endpoint rule), rigid remainders already
+    stored, and the new clusters; with ``glued``, ``seen``: remainders not decided, as a stored cluster
+    or one decided earlier has their contact graph and pair distances."""
 
     n: int
     spheres: int
     run_id: int
+    glued: bool = False
+    seen: int = 0
     parents: int = 0
     remainders: int = 0
     rigid: int = 0
@@ -90,31 +105,56 @@ def run_for(Session_: sessionmaker, n: int, params: Params) -> int:
     return info.id
 
 
-def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, batch: int = BATCH,
-             on_progress: Callable[[int, int], None] | None = None) -> CatalysisReport:
-    """Delete ``spheres`` spheres from every stored cluster of n + ``spheres`` and store the new rigid
-    remainders in the run of (n, params) (module doc).  ``on_progress(parents done, parents)`` after
-    each batch.  Raises :class:`NoParents` when no cluster of n + spheres is stored."""
-    total = count_stored(Session_, n + spheres)
-    if total == 0:
-        raise NoParents(f"no clusters of {n + spheres} spheres stored: run `packings enumerate {n + spheres}` first")
-    run_id = run_for(Session_, n, params)
-    report = CatalysisReport(n, spheres, run_id)
+def _rows(Session_: sessionmaker, n: int, batch: int):
+    """The stored clusters of n (id, coords, contact list), ``batch`` at a time, by id."""
     last = 0
     while True:
         with Session_() as s:
             rows = s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
-                             .where(ClusterRow.n == n + spheres, ClusterRow.id > last).order_by(ClusterRow.id).limit(batch)).all()
+                             .where(ClusterRow.n == n, ClusterRow.id > last).order_by(ClusterRow.id).limit(batch)).all()
         if not rows:
-            break
+            return
         last = rows[-1].id
+        yield rows
+
+
+def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, batch: int = BATCH,
+             on_progress: Callable[[int, int], None] | None = None, glued: bool = False) -> CatalysisReport:
+    """Delete ``spheres`` spheres from every stored cluster of n + ``spheres`` (with ``glued``: move one
+    sphere of every stored cluster of n) and store the new rigid remainders in the run of (n, params)
+    (module doc).  ``on_progress(parents done, parents)`` after each batch.  Raises :class:`NoParents`
+    when no cluster of n + spheres (with ``glued``: of n) is stored."""
+    if glued and spheres != 1:
+        raise ValueError("catalysis of glued clusters moves one sphere")
+    source = n if glued else n + spheres
+    total = count_stored(Session_, source)
+    if total == 0:
+        raise NoParents(f"no clusters of {source} spheres stored: run `packings enumerate {source}` first")
+    run_id = run_for(Session_, n, params)
+    report = CatalysisReport(n, spheres, run_id, glued=glued)
+    seen = Seen(params.tol_d)
+    if glued:  # every stored cluster of n, of any run, is seen already
+        for rows in _rows(Session_, n, batch):
+            for _, coords, contact_list in rows:
+                seen.add(Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3),
+                                 tuple(map(tuple, json.loads(contact_list)))))
+    for rows in _rows(Session_, source, batch):
         found = []
         for pid, coords, contact_list in rows:
-            parent = core_cluster(n + spheres, coords, contact_list)
+            parent = core_cluster(source, coords, contact_list)
             report.parents += 1
+            if glued:
+                for mv in moved_remainders(parent, params, seen):
+                    if mv.remainder is None:
+                        report.seen += 1
+                        continue
+                    report.remainders += 1
+                    if mv.remainder.rigid:
+                        found.append((pid, mv.remainder, certificate_key(mv.remainder.cluster), mv.triangle))
+                continue
             report.remainders += remainder_count(parent.n, spheres)
             for r in rigid_remainders(parent, spheres, params):
-                found.append((pid, r, certificate_key(r.cluster)))
+                found.append((pid, r, certificate_key(r.cluster), None))
         report.rigid += len(found)
         if found:
             _store(Session_, n, run_id, params, found, report)
@@ -127,17 +167,17 @@ def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, r
     """One transaction: the rigid remainders ``found`` ((parent id, Remainder, certificate)) inserted or
     matched, expansions for those new to the run, the run reopened if it was not running."""
     with Session_.kw["bind"].begin() as s:
-        keys = {(n, cert) for _, _, cert in found}
+        keys = {(n, cert) for _, _, cert, _ in found}
         store.lock_certificates(s, keys)
         stored = store.stored_with(s, n, {cert for _, cert in keys})
         inserted, others = [], []
-        for pid, r, cert in found:
+        for pid, r, cert, onto in found:
             rows = stored[cert]
             cid, is_new = store.insert_or_match(s, r.cluster, r.rigidity, run_id, params.tol_d, rows,
                                                 found_by=FOUND_CATALYSIS, source_id=pid)
             if is_new:
                 inserted.append(cid)
-                report.new.append(Found(cid, pid, r.deleted, r.cluster.m, store.lattice_value(r.cluster)))
+                report.new.append(Found(cid, pid, r.deleted, r.cluster.m, store.lattice_value(r.cluster), onto))
             else:
                 report.already_stored += 1
                 if next(x.found_in_run for x in rows if x.id == cid) != run_id:
@@ -151,14 +191,22 @@ def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, r
 
 def format_report(r: CatalysisReport) -> str:
     """The report as a few lines of text."""
-    lines = [f"catalysis of n = {r.n} from n = {r.n + r.spheres} (deleting {r.spheres} sphere"
-             f"{'s' if r.spheres != 1 else ''}), run {r.run_id}:",
-             f"  parents {r.parents}, remainders tested {r.remainders}, rigid {r.rigid}, "
-             f"already stored {r.already_stored}, new {len(r.new)}"]
+    if r.glued:
+        lines = [f"catalysis of n = {r.n} by moving one sphere of each stored cluster onto a contact triangle, "
+                 f"run {r.run_id}:",
+                 f"  clusters {r.parents}, remainders tested {r.remainders} (not again: {r.seen}), rigid {r.rigid}, "
+                 f"already stored {r.already_stored}, new {len(r.new)}"]
+    else:
+        lines = [f"catalysis of n = {r.n} from n = {r.n + r.spheres} (deleting {r.spheres} sphere"
+                 f"{'s' if r.spheres != 1 else ''}), run {r.run_id}:",
+                 f"  parents {r.parents}, remainders tested {r.remainders}, rigid {r.rigid}, "
+                 f"already stored {r.already_stored}, new {len(r.new)}"]
     for f in r.new:
-        lines.append(f"  new cluster {f.id}: {f.contacts} contacts, lattice {f.lattice}, "
-                     f"from cluster {f.parent_id} without sphere{'s' if len(f.deleted) > 1 else ''} "
-                     + ", ".join(map(str, f.deleted)))
+        origin = (f"from cluster {f.parent_id} with sphere {f.deleted[0]} moved onto contact triangle "
+                  f"{tuple(f.moved_onto)}" if f.moved_onto is not None else
+                  f"from cluster {f.parent_id} without sphere{'s' if len(f.deleted) > 1 else ''} "
+                  + ", ".join(map(str, f.deleted)))
+        lines.append(f"  new cluster {f.id}: {f.contacts} contacts, lattice {f.lattice}, {origin}")
     if r.expansions_added:
         lines.append(f"  {r.expansions_added} expansion{'s' if r.expansions_added != 1 else ''} added to run "
                      f"{r.run_id}" + (" (marked running again)" if r.run_reopened else ""))

@@ -154,14 +154,20 @@ def _offer_catalysis(url: str, n: int) -> None:
               help="As for enumerate (default: no cap): chooses the run of N that the clusters found are added to.")
 @click.option("--min-contacts", type=int, default=None,
               help="As for enumerate: keep only remainders with at least this many contacts (and choose that run).")
+@click.option("--glued", is_flag=True,
+              help="Instead, move one sphere of every stored cluster of N onto each contact triangle (the "
+                   "parents of N + 1 are made by gluing, not read: no run of N + 1 is needed).")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, as_json: bool,
-                 quiet: bool) -> None:
+def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, glued: bool,
+                 as_json: bool, quiet: bool) -> None:
     """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
     yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
-    afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one)."""
+    afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one).
+    With --glued, the clusters of N + 1 are those made by gluing a sphere onto a stored cluster of N."""
     check_n(n)
+    if glued and k != 1:
+        raise click.UsageError("--glued moves one sphere: --spheres must be 1")
     check_n(n + k)
     params = Params(max_break=max_break, min_contacts=min_contacts)
     from packings.catalysis import NoParents, catalyse, format_report
@@ -170,7 +176,8 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     engine = open_db(db_url)
     from tqdm import tqdm
 
-    bar = tqdm(total=0, unit="cluster", desc=f"clusters of {n + k}", file=sys.stderr, disable=quiet or None)
+    bar = tqdm(total=0, unit="cluster", desc=f"clusters of {n if glued else n + k}", file=sys.stderr,
+               disable=quiet or None)
 
     def progress(done: int, total: int) -> None:
         bar.total = total
@@ -178,7 +185,7 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
         bar.refresh()
 
     try:
-        report = catalyse(sessions(engine), n, params, spheres=k, on_progress=progress)
+        report = catalyse(sessions(engine), n, params, spheres=k, on_progress=progress, glued=glued)
     except NoParents as e:
         raise click.ClickException(str(e)) from None
     finally:

@@ -25,6 +25,15 @@ their contacts hold to the Newton tolerance) and every set D of k spheres:
    with its isolation probe calls it rigid (:func:`packings.workers.paths.endpoint_rigidity`); and only
    with at least ``params.min_contacts`` contacts if that is set.
 
+Moving one sphere (:func:`moved_remainders`).  Catalysis from n + 1 needs the catalogue of n + 1, which
+is out of reach for the largest n run.  Its parents can be made instead: glue a sphere onto a contact
+triangle of a stored cluster of n, on either side of it (where it overlaps no sphere), and delete
+each of the cluster's own spheres: one sphere moved to another place.  At n = 11 this finds the
+cluster no path reaches from the path clusters of 11 alone (docs/method.md, "Catalysis").  Most of
+these remainders are stored clusters again, and one glued cluster repeats many others: a remainder
+is decided only when its contact graph and sorted pair distances match no cluster seen before
+(stored, or decided earlier in the same pass: :class:`Seen`).
+
 The remainder's coordinates are not projected again: deleting spheres deletes equations, so
 the parent's point still solves the remainder's.  Its contacts, measured again from the
 coordinates with :func:`packings.workers.cluster.contacts_from_coords` (``params.tol_a``), must be the
@@ -35,6 +44,7 @@ stored with contacts its geometry does not have.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from itertools import combinations
 from math import comb
@@ -43,11 +53,13 @@ from typing import Iterator
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster, contacts_from_coords
+from packings.workers.cluster import Cluster, contacts_from_coords, pair_distances
+from packings.workers.identity import edges_certificate, graph_certificate
 from packings.workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
 from packings.workers.params import Params
 from packings.workers.paths import endpoint_rigidity, resolve_near_pairs
 from packings.workers.rigidity import Rigidity, contact_triangle
+from packings.workers.seeds import cap_positions, triangles
 
 NOT_RIGID = "not-rigid"  #: the rigidity test says floppy or undecided
 FEW_CONTACTS = "few-contacts"  #: a sphere of the remainder has fewer than three contacts: not rigid
@@ -127,3 +139,102 @@ def rigid_remainders(parent: Cluster, k: int, params: Params) -> list[Remainder]
 def remainder_count(n: int, k: int) -> int:
     """How many remainders a parent of n spheres has with k deleted."""
     return comb(n, k)
+
+
+def glued(cluster: Cluster, params: Params) -> Iterator[tuple[tuple[int, int, int], Cluster]]:
+    """Every cluster of n + 1 spheres made by putting a sphere (number n) on a contact triangle of ``cluster``,
+    on either side of it, where no centre is closer to it than 1 - tol_a (an overlap); its contacts are
+    measured (closer than 1 + tol_a).  With the triangle, in the order of :func:`packings.workers.seeds.triangles`."""
+    x = cluster.coords
+    for tri in triangles(cluster.contacts):
+        for q in cap_positions(x, tri):
+            d = np.sqrt(((x - q) ** 2).sum(axis=1))
+            if np.any(d < 1.0 - params.tol_a):
+                continue
+            new = tuple((int(i), cluster.n) for i in np.flatnonzero(d < 1.0 + params.tol_a))
+            yield tri, Cluster(np.vstack([x, q]), cluster.contacts + new)
+
+
+class Seen:
+    """Clusters already decided, by contact graph (nauty certificate) and sorted pair distances.
+
+    ``cluster in seen`` when a cluster with the same contact graph has sorted pair distances within
+    ``4 tol_d`` of it: what :func:`packings.workers.identity.same_geometry` requires before it aligns
+    (copies within tol_d always pass it).  It is a filter for work, not the identity: two clusters it
+    calls seen are not proved the same, so it only chooses which remainders are not decided again, and
+    what is stored is matched by the identity as always."""
+
+    def __init__(self, tol_d: float):
+        self.bound = 4.0 * tol_d
+        self._by_graph: dict[bytes, list[np.ndarray]] = {}
+
+    def add(self, cluster: Cluster) -> bool:
+        """Remember ``cluster``; False if it was seen already."""
+        d = pair_distances(cluster.coords)[_upper(cluster.n)]
+        return self.add_parts(graph_certificate(cluster), np.sort(d))
+
+    def add_parts(self, certificate: bytes, sorted_distances: np.ndarray) -> bool:
+        """:meth:`add` for a cluster given by its graph certificate and sorted pair distances."""
+        others = self._by_graph.setdefault(certificate, [])
+        if any(np.max(np.abs(sorted_distances - o)) <= self.bound for o in others):
+            return False
+        others.append(sorted_distances)
+        return True
+
+    def __len__(self) -> int:
+        return sum(map(len, self._by_graph.values()))
+
+
+@functools.lru_cache(maxsize=None)
+def _upper(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.triu_indices(n, 1)
+
+
+@functools.lru_cache(maxsize=None)
+def _without(n: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The upper-triangle pairs of n spheres that do not involve sphere s, as indices into the n x n matrix."""
+    i, j = _upper(n)
+    keep = (i != s) & (j != s)
+    return i[keep], j[keep]
+
+
+@dataclass(frozen=True)
+class Moved:
+    """Sphere ``sphere`` of a cluster put on the contact triangle ``triangle`` (on its ``side``, 0 or 1, as
+    :func:`packings.workers.seeds.cap_positions` orders them); ``remainder`` is None when it was seen."""
+
+    sphere: int
+    triangle: tuple[int, int, int]
+    side: int
+    remainder: Remainder | None
+
+
+def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[Moved]:
+    """Each sphere of ``cluster`` moved onto each contact triangle (module doc): for every glued cluster
+    (:func:`glued`) and every sphere s of ``cluster``, the remainder without s, decided by the endpoint
+    rule (:func:`remainder`) unless a sphere is left with fewer than three contacts or it is in ``seen``;
+    every remainder decided is added to ``seen``.  The remainder's spheres are the cluster's without s,
+    in order, then the moved one."""
+    sides: dict[tuple[int, int, int], int] = {}
+    for tri, parent in glued(cluster, params):
+        side = sides[tri] = sides.get(tri, -1) + 1
+        n = parent.n
+        degree = np.bincount(parent.edges().ravel(), minlength=n)
+        neighbours: list[list[int]] = [[] for _ in range(n)]
+        for i, j in parent.contacts:
+            neighbours[i].append(j)
+            neighbours[j].append(i)
+        d = pair_distances(parent.coords)
+        for s in range(cluster.n):
+            left = degree.copy()
+            left[neighbours[s]] -= 1
+            left[s] = 3
+            if left.min() < 3:  # not rigid (remainder, step 2): nothing to decide
+                continue
+            # the remainder's graph and distances, without building it: spheres after s move down one
+            graph = edges_certificate(n - 1, ((i - (i > s), j - (j > s)) for i, j in parent.contacts
+                                              if i != s and j != s))
+            if not seen.add_parts(graph, np.sort(d[_without(n, s)])):
+                yield Moved(s, tri, side, None)
+                continue
+            yield Moved(s, tri, side, remainder(parent, (s,), params))

@@ -38,6 +38,8 @@ from packings.workers.cluster import Cluster, pair_distances
 __all__ = [
     "certificate",
     "certificate_hex",
+    "graph_certificate",
+    "edges_certificate",
     "certificate_key",
     "canonical_labelling",
     "automorphisms",
@@ -70,6 +72,20 @@ def certificate(cluster: Cluster) -> bytes:
     the rest of the cluster's canonical form, once per cluster.
     """
     return _canonical(cluster).cert
+
+
+def graph_certificate(cluster: Cluster) -> bytes:
+    """:func:`certificate` alone, one call of nauty, nothing else computed or kept: for filters that see
+    many clusters once (catalysis)."""
+    return edges_certificate(cluster.n, cluster.contacts)
+
+
+def edges_certificate(n: int, edges: Iterable[tuple[int, int]]) -> bytes:
+    """:func:`graph_certificate` of the graph on n vertices with these edges (pairs i < j)."""
+    adjacency: dict[int, list[int]] = {i: [] for i in range(n)}
+    for i, j in edges:
+        adjacency[i].append(j)
+    return pynauty.certificate(pynauty.Graph(n, directed=False, adjacency_dict=adjacency))
 
 
 def certificate_hex(cluster: Cluster) -> str:

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from sqlalchemy import select, text
+from sqlalchemy import func, select, text
 
 from packings import store
 from packings.catalysis import NoParents, catalyse
@@ -136,3 +136,54 @@ def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):
         assert (row.n, row.found_by, row.source_id, row.lattice) == (11, FOUND_CATALYSIS, pid, "hcp")
         assert row.certificate == data["certificate"]
         assert s.execute(text("SELECT count(*) FROM expansions WHERE cluster_id = :i"), {"i": row.id}).scalar() == 1
+
+
+def test_moving_one_sphere_stores_the_lost_cluster_of_11_from_a_cluster_of_11(engine):
+    """tests/data/n11_glued.json: with --glued no cluster of 12 is needed; the lost cluster is stored with
+    the cluster of 11 it came from as its source, and a second pass finds it stored (and does not decide
+    it again)."""
+    data = json.loads((DATA / "n11_glued.json").read_text())
+    c = Core(np.array(data["cluster"]["coords"]), tuple(map(tuple, data["cluster"]["contacts"])))
+    S = sessions(engine)
+    with S.begin() as s:
+        pid, _ = store.insert_or_match(s, c, rigidity(c.coords, c.contacts, Params()), None, Params().tol_d,
+                                       found_by="path", source_id=None)
+    r = catalyse(S, 11, Params(), glued=True)
+    assert r.glued and r.seen > 0 and r.remainders > 0
+    lost = [f for f in r.new if (f.moved_onto, f.deleted) == (tuple(data["triangle"]), (data["sphere"],))]
+    assert len(lost) == 1
+    f = lost[0]
+    assert (f.contacts, f.lattice, f.parent_id) == (26, "hcp", pid)
+    with S() as s:
+        row = s.get(ClusterRow, f.id)
+        assert (row.n, row.found_by, row.source_id, row.certificate) == (11, FOUND_CATALYSIS, pid,
+                                                                          data["certificate"])
+        assert s.execute(text("SELECT count(*) FROM expansions WHERE cluster_id = :i"), {"i": row.id}).scalar() == 1
+        stored = s.execute(select(func.count()).select_from(ClusterRow)).scalar_one()
+    again = catalyse(S, 11, Params(), glued=True)
+    assert again.new == [] and again.parents == stored
+    with S() as s:
+        assert s.execute(select(func.count()).select_from(ClusterRow)).scalar_one() == stored
+
+
+def test_moving_one_sphere_of_the_clusters_of_7_finds_nothing_new(engine):
+    run7 = fill_database(engine, 7)
+    S = sessions(engine)
+    r = catalyse(S, 7, Params(), glued=True)
+    assert (r.run_id, r.parents) == (run7, 5) and r.seen > 0
+    assert r.new == [] and r.rigid == r.already_stored and r.expansions_added == 0
+    with S() as s:
+        assert s.get(Run, run7).status == COMPLETE
+
+
+def test_catalyse_glued_command(engine):
+    url = url_of(engine)
+    assert "--spheres must be 1" in one_line_error(cli("catalyse", "6", "--glued", "--spheres", "2", "--db", url))
+    fill_database(engine, 6)
+    line = one_line_error(cli("catalyse", "7", "--glued", "--db", url))
+    assert "no clusters of 7 spheres stored: run `packings enumerate 7` first" in line
+    r = cli("catalyse", "6", "--glued", "--db", url, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "by moving one sphere" in r.stdout and "clusters 2," in r.stdout and "new 0" in r.stdout
+    out = json.loads(cli("catalyse", "6", "--glued", "--db", url, "--json").stdout)
+    assert out["glued"] and out["parents"] == 2 and out["new"] == []

@@ -14,6 +14,9 @@ from packings.workers.catalysis import (
     CONTACTS_DIFFER,
     FEW_CONTACTS,
     NOT_RIGID,
+    Seen,
+    glued,
+    moved_remainders,
     remainder,
     remainder_count,
     remainders,
@@ -197,3 +200,99 @@ def test_the_lost_cluster_of_11_is_a_remainder_of_its_parent_of_12_and_no_path_l
     rigid_two = tuple(sorted(b for b, d in single.items() if d == 0))
     assert len(pairs) == comb(26, 2) and pairs.pop(rigid_two) == 0
     assert set(pairs.values()) == {3}
+
+
+# --------------------------------------------------------------------------- one sphere moved (--glued)
+
+
+def _glued_n11() -> tuple[Cluster, dict]:
+    data = json.loads((DATA / "n11_glued.json").read_text())
+    c = data["cluster"]
+    return Cluster(np.array(c["coords"]), tuple(map(tuple, c["contacts"]))), data
+
+
+@pytest.mark.parametrize("name", sorted(N10))
+def test_a_glued_sphere_touches_its_triangle_overlaps_nothing_and_has_its_measured_contacts(name):
+    c = N10[name]
+    out = list(glued(c, P))
+    triangles_ = {tri for tri, _ in out}
+    assert triangles_ and all(len(tri) == 3 for tri in triangles_)
+    for tri, parent in out:
+        assert parent.n == c.n + 1 and np.array_equal(parent.coords[:-1], c.coords)
+        d = np.linalg.norm(c.coords - parent.coords[-1], axis=1)
+        assert np.allclose(d[list(tri)], 1.0, atol=1e-12)
+        assert d.min() >= 1.0 - P.tol_a
+        assert parent.contacts == contacts_from_coords(parent.coords, P.tol_a)
+    assert len(out) <= 2 * len(triangles_)
+
+
+def test_one_side_of_every_face_of_a_tetrahedron():
+    """One side of each face is the fourth sphere's own place (an overlap); the other is free, 2 sqrt(2/3)
+    from the fourth sphere: four glued clusters of 5 with 9 contacts, the triangular bipyramid."""
+    tet = seed_cluster(4)
+    out = list(glued(tet, P))
+    assert [tri for tri, _ in out] == [(0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)]
+    assert all(p.m == 9 for _, p in out)
+    assert len({certificate_key(p) for _, p in out}) == 1
+
+
+def test_moving_a_sphere_finds_the_cluster_of_11_no_path_reaches():
+    """tests/data/n11_glued.json: a path cluster of 11 whose sphere 0, moved onto the contact triangle
+    (1, 5, 8), gives the rigid hcp fragment of 26 contacts that no path reaches (the one
+    n11_catalysis.json gets from a cluster of 12); nothing else new and rigid is found from it."""
+    from packings.workers.classify import lattice_type
+
+    c, data = _glued_n11()
+    seen = Seen(P.tol_d)
+    assert seen.add(c)
+    rigid = [mv for mv in moved_remainders(c, P, seen) if mv.remainder is not None and mv.remainder.rigid]
+    lost = [mv for mv in rigid if certificate_key(mv.remainder.cluster) == data["certificate"]]
+    assert len(lost) == 1
+    mv = lost[0]
+    assert (mv.sphere, mv.triangle) == (data["sphere"], tuple(data["triangle"]))
+    r = mv.remainder
+    assert (r.cluster.n, r.cluster.m, r.rigidity.kind) == (11, 26, "prestress")
+    assert lattice_type(r.cluster.coords, r.cluster.contacts) == "hcp"
+    # the remainder's spheres: the cluster's without the moved one, in order, then the moved one
+    assert np.array_equal(r.cluster.coords[:-1], np.delete(c.coords, mv.sphere, axis=0))
+    assert sum(1 for mv in rigid if certificate_key(mv.remainder.cluster) == certificate_key(c)) == 0
+
+
+def test_a_remainder_seen_is_not_decided_again():
+    c, _ = _glued_n11()
+    seen = Seen(P.tol_d)
+    first = list(moved_remainders(c, P, seen))
+    decided = sum(mv.remainder is not None for mv in first)
+    assert decided > 0 and len(seen) >= decided
+    again = list(moved_remainders(c, P, seen))
+    assert [(mv.sphere, mv.triangle, mv.side) for mv in again] == [(mv.sphere, mv.triangle, mv.side) for mv in first]
+    assert all(mv.remainder is None for mv in again)
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(st.sampled_from(sorted(N10)), st.integers(0, 2**31 - 1), st.booleans())
+def test_a_cluster_relabelled_rotated_and_reflected_is_seen(name, seed, reflect):
+    seen = Seen(P.tol_d)
+    assert seen.add(N10[name])
+    assert not seen.add(moved(N10[name], np.random.default_rng(seed), reflect)[0])
+    assert all(seen.add(N10[other]) for other in sorted(N10) if other != name)
+
+
+def test_two_geometries_of_one_graph_are_both_new():
+    data = json.loads((DATA / "n11_two_geometries.json").read_text())
+    a, b = (Cluster.from_dict(c) for c in data["clusters"][:2])
+    assert certificate_key(a) == certificate_key(b)
+    seen = Seen(P.tol_d)
+    assert seen.add(a) and seen.add(b) and len(seen) == 2
+
+
+@settings(max_examples=4, deadline=None, derandomize=True)
+@given(st.integers(0, 2**31 - 1), st.booleans())
+def test_moving_spheres_of_a_relabelled_rotated_reflected_cluster_finds_the_same(seed, reflect):
+    c, _ = _glued_n11()
+    other, _ = moved(c, np.random.default_rng(seed), reflect)
+
+    def found(x):
+        return Counter(certificate_key(mv.remainder.cluster) for mv in moved_remainders(x, P, Seen(P.tol_d))
+                       if mv.remainder is not None and mv.remainder.rigid)
+    assert found(c) == found(other)
