@@ -15,6 +15,10 @@ moves each sphere of every stored cluster of n onto each of its contact triangle
 n + 1 is needed; a remainder whose contact graph and pair distances are those of a stored cluster,
 or of one decided earlier in the pass, is not decided again.
 
+The parents are decided in this process, or (the command line) by Dask tasks, a batch of parents each
+(:func:`catalysis_task`), on a local cluster or an existing one, as ``packings enumerate`` runs its
+expansions; what a task found is stored by the caller.
+
 Writes are batched: one transaction per batch of parents, taking the certificate locks
 (:func:`packings.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
 being enumerated, and an interrupted catalysis keeps what it committed (running it again finds those
@@ -24,6 +28,7 @@ stored: it is idempotent).
 from __future__ import annotations
 
 import json
+import threading
 import uuid
 from dataclasses import asdict, dataclass, field
 from typing import Callable
@@ -90,6 +95,14 @@ def count_stored(Session_: sessionmaker, n: int) -> int:
         return s.execute(select(func.count()).select_from(ClusterRow).where(ClusterRow.n == n)).scalar_one()
 
 
+def parents_stored(Session_: sessionmaker, source: int) -> int:
+    """How many clusters of ``source`` spheres (a pass's parents) are stored; :class:`NoParents` if none."""
+    total = count_stored(Session_, source)
+    if total == 0:
+        raise NoParents(f"no clusters of {source} spheres stored: run `packings enumerate {source}` first")
+    return total
+
+
 def run_for(Session_: sessionmaker, n: int, params: Params) -> int:
     """The id of the run of (n, params): the stored one, or a new one created and seeded by
     :func:`packings.store.start_run` (as ``packings enumerate`` would) and let go at once."""
@@ -105,62 +118,157 @@ def run_for(Session_: sessionmaker, n: int, params: Params) -> int:
     return info.id
 
 
-def _rows(Session_: sessionmaker, n: int, batch: int):
-    """The stored clusters of n (id, coords, contact list), ``batch`` at a time, by id."""
-    last = 0
-    while True:
-        with Session_() as s:
-            rows = s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
-                             .where(ClusterRow.n == n, ClusterRow.id > last).order_by(ClusterRow.id).limit(batch)).all()
-        if not rows:
-            return
-        last = rows[-1].id
-        yield rows
+class _Rows:
+    """The stored clusters of n (id, coords, contact list), ``batch`` at a time, by id; iterated again, it
+    goes on after the last id it gave (clusters stored since are read then)."""
+
+    def __init__(self, Session_: sessionmaker, n: int, batch: int):
+        self.Session_, self.n, self.batch, self.last = Session_, n, batch, 0
+
+    def __iter__(self):
+        while True:
+            with self.Session_() as s:
+                rows = s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
+                                 .where(ClusterRow.n == self.n, ClusterRow.id > self.last)
+                                 .order_by(ClusterRow.id).limit(self.batch)).all()
+            if not rows:
+                return
+            self.last = rows[-1].id
+            yield rows
+
+
+def stored_seen(Session_: sessionmaker, n: int, tol_d: float, batch: int = BATCH) -> Seen:
+    """Every stored cluster of n (of any run), as :class:`packings.workers.catalysis.Seen` has them: the
+    remainders a pass of ``glued`` does not decide again."""
+    seen = Seen(tol_d)
+    for rows in _Rows(Session_, n, batch):
+        for _, coords, contact_list in rows:  # plain clusters: their canonical forms are not kept
+            seen.add(Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3),
+                             tuple(map(tuple, json.loads(contact_list)))))
+    return seen
+
+
+@dataclass
+class Decided:
+    """What one batch of parents gave: the rigid remainders ((parent id, Remainder, certificate, triangle
+    moved onto or None)), the parents, the remainders decided and (``glued``) those seen already."""
+
+    found: list = field(default_factory=list)
+    parents: int = 0
+    remainders: int = 0
+    seen: int = 0
+
+
+def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
+           seen: Seen | None = None) -> Decided:
+    """The remainders of one batch of stored parents ``rows`` ((id, coords, contact list) as stored: of n +
+    ``spheres`` spheres, or with ``glued`` of n, whose spheres are moved one at a time, ``seen`` being the
+    remainders not to decide again, which grows with those decided).  Pure computation: the same in this
+    process or in a Dask task (:func:`catalysis_task`)."""
+    source = n if glued else n + spheres
+    out = Decided()
+    for pid, coords, contact_list in rows:
+        parent = core_cluster(source, coords, contact_list)
+        out.parents += 1
+        if glued:
+            for mv in moved_remainders(parent, params, seen):
+                if mv.remainder is None:
+                    out.seen += 1
+                elif mv.remainder.rigid:
+                    out.remainders += 1
+                    out.found.append((pid, mv.remainder, certificate_key(mv.remainder.cluster), mv.triangle))
+                else:
+                    out.remainders += 1
+            continue
+        out.remainders += remainder_count(parent.n, spheres)
+        for r in rigid_remainders(parent, spheres, params):
+            out.found.append((pid, r, certificate_key(r.cluster), None))
+    return out
 
 
 def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, batch: int = BATCH,
-             on_progress: Callable[[int, int], None] | None = None, glued: bool = False) -> CatalysisReport:
+             on_progress: Callable[[int, int], None] | None = None, glued: bool = False,
+             client=None, plugin: str | None = None) -> CatalysisReport:
     """Delete ``spheres`` spheres from every stored cluster of n + ``spheres`` (with ``glued``: move one
     sphere of every stored cluster of n) and store the new rigid remainders in the run of (n, params)
-    (module doc).  ``on_progress(parents done, parents)`` after each batch.  Raises :class:`NoParents`
-    when no cluster of n + spheres (with ``glued``: of n) is stored."""
+    (module doc).  The parents are read by id as the pass goes, so that with ``glued`` the clusters it
+    stores are moved in their turn.  ``on_progress(parents done, parents)`` after each batch.  Raises
+    :class:`NoParents` when no cluster of n + spheres (with ``glued``: of n) is stored.
+
+    With a Dask ``client`` (whose workers have the :class:`packings.plugin.DatabasePlugin` named ``plugin``),
+    each batch of parents is decided by a task on a worker (:func:`catalysis_task`), a few
+    per worker at a time, and stored here as its task completes; with ``glued`` each worker process keeps
+    its own record of what it has seen (the stored clusters, then what it decided), so that a remainder
+    may be decided once per worker rather than once: what is stored is the same."""
     if glued and spheres != 1:
         raise ValueError("catalysis of glued clusters moves one sphere")
     source = n if glued else n + spheres
-    total = count_stored(Session_, source)
-    if total == 0:
-        raise NoParents(f"no clusters of {source} spheres stored: run `packings enumerate {source}` first")
+    total = parents_stored(Session_, source)
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, spheres, run_id, glued=glued)
-    seen = Seen(params.tol_d)
-    if glued:  # every stored cluster of n, of any run, is seen already
-        for rows in _rows(Session_, n, batch):
-            for _, coords, contact_list in rows:
-                seen.add(Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3),
-                                 tuple(map(tuple, json.loads(contact_list)))))
-    for rows in _rows(Session_, source, batch):
-        found = []
-        for pid, coords, contact_list in rows:
-            parent = core_cluster(source, coords, contact_list)
-            report.parents += 1
-            if glued:
-                for mv in moved_remainders(parent, params, seen):
-                    if mv.remainder is None:
-                        report.seen += 1
-                        continue
-                    report.remainders += 1
-                    if mv.remainder.rigid:
-                        found.append((pid, mv.remainder, certificate_key(mv.remainder.cluster), mv.triangle))
-                continue
-            report.remainders += remainder_count(parent.n, spheres)
-            for r in rigid_remainders(parent, spheres, params):
-                found.append((pid, r, certificate_key(r.cluster), None))
-        report.rigid += len(found)
-        if found:
-            _store(Session_, n, run_id, params, found, report)
+
+    def absorb(d: Decided) -> None:
+        report.parents += d.parents
+        report.remainders += d.remainders
+        report.seen += d.seen
+        report.rigid += len(d.found)
+        if d.found:
+            _store(Session_, n, run_id, params, d.found, report)
         if on_progress is not None:
             on_progress(report.parents, total)
+
+    if client is None:
+        seen = stored_seen(Session_, n, params.tol_d, batch) if glued else None
+        for rows in _Rows(Session_, source, batch):
+            absorb(decide(rows, n, params, spheres, glued, seen))
+        return report
+    _distributed(client, plugin, _Rows(Session_, source, batch), n, params, spheres, glued, absorb)
     return report
+
+
+def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: int, glued: bool,
+                 absorb: Callable[[Decided], None]) -> None:
+    """Each batch a task (:func:`catalysis_task`), at most two per worker thread queued at a
+    time; ``absorb`` each result here as it completes.  ``batches`` reads the stored parents by id as it
+    is iterated, so that, as in one process, the clusters that tasks find become parents in their turn:
+    when it is exhausted while tasks are still running, it is read again once one of them is absorbed.
+    A task that fails stops the pass with its error (what was stored stays: the pass is idempotent)."""
+    from distributed import as_completed
+
+    pass_id = uuid.uuid4().hex  # each worker's record of what it has seen is this pass's alone
+    width = max(2, 2 * sum(client.nthreads().values()))
+    running = as_completed()
+    while True:
+        for rows in batches:
+            running.add(client.submit(catalysis_task, [tuple(r) for r in rows], n, params, spheres, glued, plugin,
+                                      pass_id, pure=False))
+            while running.count() >= width:
+                absorb(next(running).result())
+        if running.is_empty():
+            return
+        absorb(next(running).result())
+
+
+_SEEN_LOCK = threading.Lock()
+
+
+def catalysis_task(rows: list[tuple], n: int, params, spheres: int, glued: bool, plugin: str, pass_id: str):
+    """The Dask task of a catalysis pass: :func:`decide` of one batch of stored parents,
+    computed here and stored by the caller.  With ``glued``, this worker process's record of what it has
+    seen in the pass ``pass_id`` (the stored clusters of n, read once with this worker's engine, then what
+    its tasks decided) is kept between its tasks, and dropped when another pass begins."""
+    from distributed import get_worker
+
+    seen = None
+    if glued:
+        p = get_worker().plugins[plugin]
+        with _SEEN_LOCK:  # one worker's threads build it once
+            kept = getattr(p, "catalysis_seen", None)
+            if kept is None or kept[0] != pass_id:
+                p.catalysis_seen = None  # the last pass's, freed before this one's is read
+                p.catalysis_seen = kept = (pass_id, stored_seen(p.readers, n, params.tol_d))
+        seen = kept[1]
+    return decide(rows, n, params, spheres, glued, seen)
 
 
 def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, report: CatalysisReport) -> None:

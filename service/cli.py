@@ -157,23 +157,41 @@ def _offer_catalysis(url: str, n: int) -> None:
 @click.option("--glued", is_flag=True,
               help="Instead, move one sphere of every stored cluster of N onto each contact triangle (the "
                    "parents of N + 1 are made by gluing, not read: no run of N + 1 is needed).")
+@click.option("--workers", "n_workers", type=click.IntRange(1, 512), default=None,
+              help="Worker processes of the local Dask cluster (default: one per core).")
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Use an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.")
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, glued: bool,
-                 as_json: bool, quiet: bool) -> None:
+                 n_workers: int | None, scheduler: str | None, as_json: bool, quiet: bool) -> None:
     """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
     yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
     afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one).
-    With --glued, the clusters of N + 1 are those made by gluing a sphere onto a stored cluster of N."""
+    With --glued, the clusters of N + 1 are those made by gluing a sphere onto a stored cluster of N.
+    The parents are shared out among the workers of a local Dask cluster, or of an existing one."""
     check_n(n)
     if glued and k != 1:
         raise click.UsageError("--glued moves one sphere: --spheres must be 1")
     check_n(n + k)
+    if n_workers is not None and scheduler is not None:
+        raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
     params = Params(max_break=max_break, min_contacts=min_contacts)
-    from packings.catalysis import NoParents, catalyse, format_report
-    from packings.db import sessions
+    from packings.dask_cluster import dask_client, start_fork_server
 
+    if scheduler is None:
+        start_fork_server()  # the local cluster's workers load what they need while the database is opened
+    from packings.catalysis import NoParents, catalyse, format_report, parents_stored
+    from packings.db import sessions
+    from packings.plugin import DatabasePlugin
+
+    url = resolve_url(db_url)
     engine = open_db(db_url)
+    try:
+        parents_stored(sessions(engine, readonly=True), n if glued else n + k)  # said before Dask starts
+    except NoParents as e:
+        engine.dispose()
+        raise click.ClickException(str(e)) from None
     from tqdm import tqdm
 
     bar = tqdm(total=0, unit="cluster", desc=f"clusters of {n if glued else n + k}", file=sys.stderr,
@@ -184,8 +202,16 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
         bar.n = done
         bar.refresh()
 
+    plugin = DatabasePlugin(url)
     try:
-        report = catalyse(sessions(engine), n, params, spheres=k, on_progress=progress, glued=glued)
+        with dask_client(scheduler, n_workers, quiet or as_json, plugins=(plugin,)) as dask:
+            client = dask.client
+            if scheduler:  # an existing cluster's workers get the engine now (a local one's as they started)
+                client.register_plugin(plugin)
+            report = catalyse(sessions(engine), n, params, spheres=k, on_progress=progress, glued=glued,
+                              client=client, plugin=plugin.name)
+    except KeyboardInterrupt as e:  # what was stored stays (the pass is idempotent): one line
+        raise _stopped(e) from None
     except NoParents as e:
         raise click.ClickException(str(e)) from None
     finally:

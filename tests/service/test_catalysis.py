@@ -138,16 +138,22 @@ def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):
         assert s.execute(text("SELECT count(*) FROM expansions WHERE cluster_id = :i"), {"i": row.id}).scalar() == 1
 
 
-def test_moving_one_sphere_stores_the_lost_cluster_of_11_from_a_cluster_of_11(engine):
-    """tests/data/n11_glued.json: with --glued no cluster of 12 is needed; the lost cluster is stored with
-    the cluster of 11 it came from as its source, and a second pass finds it stored (and does not decide
-    it again)."""
+def _glued_parent_of_11(engine):
+    """tests/data/n11_glued.json, its cluster of 11 stored: (the data, sessions, the cluster's id)."""
     data = json.loads((DATA / "n11_glued.json").read_text())
     c = Core(np.array(data["cluster"]["coords"]), tuple(map(tuple, data["cluster"]["contacts"])))
     S = sessions(engine)
     with S.begin() as s:
         pid, _ = store.insert_or_match(s, c, rigidity(c.coords, c.contacts, Params()), None, Params().tol_d,
                                        found_by="path", source_id=None)
+    return data, S, pid
+
+
+def test_moving_one_sphere_stores_the_lost_cluster_of_11_from_a_cluster_of_11(engine):
+    """tests/data/n11_glued.json: with --glued no cluster of 12 is needed; the lost cluster is stored with
+    the cluster of 11 it came from as its source, and a second pass finds it stored (and does not decide
+    it again)."""
+    data, S, pid = _glued_parent_of_11(engine)
     r = catalyse(S, 11, Params(), glued=True)
     assert r.glued and r.seen > 0 and r.remainders > 0
     lost = [f for f in r.new if (f.moved_onto, f.deleted) == (tuple(data["triangle"]), (data["sphere"],))]
@@ -185,5 +191,57 @@ def test_catalyse_glued_command(engine):
     r = cli("catalyse", "6", "--glued", "--db", url, "--quiet")
     assert r.returncode == 0, r.stderr
     assert "by moving one sphere" in r.stdout and "clusters 2," in r.stdout and "new 0" in r.stdout
-    out = json.loads(cli("catalyse", "6", "--glued", "--db", url, "--json").stdout)
+    out = json.loads(cli("catalyse", "6", "--glued", "--db", url, "--json", "--workers", "1").stdout)
     assert out["glued"] and out["parents"] == 2 and out["new"] == []
+    line = one_line_error(cli("catalyse", "6", "--glued", "--db", url, "--workers", "2", "--scheduler", "tcp://h:1"))
+    assert "not both" in line
+
+
+def _dask_pass(engine, n: int, batch: int = 200, **kw):
+    """A pass of catalysis on a Dask cluster of two worker threads (of this process) with the database plugin."""
+    from distributed import Client, LocalCluster
+
+    from packings.plugin import DatabasePlugin
+
+    plugin = DatabasePlugin(url_of(engine))
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        client.register_plugin(plugin)
+        return catalyse(sessions(engine), n, Params(), batch=batch, client=client, plugin=plugin.name, **kw)
+
+
+def test_a_pass_on_dask_workers_finds_what_a_pass_in_this_process_finds(engine):
+    """Moving one sphere of the clusters of 7, one parent a task shared out between two workers (each
+    with its own record of what it has seen): every moved sphere is decided or seen, as in one process,
+    and the rigid remainders are the stored clusters, as in one process."""
+    fill_database(engine, 7)
+    S = sessions(engine)
+    here = catalyse(S, 7, Params(), glued=True)
+    there = _dask_pass(engine, 7, batch=1, glued=True)
+    assert there.parents == here.parents == 5
+    assert there.remainders + there.seen == here.remainders + here.seen
+    assert there.remainders >= here.remainders  # two records of what was seen decide no less than one
+    assert there.new == here.new == [] and there.rigid == there.already_stored
+    fill_database(engine, 6)
+    deleted = _dask_pass(engine, 6, batch=2)  # deleting a sphere from each cluster of 7: the 2 of 6 again
+    assert (deleted.parents, deleted.remainders) == (5, 35) and deleted.new == []
+    assert deleted.rigid == deleted.already_stored > 0
+
+
+def test_the_lost_cluster_of_11_is_stored_by_a_pass_on_dask_workers(engine):
+    """tests/data/n11_glued.json on Dask workers: the cluster no path reaches is stored with its origin, once,
+    and the clusters found are moved in their turn; a second pass (a new record of what was seen) and a
+    pass in this process find nothing more."""
+    data, S, pid = _glued_parent_of_11(engine)
+    r = _dask_pass(engine, 11, glued=True)
+    lost = [f for f in r.new if (f.moved_onto, f.deleted) == (tuple(data["triangle"]), (data["sphere"],))]
+    assert len(lost) == 1 and (lost[0].contacts, lost[0].lattice, lost[0].parent_id) == (26, "hcp", pid)
+    with S() as s:
+        row = s.get(ClusterRow, lost[0].id)
+        assert (row.found_by, row.certificate) == (FOUND_CATALYSIS, data["certificate"])
+        stored = s.execute(select(func.count()).select_from(ClusterRow)).scalar_one()
+    again = _dask_pass(engine, 11, glued=True)
+    assert again.new == [] and again.parents == stored and again.rigid == again.already_stored
+    # the clusters found were moved in their turn, as one process moves them: it finds nothing more
+    here = catalyse(S, 11, Params(), glued=True)
+    assert here.new == [] and here.parents == stored
