@@ -8,7 +8,11 @@ of many machines loads it as a preload::
     PACKINGS_DB=postgresql://user@db-host/packings dask scheduler --preload packings.dashboard
 
 What the page shows comes from a thread that reads the database every
-:data:`POLL_SECONDS` (never the scheduler's event loop, which a query would stall):
+:data:`POLL_SECONDS` (never the scheduler's event loop, which a query would stall)
+while the page or its JSON has been looked at in the last :data:`IDLE_SECONDS`, and
+then at most :data:`READ_SHARE` of its time: the thread shares the coordinator's
+cores with the workers, and at n = 13 one read takes a few tenths of a second
+(docs/performance.md).  What it shows:
 the run being driven (the one whose coordinator is alive, else the latest), its
 clusters by number of contacts, its frontier (pending, leased, done, failed), the
 faults recovered, expansions per second over the last minute, an estimate of the
@@ -29,7 +33,9 @@ from collections import deque
 
 log = logging.getLogger(__name__)
 
-POLL_SECONDS = 1.0  #: how often the database is read
+POLL_SECONDS = 1.0  #: how often the database is read while the page is looked at
+READ_SHARE = 0.05  #: the largest share of the time the reads may take (a read of t s waits t / READ_SHARE - t after)
+IDLE_SECONDS = 120.0  #: with neither the page nor its JSON asked for in this long, the database is not read
 RATE_WINDOW = 60.0  #: seconds over which expansions per second are measured
 PAGE = "/packings"
 
@@ -42,16 +48,33 @@ class Watcher(threading.Thread):
         self.url = url
         self.snapshot: dict = {}
         self.history: deque[tuple[float, int]] = deque()  # (monotonic time, expansions done)
+        self.reads = 0
         self._engine = None
+        self._viewed = time.monotonic()  # the first IDLE_SECONDS count as looked at
+        self._looked = threading.Event()
+
+    def looked_at(self) -> dict:
+        """The snapshot, for the page or its JSON: reading goes on (or starts again at once) for IDLE_SECONDS."""
+        self._viewed = time.monotonic()
+        self._looked.set()
+        return self.snapshot
 
     def run(self) -> None:
         """For as long as the process lives (a daemon thread: the scheduler's process)."""
         while True:
+            start = time.monotonic()
             try:
                 self.snapshot = self.read()
             except Exception as e:  # noqa: BLE001 - shown on the page; the next read may succeed
                 self.snapshot = {**self.snapshot, "error": f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"}
-            time.sleep(POLL_SECONDS)
+            self.reads += 1
+            took = time.monotonic() - start
+            time.sleep(max(POLL_SECONDS, took / READ_SHARE) - took)
+            while True:  # nobody looks: wait until somebody does
+                self._looked.clear()
+                if time.monotonic() - self._viewed <= IDLE_SECONDS:
+                    break
+                self._looked.wait()
 
     def read(self) -> dict:
         from packings.db import make_engine, sessions
@@ -121,7 +144,8 @@ def watch(url: str) -> Watcher:
 
 
 def current() -> dict:
-    return _CURRENT[0].snapshot if _CURRENT else {"run": None, "error": "no database: set PACKINGS_DB"}
+    """What the page and its JSON show (which keeps the watching thread reading)."""
+    return _CURRENT[0].looked_at() if _CURRENT else {"run": None, "error": "no database: set PACKINGS_DB"}
 
 
 # --------------------------------------------------------------------------- the page

@@ -14,6 +14,8 @@ import pytest
 from sqlalchemy import text
 
 from benchmarks.screenshot import render
+from packings import dashboard
+from packings.dashboard import Watcher
 from packings.db import make_engine
 from tests.service.test_enumerate import _free_port, done_count, packings, wait_for
 
@@ -99,3 +101,51 @@ def test_a_taken_dashboard_port_is_said(sqlite_url):
     assert r.returncode == 0, r.stderr
     assert f"packings: dashboard port {port} is taken; serving it on " in r.stderr
     assert "UserWarning" not in r.stderr
+
+
+class _Slow(Watcher):
+    """A watcher whose read of the database takes ``seconds``."""
+
+    def __init__(self, seconds: float):
+        super().__init__("sqlite:///unused.db")
+        self.seconds = seconds
+
+    def read(self) -> dict:
+        time.sleep(self.seconds)
+        return {"run": None, "reads": self.reads + 1}
+
+
+def _reads_over(w: Watcher, seconds: float, look: bool) -> int:
+    """How many reads ``w`` makes in ``seconds`` after it starts, looked at every 0.05 s or not at all."""
+    w.start()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if look:
+            w.looked_at()
+        time.sleep(0.05)
+    return w.reads
+
+
+def test_reads_take_at_most_their_share_of_the_time(monkeypatch):
+    """Looked at all the time, a watcher whose reads take 0.2 s reads every 4 s at READ_SHARE 0.05, not
+    every POLL_SECONDS: 1 or 2 reads in 3 s (a fast read: every POLL_SECONDS)."""
+    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
+    assert 1 <= _reads_over(_Slow(0.2), 3.0, look=True) <= 2
+    assert _reads_over(_Slow(0.0), 1.5, look=True) >= 5
+
+
+def test_nobody_looking_nothing_is_read_and_a_look_reads_at_once(monkeypatch):
+    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
+    monkeypatch.setattr(dashboard, "IDLE_SECONDS", 0.3)
+    w = _Slow(0.0)
+    idle = _reads_over(w, 2.0, look=False)
+    assert 1 <= idle <= 6  # the first IDLE_SECONDS count as looked at, then nothing
+    time.sleep(0.5)
+    assert w.reads == idle
+    snap = w.looked_at()
+    assert snap["reads"] == idle  # what was read last, at once
+    for _ in range(100):
+        if w.reads > idle:
+            break
+        time.sleep(0.02)
+    assert w.reads > idle and w.looked_at()["reads"] > idle
