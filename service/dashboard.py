@@ -63,13 +63,17 @@ class Watcher(threading.Thread):
         """For as long as the process lives (a daemon thread: the scheduler's process)."""
         while True:
             start = time.monotonic()
+            pause = POLL_SECONDS
             try:
                 self.snapshot = self.read()
             except Exception as e:  # noqa: BLE001 - shown on the page; the next read may succeed
                 self.snapshot = {**self.snapshot, "error": f"{type(e).__name__}: {str(e).splitlines()[0][:200]}"}
+            else:  # the first read's time is mostly imports and the engine's start: not what reads cost
+                took = time.monotonic() - start
+                if self.reads:
+                    pause = max(POLL_SECONDS, took / READ_SHARE) - took
             self.reads += 1
-            took = time.monotonic() - start
-            time.sleep(max(POLL_SECONDS, took / READ_SHARE) - took)
+            time.sleep(pause)
             while True:  # nobody looks: wait until somebody does
                 self._looked.clear()
                 if time.monotonic() - self._viewed <= IDLE_SECONDS:
