@@ -204,7 +204,7 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
 
     plugin = DatabasePlugin(url)
     try:
-        with dask_client(scheduler, n_workers, quiet or as_json, plugins=(plugin,)) as dask:
+        with dask_client(scheduler, n_workers, quiet or as_json, plugins=(plugin,), database=url) as dask:
             client = dask.client
             if scheduler:  # an existing cluster's workers get the engine now (a local one's as they started)
                 client.register_plugin(plugin)
