@@ -174,11 +174,10 @@ def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
             for mv in moved_remainders(parent, params, seen):
                 if mv.remainder is None:
                     out.seen += 1
-                elif mv.remainder.rigid:
-                    out.remainders += 1
+                    continue
+                out.remainders += 1
+                if mv.remainder.rigid:
                     out.found.append((pid, mv.remainder, certificate_key(mv.remainder.cluster), mv.triangle))
-                else:
-                    out.remainders += 1
             continue
         out.remainders += remainder_count(parent.n, spheres)
         for r in rigid_remainders(parent, spheres, params):
