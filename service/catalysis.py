@@ -19,6 +19,11 @@ The parents are decided in this process, or (the command line) by Dask tasks, a 
 (:func:`catalysis_task`), on a local cluster or an existing one, as ``packings enumerate`` runs its
 expansions; what a task found is stored by the caller.
 
+With ``close_packed`` (:func:`close_packed_pass`), there are no parents: every close-packed fragment
+of n spheres with at least that many contacts (:func:`packings.workers.fragments.close_packed`) is
+decided as a remainder is, and the rigid ones not yet stored are stored with ``found_by =
+'close-packed'`` and no source.  The fragments are listed and decided in this process.
+
 Writes are batched: one transaction per batch of parents, taking the certificate locks
 (:func:`packings.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
 being enumerated, and an interrupted catalysis keeps what it committed (running it again finds those
@@ -39,8 +44,9 @@ from sqlalchemy.orm import sessionmaker
 
 from packings import store
 from packings.owners import process_name
-from packings.models import FOUND_CATALYSIS, RUNNING, ClusterRow, Run, core_cluster
-from packings.workers.catalysis import Seen, moved_remainders, remainder_count, rigid_remainders
+from packings.models import FOUND_CATALYSIS, FOUND_CLOSE_PACKED, RUNNING, ClusterRow, Run, core_cluster
+from packings.workers.catalysis import Seen, moved_remainders, remainder, remainder_count, rigid_remainders
+from packings.workers.fragments import close_packed
 from packings.workers.cluster import Cluster
 from packings.workers.identity import certificate_key
 from packings.workers.params import Params
@@ -56,10 +62,10 @@ class NoParents(Exception):
 class Found:
     """A cluster catalysis stored: its id, the parent's id and the parent's spheres deleted (with
     ``glued``: the parent is the stored cluster of n, and its sphere ``deleted`` was moved onto the
-    contact triangle ``moved_onto``)."""
+    contact triangle ``moved_onto``; a close-packed fragment has no parent: None and ())."""
 
     id: int
-    parent_id: int
+    parent_id: int | None
     deleted: tuple[int, ...]
     contacts: int
     lattice: str
@@ -71,12 +77,14 @@ class CatalysisReport:
     """What :func:`catalyse` did: parents read, remainders tested (every deleted set of every parent;
     with ``glued``, those decided), rigid remainders (by the endpoint rule), rigid remainders already
     stored, and the new clusters; with ``glued``, ``seen``: remainders not decided, as a stored cluster
-    or one decided earlier has their contact graph and pair distances."""
+    or one decided earlier has their contact graph and pair distances.  With ``close_packed`` (the
+    fewest contacts of the fragments listed), ``parents`` and ``remainders`` are the fragments."""
 
     n: int
     spheres: int
     run_id: int
     glued: bool = False
+    close_packed: int | None = None
     seen: int = 0
     parents: int = 0
     remainders: int = 0
@@ -225,6 +233,31 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     return report
 
 
+def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contacts: int, batch: int = BATCH,
+                      on_progress: Callable[[int, int], None] | None = None) -> CatalysisReport:
+    """Every close-packed fragment of n spheres with at least ``min_contacts`` contacts (module doc), decided
+    by the endpoint rule (:func:`packings.workers.catalysis.remainder` with nothing deleted); the rigid ones
+    (with at least ``params.min_contacts`` contacts if that is set) not yet stored go into the run of
+    (n, params), each with an expansion, one transaction per ``batch``.  ``on_progress(done, fragments)``."""
+    fragments = close_packed(n, min_contacts, params)
+    run_id = run_for(Session_, n, params)
+    report = CatalysisReport(n, 0, run_id, close_packed=min_contacts)
+    for a in range(0, len(fragments), batch):
+        found = []
+        for f in fragments[a:a + batch]:
+            r = remainder(f.cluster, (), params)
+            if r.rigid:
+                found.append((None, r, certificate_key(r.cluster), None))
+        report.parents += len(fragments[a:a + batch])
+        report.remainders += len(fragments[a:a + batch])
+        report.rigid += len(found)
+        if found:
+            _store(Session_, n, run_id, params, found, report, FOUND_CLOSE_PACKED)
+        if on_progress is not None:
+            on_progress(report.parents, len(fragments))
+    return report
+
+
 def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: int, glued: bool,
                  absorb: Callable[[Decided], None]) -> None:
     """Each batch a task (:func:`catalysis_task`), at most two per worker thread queued at a
@@ -270,9 +303,10 @@ def catalysis_task(rows: list[tuple], n: int, params, spheres: int, glued: bool,
     return decide(rows, n, params, spheres, glued, seen)
 
 
-def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, report: CatalysisReport) -> None:
-    """One transaction: the rigid remainders ``found`` ((parent id, Remainder, certificate)) inserted or
-    matched, expansions for those new to the run, the run reopened if it was not running."""
+def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, report: CatalysisReport,
+           found_by: str = FOUND_CATALYSIS) -> None:
+    """One transaction: the rigid remainders ``found`` ((parent id or None, Remainder, certificate, triangle))
+    inserted or matched, expansions for those new to the run, the run reopened if it was not running."""
     with Session_.kw["bind"].begin() as s:
         keys = {(n, cert) for _, _, cert, _ in found}
         store.lock_certificates(s, keys)
@@ -281,7 +315,7 @@ def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, r
         for pid, r, cert, onto in found:
             rows = stored[cert]
             cid, is_new = store.insert_or_match(s, r.cluster, r.rigidity, run_id, params.tol_d, rows,
-                                                found_by=FOUND_CATALYSIS, source_id=pid)
+                                                found_by=found_by, source_id=pid)
             if is_new:
                 inserted.append(cid)
                 report.new.append(Found(cid, pid, r.deleted, r.cluster.m, store.lattice_value(r.cluster), onto))
@@ -298,7 +332,10 @@ def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, r
 
 def format_report(r: CatalysisReport) -> str:
     """The report as a few lines of text."""
-    if r.glued:
+    if r.close_packed is not None:
+        lines = [f"close-packed fragments of n = {r.n} with at least {r.close_packed} contacts, run {r.run_id}:",
+                 f"  fragments {r.parents}, rigid {r.rigid}, already stored {r.already_stored}, new {len(r.new)}"]
+    elif r.glued:
         lines = [f"catalysis of n = {r.n} by moving one sphere of each stored cluster onto a contact triangle, "
                  f"run {r.run_id}:",
                  f"  clusters {r.parents}, remainders tested {r.remainders} (not again: {r.seen}), rigid {r.rigid}, "
@@ -309,7 +346,8 @@ def format_report(r: CatalysisReport) -> str:
                  f"  parents {r.parents}, remainders tested {r.remainders}, rigid {r.rigid}, "
                  f"already stored {r.already_stored}, new {len(r.new)}"]
     for f in r.new:
-        origin = (f"from cluster {f.parent_id} with sphere {f.deleted[0]} moved onto contact triangle "
+        origin = ("a close-packed fragment" if f.parent_id is None else
+                  f"from cluster {f.parent_id} with sphere {f.deleted[0]} moved onto contact triangle "
                   f"{tuple(f.moved_onto)}" if f.moved_onto is not None else
                   f"from cluster {f.parent_id} without sphere{'s' if len(f.deleted) > 1 else ''} "
                   + ", ".join(map(str, f.deleted)))

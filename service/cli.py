@@ -157,6 +157,10 @@ def _offer_catalysis(url: str, n: int) -> None:
 @click.option("--glued", is_flag=True,
               help="Instead, move one sphere of every stored cluster of N onto each contact triangle (the "
                    "parents of N + 1 are made by gluing, not read: no run of N + 1 is needed).")
+@click.option("--close-packed", "close_packed", type=click.IntRange(0, None), default=None, metavar="M",
+              help="No parents: every close-packed fragment of N spheres with at least M contacts (fcc, hcp and "
+                   "every other stacking), decided in this process; the rigid ones not yet stored are added "
+                   "(found_by = close-packed).")
 @click.option("--workers", "n_workers", type=click.IntRange(1, 512), default=None,
               help="Worker processes of the local Dask cluster (default: one per core).")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
@@ -164,13 +168,22 @@ def _offer_catalysis(url: str, n: int) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, glued: bool,
-                 n_workers: int | None, scheduler: str | None, as_json: bool, quiet: bool) -> None:
+                 close_packed: int | None, n_workers: int | None, scheduler: str | None, as_json: bool,
+                 quiet: bool) -> None:
     """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
     yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
     afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one).
     With --glued, the clusters of N + 1 are those made by gluing a sphere onto a stored cluster of N.
-    The parents are shared out among the workers of a local Dask cluster, or of an existing one."""
+    The parents are shared out among the workers of a local Dask cluster, or of an existing one.
+    With --close-packed M, there are no parents: the close-packed fragments of N spheres with at least
+    M contacts are listed and decided (finds, at N = 11, the cluster no path reaches)."""
     check_n(n)
+    if close_packed is not None:
+        if glued or k != 1 or n_workers is not None or scheduler is not None:
+            raise click.UsageError("--close-packed lists fragments in this process: "
+                                   "not with --glued, --spheres, --workers or --scheduler")
+        _close_packed(n, close_packed, db_url, Params(max_break=max_break, min_contacts=min_contacts), as_json, quiet)
+        return
     if glued and k != 1:
         raise click.UsageError("--glued moves one sphere: --spheres must be 1")
     check_n(n + k)
@@ -181,7 +194,7 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
 
     if scheduler is None:
         start_fork_server()  # the local cluster's workers load what they need while the database is opened
-    from packings.catalysis import NoParents, catalyse, format_report, parents_stored
+    from packings.catalysis import NoParents, catalyse, parents_stored
     from packings.db import sessions
     from packings.plugin import DatabasePlugin
 
@@ -217,12 +230,44 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     finally:
         bar.close()
         engine.dispose()
+    _echo_report(report, n, as_json)
+
+
+def _echo_report(report, n: int, as_json: bool) -> None:
+    """A catalysis report as JSON, or as text with what to run next."""
+    from packings.catalysis import format_report
+
     if as_json:
         click.echo(json.dumps(report.to_dict()))
         return
     click.echo(format_report(report))
     if report.new:
         click.echo(f"run `packings enumerate {n}` to expand them")
+
+
+def _close_packed(n: int, m: int, db_url: str | None, params: Params, as_json: bool, quiet: bool) -> None:
+    """``packings catalyse N --close-packed M``: the close-packed fragments, decided and stored."""
+    from tqdm import tqdm
+
+    from packings.catalysis import close_packed_pass
+    from packings.db import sessions
+
+    engine = open_db(db_url)
+    bar = tqdm(total=0, unit="fragment", desc=f"fragments of {n}", file=sys.stderr, disable=quiet or as_json or None)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    try:
+        report = close_packed_pass(sessions(engine), n, params, m, on_progress=progress)
+    except KeyboardInterrupt as e:  # what was stored stays (the pass is idempotent): one line
+        raise _stopped(e) from None
+    finally:
+        bar.close()
+        engine.dispose()
+    _echo_report(report, n, as_json)
 
 
 @cli.group("db")

@@ -53,6 +53,7 @@ FAILED = "failed"
 FOUND_SEED = "seed"  #: a run's starting cluster (packings.workers.seeds)
 FOUND_PATH = "path"  #: the endpoint of a path from clusters.source_id
 FOUND_CATALYSIS = "catalysis"  #: a remainder of clusters.source_id (more spheres) after deleting spheres
+FOUND_CLOSE_PACKED = "close-packed"  #: a close-packed fragment (packings.workers.fragments), no source
 
 # Run statuses.
 RUNNING = "running"
@@ -108,10 +109,10 @@ class ClusterRow(Base):
     #: NULL only for rows stored before revision 0002 until the backfill (``packings db upgrade``) ran
     lattice: Mapped[str | None] = mapped_column(String(16), nullable=True)
     found_in_run: Mapped[int | None] = mapped_column(ForeignKey("runs.id"), nullable=True)
-    #: FOUND_SEED, FOUND_PATH or FOUND_CATALYSIS: how the cluster was first found (revision 0003)
+    #: FOUND_SEED, FOUND_PATH, FOUND_CATALYSIS or FOUND_CLOSE_PACKED: how the cluster was first found (revision 0003)
     found_by: Mapped[str] = mapped_column(String(16), server_default=FOUND_PATH)
     #: the cluster it was found from: for a path, the cluster whose expansion reached it; for catalysis,
-    #: the cluster of more spheres it is a remainder of; None for a seed
+    #: the cluster of more spheres it is a remainder of; None for a seed and a close-packed fragment
     source_id: Mapped[int | None] = mapped_column(ForeignKey("clusters.id", name="fk_clusters_source_id"),
                                                   nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)

@@ -9,9 +9,10 @@ import numpy as np
 from sqlalchemy import func, select, text
 
 from packings import store
-from packings.catalysis import NoParents, catalyse
+from packings.catalysis import NoParents, catalyse, close_packed_pass
 from packings.db import sessions
-from packings.models import COMPLETE, DONE, FOUND_CATALYSIS, PENDING, RUNNING, ClusterRow, ExpansionRow, Run
+from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, PENDING, RUNNING, ClusterRow,
+                             ExpansionRow, Run)
 from tests.service.conftest import fill_database
 from tests.service.test_db import cli, one_line_error
 from packings.workers.cluster import Cluster as Core
@@ -117,6 +118,40 @@ def test_catalyse_command(engine, tmp_path):
     elsewhere.mkdir()
     assert "no database" in one_line_error(cli("catalyse", "6", "--db", f"sqlite:///{elsewhere / 'none.db'}"))
     assert list(elsewhere.iterdir()) == []  # nothing created
+
+
+def test_a_close_packed_pass_stores_the_octahedron_without_parents(engine):
+    """Into a complete run of 6 that holds only its seed (the polytetrahedron), the close-packed fragments of
+    6 with 12 contacts add the octahedron, found_by = close-packed with no source, pending in the run,
+    which is marked running again; a second pass finds it stored; enumerate then completes the run."""
+    run6 = _complete_after_the_seed(engine, 6)
+    S = sessions(engine)
+    r = close_packed_pass(S, 6, Params(), 12)
+    assert (r.run_id, r.parents, r.rigid, r.already_stored) == (run6, 1, 1, 0) and r.run_reopened
+    assert len(r.new) == 1 and (r.new[0].contacts, r.new[0].parent_id, r.new[0].lattice) == (12, None, "both")
+    with S() as s:
+        row = s.get(ClusterRow, r.new[0].id)
+        assert (row.found_by, row.source_id, row.found_in_run) == (FOUND_CLOSE_PACKED, None, run6)
+        exp = s.execute(select(ExpansionRow).where(ExpansionRow.cluster_id == row.id)).scalar_one()
+        assert (exp.run_id, exp.status) == (run6, PENDING)
+    again = close_packed_pass(S, 6, Params(), 12)
+    assert again.new == [] and again.already_stored == 1 and again.expansions_added == 0
+    r = cli("enumerate", "6", "--quiet", "--workers", "1", "--db", url_of(engine))
+    assert r.returncode == 0, r.stderr
+    assert "n = 6: 2 rigid clusters" in r.stdout
+
+
+def test_catalyse_close_packed_command(engine):
+    fill_database(engine, 7)
+    url = url_of(engine)
+    r = cli("catalyse", "7", "--close-packed", "15", "--db", url, "--quiet")
+    assert r.returncode == 0, r.stderr
+    assert "close-packed fragments of n = 7 with at least 15 contacts" in r.stdout and "new 0" in r.stdout
+    out = json.loads(cli("catalyse", "7", "--close-packed", "15", "--db", url, "--json").stdout)
+    assert out["close_packed"] == 15 and out["new"] == [] and out["rigid"] == out["already_stored"] > 0
+    for extra in (["--glued"], ["--spheres", "2"], ["--workers", "2"], ["--scheduler", "tcp://127.0.0.1:1"]):
+        line = one_line_error(cli("catalyse", "7", "--close-packed", "15", *extra, "--db", url))
+        assert "--close-packed lists fragments in this process" in line
 
 
 def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):

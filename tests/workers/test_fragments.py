@@ -1,0 +1,130 @@
+"""packings.workers.fragments: every close-packed fragment of n spheres with at least M contacts."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from packings.workers import fragments as F
+from packings.workers.catalysis import remainder
+from packings.workers.classify import lattice_type
+from packings.workers.cluster import Cluster, contacts_from_coords
+from packings.workers.identity import ClusterIndex, certificate_key
+from packings.workers.params import Params
+
+P = Params()
+DATA = Path(__file__).parent.parent / "data"
+
+
+def _all_connected(n: int, min_contacts: int) -> set[bytes]:
+    """The keys of every connected fragment of n sites with at least ``min_contacts`` contacts, grown
+    without thresholds (every connected fragment is kept at every size), in the same structures."""
+    keys = set()
+    for seq in F.sequences(F.max_layers(n, min_contacts)):
+        grown = F._grow(seq, n, [0] * (n + 1))
+        frags = np.array([f for f, c in grown.items() if c >= min_contacts], dtype=np.int64).reshape(-1, n)
+        keys.update(F._keys(F._coordinates(seq, frags)))
+    return keys
+
+
+@pytest.mark.parametrize("n, m", [(5, 7), (6, 11), (6, 12)])
+def test_the_thresholds_lose_no_fragment(n, m):
+    """The thresholds keep every fragment that growing every connected fragment finds."""
+    got = {F._keys(f.cluster.coords[None])[0] for f in F.close_packed(n, m)}
+    assert got == _all_connected(n, m) and got
+
+
+def test_no_fragment_spans_more_layers_than_the_bound_allows():
+    """Grown in structures of two layers more than max_layers, nothing with so many contacts spans them."""
+    n, m = 6, 11
+    layers = F.max_layers(n, m)
+    for seq in F.sequences(layers + 2)[:3]:
+        for frag, c in F._grow(seq, n, [0] * (n + 1)).items():
+            spanned = len({q // (F._S * F._S) for q in frag})
+            assert c <= F.layer_bound(n, spanned)
+            if spanned > layers:
+                assert c < m
+
+
+def test_layer_bound_small_cases():
+    assert F.layer_bound(4, 2) == 6  # the tetrahedron: a triangle and one sphere on it
+    assert F.layer_bound(6, 2) == 12  # the octahedron: two triangles
+    assert F.layer_bound(7, 1) == 12  # the hexagon with its centre
+    assert F.layer_bound(3, 4) == -1
+    assert max(F.layer_bound(13, L) for L in range(1, 14)) == 38  # an upper bound: the most is 36
+    assert F.max_layers(13, 39) == 0 and F.max_layers(13, 32) == 6
+
+
+def test_thresholds():
+    t = F.thresholds(13, 32)
+    assert t[13] == 32 and t[1] == 0
+    assert all(a <= b for a, b in zip(t, t[1:]))
+    for k in range(2, 14):  # a fragment of k with c >= t[k] has a sphere of degree <= 2c/k; without it, >= t[k-1]
+        assert all(c - (2 * c) // k >= t[k - 1] for c in range(t[k], 3 * k))
+
+
+def test_octahedron_and_the_fragments_of_six():
+    """Six spheres with 12 contacts: the octahedron is the one close-packed fragment (the other rigid cluster,
+    three tetrahedra about an edge, is not close-packed); with 11 contacts none is rigid."""
+    six = F.close_packed(6, 12)
+    assert len(six) == 1 and six[0].cluster.m == 12
+    assert lattice_type(six[0].cluster.coords, six[0].cluster.contacts) == "both"  # two layers: fcc and hcp
+    assert all(not remainder(f.cluster, (), P).rigid for f in F.close_packed(6, 11) if f.cluster.m == 11)
+
+
+def test_fragments_are_distinct_close_packed_and_keep_their_contacts():
+    frags = F.close_packed(8, 15)
+    index = ClusterIndex()
+    for f in frags:
+        c = f.cluster
+        assert c.m >= 15 and c.contacts == contacts_from_coords(c.coords, P.tol_a)
+        assert lattice_type(c.coords, c.contacts) in ("fcc", "hcp", "both", "random", "2d")
+        assert index.add(c, P.tol_d)[1]  # the identity tells every two apart
+        assert len(f.stacking) >= 1 and all(a != b for a, b in zip(f.stacking, f.stacking[1:]))
+
+
+_ANGLES = st.floats(min_value=-np.pi, max_value=np.pi, allow_nan=False)
+
+
+@settings(max_examples=25, deadline=None)
+@given(a=_ANGLES, b=_ANGLES, c=_ANGLES, reflect=st.booleans(), seed=st.integers(0, 2**31 - 1))
+def test_key_is_invariant_under_rotation_reflection_translation_and_relabelling(a, b, c, reflect, seed):
+    frags = F.close_packed(7, 14)
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
+    q = rx @ ry @ rz @ np.diag([1.0, 1.0, -1.0 if reflect else 1.0])
+    perm = np.random.default_rng(seed).permutation(7)
+    x = np.array([f.cluster.coords for f in frags])
+    y = (x @ q.T + np.array([0.3, -2.0, 5.0]))[:, perm]
+    assert F._keys(x) == F._keys(y)
+    assert len(set(F._keys(x))) == len(frags)
+
+
+def test_sorted_distances_alone_would_merge_two_fragments():
+    """Two close-packed fragments of 11 (26 contacts each) whose sorted pair distances are the same sphere by
+    sphere, with different contact graphs: the key keeps both apart."""
+    data = json.loads((DATA / "n11_homometric.json").read_text())["clusters"]
+    a, b = (Cluster(np.array(d["coords"]), tuple(map(tuple, d["contacts"]))) for d in data)
+
+    def rows(c):
+        d = np.sort(np.linalg.norm(c.coords[:, None] - c.coords[None], axis=-1).round(6), axis=1)
+        return d[np.lexsort(d.T[::-1])]
+
+    assert np.array_equal(rows(a), rows(b))
+    assert certificate_key(a) != certificate_key(b)
+    assert F._keys(a.coords[None]) != F._keys(b.coords[None])
+
+
+@pytest.mark.slow
+def test_the_lost_cluster_of_11_is_a_close_packed_fragment():
+    """Among the close-packed fragments of 11 with at least 26 contacts is the cluster no path reaches
+    (tests/data/n11_catalysis.json), rigid by the endpoint rule."""
+    data = json.loads((DATA / "n11_catalysis.json").read_text())
+    found = [r for r in (remainder(f.cluster, (), P) for f in F.close_packed(11, 26))
+             if r.rigid and certificate_key(r.cluster) == data["certificate"]]
+    assert len(found) == 1
+    assert (found[0].cluster.m, lattice_type(found[0].cluster.coords, found[0].cluster.contacts)) == (26, "hcp")

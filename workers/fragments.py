@@ -1,0 +1,233 @@
+"""Close-packed fragments: every set of n sites of a close-packed structure with at least M contacts.
+
+Pure Python and numpy; no database or Dask imports.
+
+Why.  The path enumeration finds the rigid clusters connected to its seed by one-dimensional paths,
+and some clusters are reached by none (docs/method.md, "Catalysis"): at n = 11 a fragment of the
+hcp lattice with 26 contacts from which every broken contact leaves a set of dimension 0 or 2.
+Catalysis finds such clusters from the clusters of n + 1, or by moving one sphere of the stored
+clusters of n; this module lists the close-packed ones directly, for any n, without a catalogue.
+
+Structures.  A close-packed structure is a stack of triangular layers of unit spacing,
+sqrt(2/3) apart, each layer in one of the three positions A, B, C of the plane, and two adjacent
+layers in different positions: fcc is ABCABC..., hcp ABAB..., every other sequence a random
+stacking.  A fragment of n spheres whose centres span L consecutive layers lies in the structure of
+L layers with some sequence; every sequence beginning with A is tried (moving every layer by a third of
+a lattice vector turns A into B, B into C and C into A, so any other sequence is one of those, moved).  Only spheres in adjacent layers or in one layer can
+touch (layers two apart are 2 sqrt(2/3) > 1 apart), so the contacts of a fragment with n_1 ... n_L
+spheres in its layers are at most the sum of
+
+* within a layer of a spheres: 3a - sqrt(12a - 3), rounded down, the most unit distances among a
+  points of the triangular lattice (Harborth, Elem. Math. 29, 1974);
+* between adjacent layers of a and b spheres: their contacts form a subgraph of the honeycomb
+  lattice (the sites of one layer and the hollows of it that the next layer covers), planar with
+  girth 6, so at most max(a + b - 1, 3(a + b - 2) / 2) edges, and at most 3 min(a, b) (a sphere
+  touches at most three of an adjacent layer).
+
+:func:`layer_bound` maximises that over n_1 + ... + n_L = n; a fragment with at least M contacts
+spans at most :func:`max_layers` layers.
+
+Growth.  Fragments are grown from one site, a touching site at a time, keeping at size k only those
+with at least T(k) contacts (:func:`thresholds`).  T(n) = M, and T(k - 1) = T(k) - floor(2 T(k) / k):
+a fragment of k spheres with c >= T(k) contacts has a sphere of at most the average degree
+floor(2c / k), and without it c - floor(2c / k) >= T(k - 1) contacts are left.  So every fragment with
+at least M contacts is reached through fragments that meet the thresholds, provided that at each
+size one of its spheres of at most average degree leaves the rest connected (growth adds touching
+sites only).  That proviso is the method's one assumption: for a disconnected remainder a sphere
+must join two pieces that touch it, which takes a cut sphere of least degree in a fragment dense
+enough to meet the thresholds.  The tests compare with every connected fragment, unfiltered, for
+small n.
+
+Fragments are told apart by a congruence invariant (:func:`_keys`: for each sphere, its distances
+to the others, each with that other sphere's own sorted distances): the same for congruent
+fragments, however placed and numbered.  Sorted distances alone are not enough: at n = 11, two of
+the 790 fragments with at least 26 contacts that the identity tells apart have the same sorted
+distances sphere by sphere.  What is stored is decided by the identity of the catalogue
+(:mod:`packings.workers.identity`), not by this key.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from packings.workers import kernels
+from packings.workers.cluster import Cluster, contacts_from_coords
+from packings.workers.params import DEFAULT, Params
+from packings.workers.seeds import triangles
+
+_S = 64  #: site (layer l, i, j) is the integer l S^2 + (i + _O) S + (j + _O)
+_O = _S // 2
+_H = math.sqrt(2.0 / 3.0)  #: the spacing of the layers
+_A1, _A2 = np.array([1.0, 0.0]), np.array([0.5, math.sqrt(3.0) / 2.0])
+_SHIFT = {0: np.zeros(2), 1: (_A1 + _A2) / 3.0, 2: 2.0 * (_A1 + _A2) / 3.0}  #: positions A, B, C of a layer
+
+
+def _in_layer(a: int) -> int:
+    """The most contacts among a spheres of one triangular layer (Harborth)."""
+    return 0 if a <= 1 else math.floor(3 * a - math.sqrt(12 * a - 3) + 1e-9)
+
+
+def _between(a: int, b: int) -> int:
+    """At most how many contacts a spheres of one layer have with b of the next (module doc)."""
+    if a == 0 or b == 0:
+        return 0
+    return min(a * b, 3 * min(a, b), max(a + b - 1, (3 * (a + b - 2)) // 2))
+
+
+@functools.lru_cache(maxsize=None)
+def layer_bound(n: int, layers: int) -> int:
+    """At most how many contacts n spheres in exactly ``layers`` consecutive layers of a close-packed
+    structure have (-1 if they cannot: fewer spheres than layers)."""
+    if layers < 1 or n < layers:
+        return -1
+
+    @functools.lru_cache(maxsize=None)
+    def best(left: int, layers_left: int, last: int) -> int:  # the rest, after a layer of ``last`` spheres
+        if layers_left == 0:
+            return 0 if left == 0 else -(10**9)
+        return max(_in_layer(a) + _between(last, a) + best(left - a, layers_left - 1, a)
+                   for a in range(1, left - layers_left + 2))
+
+    return best(n, layers, 0)
+
+
+def max_layers(n: int, min_contacts: int) -> int:
+    """The most layers a fragment of n spheres with at least ``min_contacts`` contacts can span (0: none
+    can have so many)."""
+    return max((L for L in range(1, n + 1) if layer_bound(n, L) >= min_contacts), default=0)
+
+
+def thresholds(n: int, min_contacts: int) -> list[int]:
+    """T(0), ..., T(n): the fewest contacts a fragment of k spheres may have to grow into one of n spheres
+    with at least ``min_contacts`` (module doc)."""
+    t = [0] * (n + 1)
+    t[n] = min_contacts
+    for k in range(n, 1, -1):
+        t[k - 1] = max(0, t[k] - (2 * t[k]) // k)
+    return t
+
+
+def sequences(layers: int) -> list[tuple[int, ...]]:
+    """The stacking sequences of ``layers`` layers beginning with A (0), adjacent layers different."""
+    return [s for s in itertools.product(range(3), repeat=layers)
+            if s[0] == 0 and all(a != b for a, b in zip(s, s[1:]))]
+
+
+def _position(seq: tuple[int, ...], site: int) -> np.ndarray:
+    layer, rest = divmod(site, _S * _S)
+    i, j = divmod(rest, _S)
+    p = (i - _O) * _A1 + (j - _O) * _A2 + _SHIFT[seq[layer]]
+    return np.array([p[0], p[1], layer * _H])
+
+
+@functools.lru_cache(maxsize=None)
+def _steps(seq: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
+    """For each layer, the site offsets of its twelve (fewer at the ends of the stack) touching sites."""
+    origin = _O * _S + _O
+    out = []
+    for layer in range(len(seq)):
+        here = _position(seq, layer * _S * _S + origin)
+        out.append(tuple(
+            dl * _S * _S + di * _S + dj
+            for dl in (-1, 0, 1) if 0 <= layer + dl < len(seq)
+            for di in range(-2, 3) for dj in range(-2, 3)
+            if (dl, di, dj) != (0, 0, 0)
+            and abs(np.linalg.norm(_position(seq, (layer + dl) * _S * _S + origin + di * _S + dj) - here) - 1.0) < 1e-9))
+    return tuple(out)
+
+
+def _canonical(sites) -> tuple[int, ...]:
+    """The fragment moved within its layers (by a lattice vector) so that its first site is at (0, 0)."""
+    first = min(sites)
+    shift = first % (_S * _S) - (_O * _S + _O)
+    return tuple(sorted(q - shift for q in sites))
+
+
+def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], int]:
+    """Every connected fragment of n sites of the structure ``seq`` reached through fragments meeting the
+    thresholds ``t``, up to moves within the layers: {sites: contacts}."""
+    steps = _steps(seq)
+    level = {_canonical([layer * _S * _S + _O * _S + _O]): 0 for layer in range(len(seq))}
+    for k in range(2, n + 1):
+        grown: dict[tuple[int, ...], int] = {}
+        for frag, c in level.items():
+            inside = set(frag)
+            gain: dict[int, int] = {}
+            for u in frag:
+                for d in steps[u // (_S * _S)]:
+                    q = u + d
+                    if q not in inside:
+                        gain[q] = gain.get(q, 0) + 1
+            for q, g in gain.items():
+                if c + g >= t[k]:
+                    grown.setdefault(_canonical(frag + (q,)), c + g)
+        level = grown
+    return level
+
+
+@dataclass(frozen=True)
+class Fragment:
+    """A close-packed fragment: its spheres (the cluster, in the frame of its first contact triangle) and
+    the positions of the layers it spans where it was first found (0, 1, 2 for A, B, C)."""
+
+    cluster: Cluster
+    stacking: tuple[int, ...]
+
+
+_W = np.random.default_rng(20161).integers(1, 2**62, size=(2, 64), dtype=np.int64)  #: fixed hash weights
+
+
+def _keys(x: np.ndarray) -> list[bytes]:
+    """A congruence invariant of each point set x[b] (B x n x 3): for each point, its pair distances (exact
+    on the lattice, rounded to 1e-6) each paired with the other point's sorted distances, sorted; then
+    those sorted; rows hashed into 64 bits on the way (wrapping integer sums with fixed weights).
+    Congruent sets, however placed, reflected and numbered, have the same key."""
+    n = x.shape[1]
+    d = np.rint(np.sqrt(((x[:, :, None] - x[:, None]) ** 2).sum(axis=-1)) * 1e6).astype(np.int64)
+    with np.errstate(over="ignore"):
+        own = (np.sort(d, axis=2) * _W[0, :n]).sum(axis=2)  # each point's sorted distances, hashed
+        pairs = np.sort(d * np.int64(1_000_003) + own[:, None, :], axis=2)
+        rows = np.sort((pairs * _W[1, :n]).sum(axis=2), axis=1)
+    return [r.tobytes() for r in rows]
+
+
+def _coordinates(seq: tuple[int, ...], frags: np.ndarray) -> np.ndarray:
+    """The centres (B x n x 3) of fragments given by their sites (B x n)."""
+    layer, rest = np.divmod(frags, _S * _S)
+    i, j = np.divmod(rest, _S)
+    shift = np.array([_SHIFT[p] for p in seq])[layer]
+    plane = (i - _O)[..., None] * _A1 + (j - _O)[..., None] * _A2 + shift
+    return np.concatenate([plane, (layer * _H)[..., None]], axis=-1)
+
+
+def close_packed(n: int, min_contacts: int, params: Params = DEFAULT) -> list[Fragment]:
+    """Every close-packed fragment of n spheres with at least ``min_contacts`` contacts, once each up to
+    congruence (module doc), in the order found.  Grown in the structures of :func:`max_layers` layers,
+    every sequence: a fragment spanning fewer layers lies in some of them too (any sequence is the
+    beginning of a longer one)."""
+    if n < 1:
+        raise ValueError(f"n must be at least 1, got {n}")
+    layers = max_layers(n, min_contacts)
+    t = thresholds(n, min_contacts)
+    seen: set[bytes] = set()
+    out = []
+    for seq in sequences(layers) if layers else ():
+        frags = np.array(list(_grow(seq, n, t)), dtype=np.int64).reshape(-1, n)
+        for a in range(0, len(frags), 4096):
+            x = _coordinates(seq, frags[a:a + 4096])
+            for key, xb, fb in zip(_keys(x), x, frags[a:a + 4096]):
+                if key in seen:
+                    continue
+                seen.add(key)
+                used = sorted(set((fb // (_S * _S)).tolist()))
+                contacts = contacts_from_coords(xb, params.tol_a)
+                tri = triangles(contacts)
+                xb = xb - xb.mean(axis=0)
+                out.append(Fragment(Cluster(kernels.to_frame(xb, tri[0]) if tri else xb, contacts),
+                                    tuple(seq[q] for q in used)))
+    return out
