@@ -25,7 +25,10 @@ spheres in its layers are at most the sum of
   touches at most three of an adjacent layer).
 
 :func:`layer_bound` maximises that over n_1 + ... + n_L = n; a fragment with at least M contacts
-spans at most :func:`max_layers` layers.
+spans at most :func:`max_layers` layers.  The growth (:func:`_grow_stacks`) chooses the position of a
+layer when the first sphere enters it, so that a fragment is grown once for each sequence of the
+layers it spans, not again in every longer structure that holds it (:func:`_grow`, the structures
+of one sequence each, is the reference it is tested against).
 
 Growth.  Fragments are grown from one site, a touching site at a time, keeping at size k only those
 with at least T(k) contacts (:func:`thresholds`).  T(n) = M, and T(k - 1) = T(k) - floor(2 T(k) / k):
@@ -170,6 +173,73 @@ def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], i
     return level
 
 
+_IN_LAYER = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, -1), (-1, 1))  #: (di, dj) of the six touching sites of a layer
+
+
+@functools.lru_cache(maxsize=None)
+def _across(p: int, q: int) -> tuple[tuple[int, int], ...]:
+    """(di, dj) of the three sites of a layer in position q touching a site of the adjacent layer in position p."""
+    return tuple((di, dj) for di in range(-2, 3) for dj in range(-2, 3)
+                 if abs(np.linalg.norm(np.append(di * _A1 + dj * _A2 + _SHIFT[q] - _SHIFT[p], _H)) - 1.0) < 1e-9)
+
+
+def _canonical_stack(positions: tuple[int, ...], sites) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The fragment moved so that its lowest layer is in position A (every layer moved by the same third of
+    a lattice vector) and its first site is at (0, 0) (:func:`_canonical`)."""
+    p0 = positions[0]
+    if p0:
+        # layer position p becomes p - p0; where that is negative, + 3, and the site moves by -(a1 + a2)
+        sites = [q - (_S + 1 if positions[q // (_S * _S)] < p0 else 0) for q in sites]
+        positions = tuple((p - p0) % 3 for p in positions)
+    return positions, _canonical(sites)
+
+
+def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
+    """Every connected fragment of n sites of any close-packed structure spanning at most ``most_layers``
+    layers, reached through fragments meeting the thresholds ``t``: {(positions of its layers, sites):
+    contacts}, once for each sequence of the layers it spans (up to the moves of :func:`_canonical_stack`).
+    The same fragments as :func:`_grow` over every sequence, without growing each again in every longer
+    sequence that holds it: a layer's position is chosen when the first site enters it."""
+    level = {((0,), _canonical([_O * _S + _O])): 0}
+    for k in range(2, n + 1):
+        grown: dict = {}
+        for (positions, frag), c in level.items():
+            inside = set(frag)
+            height = len(positions)
+            gain: dict = {}  # (position of a new layer or None, -1 below / 1 above, site) -> contacts it makes
+            for u in frag:
+                layer = u // (_S * _S)
+                for di, dj in _IN_LAYER:
+                    q = u + di * _S + dj
+                    if q not in inside:
+                        gain[None, 0, q] = gain.get((None, 0, q), 0) + 1
+                for dl in (-1, 1):
+                    other = layer + dl
+                    if 0 <= other < height:
+                        for di, dj in _across(positions[layer], positions[other]):
+                            q = u + dl * _S * _S + di * _S + dj
+                            if q not in inside:
+                                gain[None, 0, q] = gain.get((None, 0, q), 0) + 1
+                    elif height < most_layers:  # a new layer, above or below, in either free position
+                        for p in range(3):
+                            if p != positions[layer]:
+                                for di, dj in _across(positions[layer], p):
+                                    key = (p, dl, u + max(dl, 0) * _S * _S + di * _S + dj)
+                                    gain[key] = gain.get(key, 0) + 1
+            for (p, dl, q), g in gain.items():
+                if c + g < t[k]:
+                    continue
+                if p is None:
+                    key = (positions, _canonical(frag + (q,)))
+                elif dl == 1:  # above
+                    key = _canonical_stack(positions + (p,), frag + (q,))
+                else:  # below: every layer goes up one, q is in the new layer 0
+                    key = _canonical_stack((p,) + positions, tuple(v + _S * _S for v in frag) + (q,))
+                grown.setdefault(key, c + g)
+        level = grown
+    return level
+
+
 @dataclass(frozen=True)
 class Fragment:
     """A close-packed fragment: its spheres (the cluster, in the frame of its first contact triangle) and
@@ -207,27 +277,25 @@ def _coordinates(seq: tuple[int, ...], frags: np.ndarray) -> np.ndarray:
 
 def close_packed(n: int, min_contacts: int, params: Params = DEFAULT) -> list[Fragment]:
     """Every close-packed fragment of n spheres with at least ``min_contacts`` contacts, once each up to
-    congruence (module doc), in the order found.  Grown in the structures of :func:`max_layers` layers,
-    every sequence: a fragment spanning fewer layers lies in some of them too (any sequence is the
-    beginning of a longer one)."""
-    if n < 1:
-        raise ValueError(f"n must be at least 1, got {n}")
-    layers = max_layers(n, min_contacts)
-    t = thresholds(n, min_contacts)
+    congruence (module doc), in the order found (:func:`_grow_stacks`, by the sequence of the layers
+    it spans)."""
+    if not 1 <= n <= 30:
+        raise ValueError(f"n must be between 1 and 30, got {n}")
+    by_stack: dict[tuple[int, ...], list[tuple[int, ...]]] = {}
+    for positions, frag in _grow_stacks(n, thresholds(n, min_contacts), max_layers(n, min_contacts)):
+        by_stack.setdefault(positions, []).append(frag)
     seen: set[bytes] = set()
     out = []
-    for seq in sequences(layers) if layers else ():
-        frags = np.array(list(_grow(seq, n, t)), dtype=np.int64).reshape(-1, n)
+    for positions, stack in sorted(by_stack.items()):
+        frags = np.array(stack, dtype=np.int64).reshape(-1, n)
         for a in range(0, len(frags), 4096):
-            x = _coordinates(seq, frags[a:a + 4096])
-            for key, xb, fb in zip(_keys(x), x, frags[a:a + 4096]):
+            x = _coordinates(positions, frags[a:a + 4096])
+            for key, xb in zip(_keys(x), x):
                 if key in seen:
                     continue
                 seen.add(key)
-                used = sorted(set((fb // (_S * _S)).tolist()))
                 contacts = contacts_from_coords(xb, params.tol_a)
                 tri = triangles(contacts)
                 xb = xb - xb.mean(axis=0)
-                out.append(Fragment(Cluster(kernels.to_frame(xb, tri[0]) if tri else xb, contacts),
-                                    tuple(seq[q] for q in used)))
+                out.append(Fragment(Cluster(kernels.to_frame(xb, tri[0]) if tri else xb, contacts), positions))
     return out

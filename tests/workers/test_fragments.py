@@ -37,6 +37,21 @@ def test_the_thresholds_lose_no_fragment(n, m):
     assert got == _all_connected(n, m) and got
 
 
+@pytest.mark.parametrize("n, m", [(7, 13), (8, 15)])
+def test_growing_the_stacks_finds_what_growing_each_sequence_finds(n, m):
+    """_grow_stacks (a layer's position chosen as it is entered) and _grow over every sequence of
+    max_layers layers, with the same thresholds, give the same fragments."""
+    t = F.thresholds(n, m)
+    per_sequence = set()
+    for seq in F.sequences(F.max_layers(n, m)):
+        frags = np.array(list(F._grow(seq, n, t)), dtype=np.int64).reshape(-1, n)
+        per_sequence.update(F._keys(F._coordinates(seq, frags)))
+    stacks = set()
+    for positions, frag in F._grow_stacks(n, t, F.max_layers(n, m)):
+        stacks.update(F._keys(F._coordinates(positions, np.array([frag], dtype=np.int64))))
+    assert stacks == per_sequence and len(stacks) > 10
+
+
 def test_no_fragment_spans_more_layers_than_the_bound_allows():
     """Grown in structures of two layers more than max_layers, nothing with so many contacts spans them."""
     n, m = 6, 11
@@ -56,6 +71,8 @@ def test_layer_bound_small_cases():
     assert F.layer_bound(3, 4) == -1
     assert max(F.layer_bound(13, L) for L in range(1, 14)) == 38  # an upper bound: the most is 36
     assert F.max_layers(13, 39) == 0 and F.max_layers(13, 32) == 6
+    with pytest.raises(ValueError):
+        F.close_packed(31, 90)
 
 
 def test_thresholds():
@@ -119,7 +136,6 @@ def test_sorted_distances_alone_would_merge_two_fragments():
     assert F._keys(a.coords[None]) != F._keys(b.coords[None])
 
 
-@pytest.mark.slow
 def test_the_lost_cluster_of_11_is_a_close_packed_fragment():
     """Among the close-packed fragments of 11 with at least 26 contacts is the cluster no path reaches
     (tests/data/n11_catalysis.json), rigid by the endpoint rule."""
