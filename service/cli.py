@@ -264,6 +264,8 @@ def _close_packed(n: int, m: int, db_url: str | None, params: Params, as_json: b
         report = close_packed_pass(sessions(engine), n, params, m, on_progress=progress)
     except KeyboardInterrupt as e:  # what was stored stays (the pass is idempotent): one line
         raise _stopped(e) from None
+    except ValueError as e:  # no run of (N, parameters) yet, and nothing to seed one with: nothing written
+        raise click.ClickException(str(e)) from None
     finally:
         bar.close()
         engine.dispose()

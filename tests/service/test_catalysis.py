@@ -152,6 +152,13 @@ def test_catalyse_close_packed_command(engine):
     for extra in (["--glued"], ["--spheres", "2"], ["--workers", "2"], ["--scheduler", "tcp://127.0.0.1:1"]):
         line = one_line_error(cli("catalyse", "7", "--close-packed", "15", *extra, "--db", url))
         assert "--close-packed lists fragments in this process" in line
+    # no run of 10 restricted to 25 contacts, and no seed the beam search builds: one line, nothing written
+    with sessions(engine)() as s:
+        runs = s.execute(select(func.count()).select_from(Run)).scalar_one()
+    line = one_line_error(cli("catalyse", "10", "--close-packed", "25", "--min-contacts", "25", "--db", url))
+    assert "no cluster of 10 spheres with at least 25 contacts to start from" in line
+    with sessions(engine)() as s:
+        assert s.execute(select(func.count()).select_from(Run)).scalar_one() == runs
 
 
 def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):
