@@ -12,10 +12,11 @@ Structures.  A close-packed structure is a stack of triangular layers of unit sp
 sqrt(2/3) apart, each layer in one of the three positions A, B, C of the plane, and two adjacent
 layers in different positions: fcc is ABCABC..., hcp ABAB..., every other sequence a random
 stacking.  A fragment of n spheres whose centres span L consecutive layers lies in the structure of
-L layers with some sequence; every sequence beginning with A is tried (moving every layer by a third of
-a lattice vector turns A into B, B into C and C into A, so any other sequence is one of those, moved).  Only spheres in adjacent layers or in one layer can
-touch (layers two apart are 2 sqrt(2/3) > 1 apart), so the contacts of a fragment with n_1 ... n_L
-spheres in its layers are at most the sum of
+L layers with some sequence; every sequence beginning with A is tried (moving every layer by a third
+of a lattice vector turns A into B, B into C and C into A, so any other sequence is one of those,
+moved).  Only spheres in adjacent layers or in one layer can touch (layers two apart are
+2 sqrt(2/3) > 1 apart), so the contacts of a fragment with n_1 ... n_L spheres in its layers are at
+most the sum of
 
 * within a layer of a spheres: 3a - sqrt(12a - 3), rounded down, the most unit distances among a
   points of the triangular lattice (Harborth, Elem. Math. 29, 1974);
