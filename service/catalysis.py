@@ -243,13 +243,14 @@ def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contac
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, 0, run_id, close_packed=min_contacts)
     for a in range(0, len(fragments), batch):
+        chunk = fragments[a:a + batch]
         found = []
-        for f in fragments[a:a + batch]:
+        for f in chunk:
             r = remainder(f.cluster, (), params)
             if r.rigid:
                 found.append((None, r, certificate_key(r.cluster), None))
-        report.parents += len(fragments[a:a + batch])
-        report.remainders += len(fragments[a:a + batch])
+        report.parents += len(chunk)
+        report.remainders += len(chunk)
         report.rigid += len(found)
         if found:
             _store(Session_, n, run_id, params, found, report, FOUND_CLOSE_PACKED)

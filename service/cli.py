@@ -205,15 +205,7 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     except NoParents as e:
         engine.dispose()
         raise click.ClickException(str(e)) from None
-    from tqdm import tqdm
-
-    bar = tqdm(total=0, unit="cluster", desc=f"clusters of {n if glued else n + k}", file=sys.stderr,
-               disable=quiet or None)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+    bar, progress = _progress_bar(f"clusters of {n if glued else n + k}", "cluster", quiet)
 
     plugin = DatabasePlugin(url)
     try:
@@ -233,6 +225,21 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     _echo_report(report, n, as_json)
 
 
+def _progress_bar(desc: str, unit: str, quiet: bool):
+    """A progress bar on standard error (none when ``quiet``; tqdm's own choice off a terminal) and the
+    ``on_progress(done, total)`` that moves it, for a catalysis pass."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=quiet or None)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    return bar, progress
+
+
 def _echo_report(report, n: int, as_json: bool) -> None:
     """A catalysis report as JSON, or as text with what to run next."""
     from packings.catalysis import format_report
@@ -247,18 +254,11 @@ def _echo_report(report, n: int, as_json: bool) -> None:
 
 def _close_packed(n: int, m: int, db_url: str | None, params: Params, as_json: bool, quiet: bool) -> None:
     """``packings catalyse N --close-packed M``: the close-packed fragments, decided and stored."""
-    from tqdm import tqdm
-
     from packings.catalysis import close_packed_pass
     from packings.db import sessions
 
     engine = open_db(db_url)
-    bar = tqdm(total=0, unit="fragment", desc=f"fragments of {n}", file=sys.stderr, disable=quiet or as_json or None)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+    bar, progress = _progress_bar(f"fragments of {n}", "fragment", quiet or as_json)
 
     try:
         report = close_packed_pass(sessions(engine), n, params, m, on_progress=progress)

@@ -28,8 +28,8 @@ most the sum of
 :func:`layer_bound` maximises that over n_1 + ... + n_L = n; a fragment with at least M contacts
 spans at most :func:`max_layers` layers.  The growth (:func:`_grow_stacks`) chooses the position of a
 layer when the first sphere enters it, so that a fragment is grown once for each sequence of the
-layers it spans, not again in every longer structure that holds it (:func:`_grow`, the structures
-of one sequence each, is the reference it is tested against).
+layers it spans, not again in every longer structure that holds it (growing every structure of
+one sequence after another is the reference it is tested against, in the tests).
 
 Growth.  Fragments are grown from one site, a touching site at a time, keeping at size k only those
 with at least T(k) contacts (:func:`thresholds`).  T(n) = M, and T(k - 1) = T(k) - floor(2 T(k) / k):
@@ -53,7 +53,6 @@ distances sphere by sphere.  What is stored is decided by the identity of the ca
 from __future__ import annotations
 
 import functools
-import itertools
 import math
 from dataclasses import dataclass
 
@@ -116,62 +115,11 @@ def thresholds(n: int, min_contacts: int) -> list[int]:
     return t
 
 
-def sequences(layers: int) -> list[tuple[int, ...]]:
-    """The stacking sequences of ``layers`` layers beginning with A (0), adjacent layers different."""
-    return [s for s in itertools.product(range(3), repeat=layers)
-            if s[0] == 0 and all(a != b for a, b in zip(s, s[1:]))]
-
-
-def _position(seq: tuple[int, ...], site: int) -> np.ndarray:
-    layer, rest = divmod(site, _S * _S)
-    i, j = divmod(rest, _S)
-    p = (i - _O) * _A1 + (j - _O) * _A2 + _SHIFT[seq[layer]]
-    return np.array([p[0], p[1], layer * _H])
-
-
-@functools.lru_cache(maxsize=None)
-def _steps(seq: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
-    """For each layer, the site offsets of its twelve (fewer at the ends of the stack) touching sites."""
-    origin = _O * _S + _O
-    out = []
-    for layer in range(len(seq)):
-        here = _position(seq, layer * _S * _S + origin)
-        out.append(tuple(
-            dl * _S * _S + di * _S + dj
-            for dl in (-1, 0, 1) if 0 <= layer + dl < len(seq)
-            for di in range(-2, 3) for dj in range(-2, 3)
-            if (dl, di, dj) != (0, 0, 0)
-            and abs(np.linalg.norm(_position(seq, (layer + dl) * _S * _S + origin + di * _S + dj) - here) - 1.0) < 1e-9))
-    return tuple(out)
-
-
 def _canonical(sites) -> tuple[int, ...]:
     """The fragment moved within its layers (by a lattice vector) so that its first site is at (0, 0)."""
     first = min(sites)
     shift = first % (_S * _S) - (_O * _S + _O)
     return tuple(sorted(q - shift for q in sites))
-
-
-def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], int]:
-    """Every connected fragment of n sites of the structure ``seq`` reached through fragments meeting the
-    thresholds ``t``, up to moves within the layers: {sites: contacts}."""
-    steps = _steps(seq)
-    level = {_canonical([layer * _S * _S + _O * _S + _O]): 0 for layer in range(len(seq))}
-    for k in range(2, n + 1):
-        grown: dict[tuple[int, ...], int] = {}
-        for frag, c in level.items():
-            inside = set(frag)
-            gain: dict[int, int] = {}
-            for u in frag:
-                for d in steps[u // (_S * _S)]:
-                    q = u + d
-                    if q not in inside:
-                        gain[q] = gain.get(q, 0) + 1
-            for q, g in gain.items():
-                if c + g >= t[k]:
-                    grown.setdefault(_canonical(frag + (q,)), c + g)
-        level = grown
-    return level
 
 
 _IN_LAYER = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, -1), (-1, 1))  #: (di, dj) of the six touching sites of a layer
@@ -199,8 +147,8 @@ def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int
     """Every connected fragment of n sites of any close-packed structure spanning at most ``most_layers``
     layers, reached through fragments meeting the thresholds ``t``: {(positions of its layers, sites):
     contacts}, once for each sequence of the layers it spans (up to the moves of :func:`_canonical_stack`).
-    The same fragments as :func:`_grow` over every sequence, without growing each again in every longer
-    sequence that holds it: a layer's position is chosen when the first site enters it."""
+    The same fragments as growing every sequence's structure on its own, without growing each again in
+    every longer sequence that holds it: a layer's position is chosen when the first site enters it."""
     level = {((0,), _canonical([_O * _S + _O])): 0}
     for k in range(2, n + 1):
         grown: dict = {}

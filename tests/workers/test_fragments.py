@@ -1,5 +1,7 @@
 """packings.workers.fragments: every close-packed fragment of n spheres with at least M contacts."""
 
+import functools
+import itertools
 import json
 from pathlib import Path
 
@@ -19,12 +21,68 @@ P = Params()
 DATA = Path(__file__).parent.parent / "data"
 
 
+# ----------------------------------------------------------------- the reference: one structure at a time
+# Every structure of ``layers`` layers, one stacking sequence after another, each grown on its own with the
+# twelve touching sites of every site: what fragments._grow_stacks must find, more slowly.
+
+def sequences(layers: int) -> list[tuple[int, ...]]:
+    """The stacking sequences of ``layers`` layers beginning with A (0), adjacent layers different."""
+    return [s for s in itertools.product(range(3), repeat=layers)
+            if s[0] == 0 and all(a != b for a, b in zip(s, s[1:]))]
+
+
+def _position(seq: tuple[int, ...], site: int) -> np.ndarray:
+    layer, rest = divmod(site, F._S * F._S)
+    i, j = divmod(rest, F._S)
+    p = (i - F._O) * F._A1 + (j - F._O) * F._A2 + F._SHIFT[seq[layer]]
+    return np.array([p[0], p[1], layer * F._H])
+
+
+@functools.lru_cache(maxsize=None)
+def _steps(seq: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
+    """For each layer, the site offsets of its twelve (fewer at the ends of the stack) touching sites."""
+    origin = F._O * F._S + F._O
+    out = []
+    for layer in range(len(seq)):
+        here = _position(seq, layer * F._S * F._S + origin)
+        out.append(tuple(
+            dl * F._S * F._S + di * F._S + dj
+            for dl in (-1, 0, 1) if 0 <= layer + dl < len(seq)
+            for di in range(-2, 3) for dj in range(-2, 3)
+            if (dl, di, dj) != (0, 0, 0)
+            and abs(np.linalg.norm(_position(seq, (layer + dl) * F._S * F._S + origin + di * F._S + dj) - here) - 1.0) < 1e-9))
+    return tuple(out)
+
+
+def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], int]:
+    """Every connected fragment of n sites of the structure ``seq`` reached through fragments meeting the
+    thresholds ``t``, up to moves within the layers: {sites: contacts}."""
+    steps = _steps(seq)
+    level = {F._canonical([layer * F._S * F._S + F._O * F._S + F._O]): 0 for layer in range(len(seq))}
+    for k in range(2, n + 1):
+        grown: dict[tuple[int, ...], int] = {}
+        for frag, c in level.items():
+            inside = set(frag)
+            gain: dict[int, int] = {}
+            for u in frag:
+                for d in steps[u // (F._S * F._S)]:
+                    q = u + d
+                    if q not in inside:
+                        gain[q] = gain.get(q, 0) + 1
+            for q, g in gain.items():
+                if c + g >= t[k]:
+                    grown.setdefault(F._canonical(frag + (q,)), c + g)
+        level = grown
+    return level
+
+
+
 def _all_connected(n: int, min_contacts: int) -> set[bytes]:
     """The keys of every connected fragment of n sites with at least ``min_contacts`` contacts, grown
     without thresholds (every connected fragment is kept at every size), in the same structures."""
     keys = set()
-    for seq in F.sequences(F.max_layers(n, min_contacts)):
-        grown = F._grow(seq, n, [0] * (n + 1))
+    for seq in sequences(F.max_layers(n, min_contacts)):
+        grown = _grow(seq, n, [0] * (n + 1))
         frags = np.array([f for f, c in grown.items() if c >= min_contacts], dtype=np.int64).reshape(-1, n)
         keys.update(F._keys(F._coordinates(seq, frags)))
     return keys
@@ -43,8 +101,8 @@ def test_growing_the_stacks_finds_what_growing_each_sequence_finds(n, m):
     max_layers layers, with the same thresholds, give the same fragments."""
     t = F.thresholds(n, m)
     per_sequence = set()
-    for seq in F.sequences(F.max_layers(n, m)):
-        frags = np.array(list(F._grow(seq, n, t)), dtype=np.int64).reshape(-1, n)
+    for seq in sequences(F.max_layers(n, m)):
+        frags = np.array(list(_grow(seq, n, t)), dtype=np.int64).reshape(-1, n)
         per_sequence.update(F._keys(F._coordinates(seq, frags)))
     stacks = set()
     for positions, frag in F._grow_stacks(n, t, F.max_layers(n, m)):
@@ -56,8 +114,8 @@ def test_no_fragment_spans_more_layers_than_the_bound_allows():
     """Grown in structures of two layers more than max_layers, nothing with so many contacts spans them."""
     n, m = 6, 11
     layers = F.max_layers(n, m)
-    for seq in F.sequences(layers + 2)[:3]:
-        for frag, c in F._grow(seq, n, [0] * (n + 1)).items():
+    for seq in sequences(layers + 2)[:3]:
+        for frag, c in _grow(seq, n, [0] * (n + 1)).items():
             spanned = len({q // (F._S * F._S) for q in frag})
             assert c <= F.layer_bound(n, spanned)
             if spanned > layers:
