@@ -83,7 +83,8 @@ def cli(verbose: int) -> None:
                    "paper for n <= 14; a cap is for restricted runs of large n).")
 @click.option("--min-contacts", type=int, default=None,
               help="Keep only clusters with at least this many contacts (a restricted run, e.g. of the ground states "
-                   "of large N); above 3N - 6 the run starts from the close-packed fragment with the most contacts.")
+                   "of large N); above 3N - 6 the run starts from a close-packed fragment with that many (a beam search's, "
+                   "else the best of every close-packed fragment listed: minutes from N = 14).")
 @click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
               help="Tries per expansion before it is marked failed.")
 @click.option("--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",

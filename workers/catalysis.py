@@ -53,13 +53,13 @@ from typing import Iterator
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster, contacts_from_coords, pair_distances
+from packings.workers.cluster import Cluster, contacts_from_coords, pair_distances, triangles
 from packings.workers.identity import edges_certificate, graph_certificate
 from packings.workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
 from packings.workers.params import Params
 from packings.workers.paths import endpoint_rigidity, resolve_near_pairs
 from packings.workers.rigidity import Rigidity, contact_triangle
-from packings.workers.seeds import cap_positions, triangles
+from packings.workers.seeds import cap_positions
 
 NOT_RIGID = "not-rigid"  #: the rigidity test says floppy or undecided
 FEW_CONTACTS = "few-contacts"  #: a sphere of the remainder has fewer than three contacts: not rigid
@@ -144,7 +144,7 @@ def remainder_count(n: int, k: int) -> int:
 def glued(cluster: Cluster, params: Params) -> Iterator[tuple[tuple[int, int, int], Cluster]]:
     """Every cluster of n + 1 spheres made by putting a sphere (number n) on a contact triangle of ``cluster``,
     on either side of it, where no centre is closer to it than 1 - tol_a (an overlap); its contacts are
-    measured (closer than 1 + tol_a).  With the triangle, in the order of :func:`packings.workers.seeds.triangles`."""
+    measured (closer than 1 + tol_a).  With the triangle, in the order of :func:`packings.workers.cluster.triangles`."""
     x = cluster.coords
     for tri in triangles(cluster.contacts):
         for q in cap_positions(x, tri):

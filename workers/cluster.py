@@ -64,6 +64,20 @@ def normalise_contacts(contacts) -> tuple[Contact, ...]:
     return tuple(sorted({pair(int(a), int(b)) for a, b in contacts}))
 
 
+def triangles(contacts) -> list[tuple[int, int, int]]:
+    """All triangles (i < j < k) of mutually touching spheres."""
+    nbr: dict[int, set[int]] = {}
+    for i, j in contacts:
+        nbr.setdefault(i, set()).add(j)
+        nbr.setdefault(j, set()).add(i)
+    out = []
+    for i, j in contacts:
+        for k in sorted(nbr[i] & nbr[j]):
+            if k > j:
+                out.append((i, j, k))
+    return sorted(out)
+
+
 @dataclass(frozen=True, eq=False)
 class Cluster:
     """n sphere centres (n x 3, float64) and their contact pairs (sorted, i < j)."""

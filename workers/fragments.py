@@ -59,9 +59,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster, contacts_from_coords
+from packings.workers.cluster import Cluster, contacts_from_coords, triangles
 from packings.workers.params import DEFAULT, Params
-from packings.workers.seeds import triangles
 
 _S = 64  #: site (layer l, i, j) is the integer l S^2 + (i + _O) S + (j + _O)
 _O = _S // 2

@@ -1,6 +1,8 @@
 """Rigid starting clusters for any n: polytetrahedra built by gluing spheres onto contact triangles, and,
-for runs restricted to clusters with many contacts (``--min-contacts``), close-packed fragments with as
-many contacts as a beam search over the fcc and hcp lattices finds."""
+for runs restricted to clusters with many contacts (``--min-contacts``), close-packed fragments: the one
+with the most contacts that a beam search over the fcc and hcp lattices finds, or, where that has too
+few, the one with the most contacts among every close-packed fragment listed
+(:func:`packings.workers.fragments.close_packed`)."""
 
 from __future__ import annotations
 
@@ -9,23 +11,10 @@ import functools
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster
+from packings.workers.cluster import Cluster, triangles
+from packings.workers.fragments import close_packed
 from packings.workers.params import DEFAULT, Params
 from packings.workers.rigidity import rigidity
-
-
-def triangles(contacts) -> list[tuple[int, int, int]]:
-    """All triangles (i < j < k) of mutually touching spheres."""
-    nbr: dict[int, set[int]] = {}
-    for i, j in contacts:
-        nbr.setdefault(i, set()).add(j)
-        nbr.setdefault(j, set()).add(i)
-    out = []
-    for i, j in contacts:
-        for k in sorted(nbr[i] & nbr[j]):
-            if k > j:
-                out.append((i, j, k))
-    return sorted(out)
 
 
 def cap_positions(p: np.ndarray, tri: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -117,8 +106,8 @@ def _best_fragments(sites: np.ndarray, n: int, beam: int) -> list[tuple[int, tup
 @functools.lru_cache(maxsize=8)  # a run's start checks it before its Dask cluster starts, then seeds with it
 def close_packed_seed(n: int, params: Params = DEFAULT, beam: int = 64) -> Cluster:
     """The rigid close-packed fragment of n spheres (fcc or hcp) with the most contacts found by a beam
-    search (:func:`_best_fragments`), in the frame of its first contact triangle.  Not always a cluster
-    with the most contacts of all (some of those are not close-packed); the most contacts it found."""
+    search (:func:`_best_fragments`), in the frame of its first contact triangle.  Not always the one with
+    the most contacts: at n = 10, 11 and 12 that one is not among those the beam keeps."""
     best: Cluster | None = None
     for kind in ("fcc", "hcp"):
         sites = lattice_sites(kind, radius=max(2.0, 0.8 * n ** (1 / 3) + 1.5))
@@ -134,19 +123,36 @@ def close_packed_seed(n: int, params: Params = DEFAULT, beam: int = 64) -> Clust
     return Cluster(kernels.to_frame(best.coords, triangles(best.contacts)[0]), best.contacts)
 
 
+@functools.lru_cache(maxsize=8)  # as close_packed_seed: the run's start checks it, then seeds with it
+def listed_seed(n: int, min_contacts: int, params: Params = DEFAULT) -> Cluster | None:
+    """The rigid fragment with the most contacts (the first listed among equals) of every close-packed
+    fragment of n spheres with at least ``min_contacts`` contacts, or None if there is none.  Exhaustive
+    where the beam search is not (the maxima of n = 10, 11 and 12 are close-packed fragments it misses),
+    and slower: seconds up to n = 13, minutes from n = 14."""
+    best: Cluster | None = None
+    for f in close_packed(n, min_contacts, params):
+        c = f.cluster
+        if (best is None or c.m > best.m) and rigidity(c.coords, c.contacts, params).rigid:
+            best = c
+    return best
+
+
 def seed_cluster(n: int, params: Params = DEFAULT) -> Cluster:
     """A rigid cluster of n >= 4 spheres to start a run from: a polytetrahedron (3n - 6 contacts), or,
-    if the run keeps only clusters with more contacts than that (``params.min_contacts``), the
-    close-packed fragment with the most contacts found (:func:`close_packed_seed`).  Raises ValueError
-    if that has fewer than ``min_contacts``."""
+    if the run keeps only clusters with more contacts than that (``params.min_contacts``), a close-packed
+    fragment with at least that many: the beam search's (:func:`close_packed_seed`), else the listing's
+    (:func:`listed_seed`).  Raises ValueError if no rigid close-packed fragment has that many."""
     if n < 4:
         raise ValueError(f"n must be at least 4, got {n}")
     if params.min_contacts is not None and params.min_contacts > 3 * n - 6:
         c = close_packed_seed(n, params)
-        if c.m < params.min_contacts:
+        if c.m >= params.min_contacts:
+            return c
+        listed = listed_seed(n, params.min_contacts, params)
+        if listed is None:
             raise ValueError(f"no cluster of {n} spheres with at least {params.min_contacts} contacts to start "
-                             f"from: the close-packed fragment with the most contacts found has {c.m}")
-        return c
+                             "from: no rigid close-packed fragment has that many")
+        return listed
     c = tetrahedron()
     while c.n < n:
         c = glue_sphere(c, params)

@@ -252,10 +252,10 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
 
 
 def test_a_restricted_run_with_no_seed_that_has_enough_contacts_is_refused_in_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "10", "--min-contacts", "25", "--db",
+    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "10", "--min-contacts", "26", "--db",
                         f"sqlite:///{tmp_path / 'x.db'}"], capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [
-        "packings: error: no cluster of 10 spheres with at least 25 contacts to start from: the close-packed "
-        "fragment with the most contacts found has 24"], r.stderr
+        "packings: error: no cluster of 10 spheres with at least 26 contacts to start from: no rigid close-packed "
+        "fragment has that many"], r.stderr
     assert not (tmp_path / "x.db").exists()  # refused before anything is created

@@ -11,8 +11,8 @@ from sqlalchemy import func, select, text
 from packings import store
 from packings.catalysis import NoParents, catalyse, close_packed_pass
 from packings.db import sessions
-from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, PENDING, RUNNING, ClusterRow,
-                             ExpansionRow, Run)
+from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PENDING, RUNNING,
+                             ClusterRow, ExpansionRow, Run)
 from tests.service.conftest import fill_database
 from tests.service.test_db import cli, one_line_error
 from packings.workers.cluster import Cluster as Core
@@ -152,13 +152,27 @@ def test_catalyse_close_packed_command(engine):
     for extra in (["--glued"], ["--spheres", "2"], ["--workers", "2"], ["--scheduler", "tcp://127.0.0.1:1"]):
         line = one_line_error(cli("catalyse", "7", "--close-packed", "15", *extra, "--db", url))
         assert "--close-packed lists fragments in this process" in line
-    # no run of 10 restricted to 25 contacts, and no seed the beam search builds: one line, nothing written
+    # no run of 10 restricted to 26 contacts, and no close-packed fragment to seed one: one line, nothing written
     with sessions(engine)() as s:
         runs = s.execute(select(func.count()).select_from(Run)).scalar_one()
-    line = one_line_error(cli("catalyse", "10", "--close-packed", "25", "--min-contacts", "25", "--db", url))
-    assert "no cluster of 10 spheres with at least 25 contacts to start from" in line
+    line = one_line_error(cli("catalyse", "10", "--close-packed", "26", "--min-contacts", "26", "--db", url))
+    assert "no cluster of 10 spheres with at least 26 contacts to start from" in line
     with sessions(engine)() as s:
         assert s.execute(select(func.count()).select_from(Run)).scalar_one() == runs
+
+
+def test_a_run_restricted_to_the_maximum_of_10_finds_the_papers_clusters_with_that_many(engine, paper_counts):
+    """M(10) = 25 is more than the beam search's seed has: the run starts from the listed close-packed
+    fragment, and its paths (at most 3 contacts broken) find the paper's 3 clusters with 25 contacts,
+    every one of them among the close-packed fragments (a pass finds them all stored)."""
+    run = fill_database(engine, 10, Params(min_contacts=25, max_break=3))
+    S = sessions(engine)
+    with S() as s:
+        rows = s.execute(select(ClusterRow).where(ClusterRow.found_in_run == run)).scalars().all()
+    assert len(rows) == paper_counts["clusters_by_contacts"]["10"]["25"] == 3
+    assert {r.contacts for r in rows} == {25} and sum(r.found_by == FOUND_SEED for r in rows) == 1
+    r = close_packed_pass(S, 10, Params(min_contacts=25, max_break=3), 25)
+    assert (r.run_id, r.parents, r.rigid, r.already_stored, r.new) == (run, 3, 3, 3, [])
 
 
 def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):

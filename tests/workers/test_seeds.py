@@ -36,9 +36,9 @@ def _max_contacts(n: int) -> int:
 @pytest.mark.parametrize("n, contacts, lattices", [(11, 28, {"fcc", "hcp", "both", "random"}), (13, 36, {"fcc", "hcp"}),
                                                    (16, 48, {"fcc", "hcp", "random"}), (19, 60, {"fcc", "hcp", "random"})])
 def test_a_run_restricted_to_many_contacts_starts_from_a_close_packed_fragment(n, contacts, lattices):
-    """Above 3n - 6 contacts the seed is the close-packed fragment with the most contacts found: for
-    n = 13 ... 19 the paper's maximum M(n) (n = 10 - 12 have a non-close-packed one, one more), rigid,
-    without overlap, every contact at distance 1, on a lattice."""
+    """Above 3n - 6 contacts the seed is the close-packed fragment with the most contacts the beam search
+    finds: for n = 13 ... 19 the paper's maximum M(n) (for n = 10 - 12 one less), rigid, without overlap,
+    every contact at distance 1, on a lattice."""
     from packings.workers.classify import lattice_type
 
     c = seed_cluster(n, Params(min_contacts=3 * n - 5))
@@ -50,10 +50,27 @@ def test_a_run_restricted_to_many_contacts_starts_from_a_close_packed_fragment(n
     assert seed_cluster(n, Params(min_contacts=3 * n - 6)).m == 3 * n - 6  # not above 3n - 6: the polytetrahedron
 
 
-def test_no_seed_with_more_contacts_than_found_is_refused_clearly():
-    with pytest.raises(ValueError, match="no cluster of 13 spheres with at least 37 contacts to start from: "
-                                         "the close-packed fragment with the most contacts found has 36"):
-        seed_cluster(13, Params(min_contacts=37))
+@pytest.mark.parametrize("n, lattices", [(10, {"both"}), (11, {"hcp"}), (12, {"hcp"})])
+def test_a_run_restricted_to_the_maximum_the_beam_misses_starts_from_the_listed_fragment(n, lattices):
+    """The maxima M(n) of n = 10, 11, 12 are close-packed fragments the beam search does not keep: the
+    seed is then the listing's (every close-packed fragment with at least M(n) contacts)."""
+    from packings.workers.classify import lattice_type
+    from packings.workers.seeds import close_packed_seed
+
+    m = _max_contacts(n)
+    assert close_packed_seed(n).m == m - 1
+    c = seed_cluster(n, Params(min_contacts=m))
+    assert c.n == n and c.m == m and lattice_type(c.coords, c.contacts) in lattices
+    d = pair_distances(c.coords)[np.triu_indices(n, 1)]
+    assert d.min() > 1 - 1e-12 and sum(abs(d - 1) < 1e-9) == m
+    assert rigidity(c.coords, c.contacts, Params()).rigid
+
+
+@pytest.mark.parametrize("n, m", [(10, 26), (13, 37)])
+def test_no_seed_with_more_contacts_than_any_close_packed_fragment_is_refused_clearly(n, m):
+    with pytest.raises(ValueError, match=f"no cluster of {n} spheres with at least {m} contacts to start from: "
+                                         "no rigid close-packed fragment has that many"):
+        seed_cluster(n, Params(min_contacts=m))
 
 
 def test_lattice_sites_are_close_packed():
