@@ -236,6 +236,17 @@ def test_one_side_of_every_face_of_a_tetrahedron():
     assert len({certificate_key(p) for _, p in out}) == 1
 
 
+def _moved_onto(c: Cluster, data: dict, certificate: str):
+    """The one rigid remainder of moving a sphere of ``c`` that has ``certificate``, checked to be data's
+    sphere moved onto data's triangle; and every rigid remainder."""
+    seen = Seen(P.tol_d)
+    assert seen.add(c)
+    rigid = [mv for mv in moved_remainders(c, P, seen) if mv.remainder is not None and mv.remainder.rigid]
+    [mv] = [mv for mv in rigid if certificate_key(mv.remainder.cluster) == certificate]
+    assert (mv.sphere, mv.triangle) == (data["sphere"], tuple(data["triangle"]))
+    return mv, rigid
+
+
 def test_moving_a_sphere_finds_the_cluster_of_11_no_path_reaches():
     """tests/data/n11_glued.json: a path cluster of 11 whose sphere 0, moved onto the contact triangle
     (1, 5, 8), gives the rigid hcp fragment of 26 contacts that no path reaches (the one
@@ -243,19 +254,32 @@ def test_moving_a_sphere_finds_the_cluster_of_11_no_path_reaches():
     from packings.workers.classify import lattice_type
 
     c, data = _glued_n11()
-    seen = Seen(P.tol_d)
-    assert seen.add(c)
-    rigid = [mv for mv in moved_remainders(c, P, seen) if mv.remainder is not None and mv.remainder.rigid]
-    lost = [mv for mv in rigid if certificate_key(mv.remainder.cluster) == data["certificate"]]
-    assert len(lost) == 1
-    mv = lost[0]
-    assert (mv.sphere, mv.triangle) == (data["sphere"], tuple(data["triangle"]))
+    mv, rigid = _moved_onto(c, data, data["certificate"])
     r = mv.remainder
     assert (r.cluster.n, r.cluster.m, r.rigidity.kind) == (11, 26, "prestress")
     assert lattice_type(r.cluster.coords, r.cluster.contacts) == "hcp"
     # the remainder's spheres: the cluster's without the moved one, in order, then the moved one
     assert np.array_equal(r.cluster.coords[:-1], np.delete(c.coords, mv.sphere, axis=0))
     assert sum(1 for mv in rigid if certificate_key(mv.remainder.cluster) == certificate_key(c)) == 0
+
+
+def test_moving_a_sphere_finds_the_cluster_of_13_no_path_reaches():
+    """tests/data/n13_glued.json: a path cluster of 13 whose sphere 7, moved onto the contact triangle
+    (0, 3, 6), gives a rigid cluster with 32 contacts (two flexes held by one self-stress) that the path
+    enumeration of 13 lacks: the one that makes its 1,220 the paper's 1,221.  No path from it ends at a
+    rigid cluster, so none from a rigid cluster ends at it."""
+    from packings.workers.expand import expand
+    from packings.workers.identity import same_geometry
+
+    data = json.loads((DATA / "n13_glued.json").read_text())
+    c = Cluster(np.array(data["cluster"]["coords"]), tuple(map(tuple, data["cluster"]["contacts"])))
+    found = data["found"]
+    r = _moved_onto(c, data, found["certificate"])[0].remainder
+    assert (r.cluster.n, r.cluster.m, r.rigidity.kind, r.rigidity.flexes) == (13, 32, "prestress", 2)
+    assert r.rigidity.margin > 1000 * P.tol_psd
+    assert same_geometry(r.cluster, Cluster(np.array(found["coords"]), tuple(map(tuple, found["contacts"]))), P.tol_d)
+    out = expand(r.cluster, P)
+    assert out.paths_followed > 0 and out.rigid_endpoints() == []
 
 
 def test_a_remainder_seen_is_not_decided_again():
