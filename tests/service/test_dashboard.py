@@ -55,7 +55,8 @@ def test_the_page_shows_the_run_as_the_database_has_it(db_url):
                 break
             time.sleep(0.5)
         page_status, page = fetch(f"http://127.0.0.1:{port}/packings")
-        _, dask_status = fetch(f"http://127.0.0.1:{port}/status")
+        # Dask's own page renders its plots on the first request: seconds where the cores are shared
+        _, dask_status = fetch(f"http://127.0.0.1:{port}/status", timeout=60.0)
         out, err = proc.communicate(timeout=900)
     finally:
         proc.kill()
