@@ -76,7 +76,6 @@ def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], i
     return level
 
 
-
 def _all_connected(n: int, min_contacts: int) -> set[bytes]:
     """The keys of every connected fragment of n sites with at least ``min_contacts`` contacts, grown
     without thresholds (every connected fragment is kept at every size), in the same structures."""
