@@ -11,14 +11,15 @@ first-order flexes f (the null space of the pinned rigidity matrix):
 The clusters come from a stored catalogue (``--db URL``: the clusters of ``--n``
 in that database, e.g. the file a ``packings enumerate 12`` left), or, without
 one, from the in-memory enumeration (``packings.workers.explore``, fine up to
-n = 10).  From each class a seeded random sample of up to ``--sample`` clusters
-is expanded three ways in this process, alternating cluster by cluster,
+n = 10).  From each class a seeded random sample of about ``--sample`` clusters,
+drawn apart for each number of contacts (at least one of each), is expanded
+three ways in this process, alternating cluster by cluster,
 so that all see the same load: as a run does, with every subset decided by an
 SVD of what is left rather than by the first-order counts from the
 self-stresses (``svd``: the code before them; its endpoints must be the same),
-and with the numpy reference kernels.  A class's time is its mean time per cluster
-times its number of clusters; its share is of the sum over the classes, which
-is what ``expand`` costs a whole run.  Also printed per class: the subsets of
+and with the numpy reference kernels.  A class's time is, for each number of
+contacts, the mean time of its sampled clusters times their number, summed; its
+share is of the sum over the classes, which is what ``expand`` costs a whole run.  Also printed per class: the subsets of
 contacts tried per cluster (least and most), the share of them whose set is not
 one-dimensional, and how many sampled clusters gave the same endpoints with
 both backends.  Ratios measured in one run are what compare; absolute times
@@ -30,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import sys
 import time
 from collections import Counter
@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n", type=int, default=10, help="number of spheres (default 10)")
     parser.add_argument("--db", default=None, metavar="URL",
                         help="a catalogue holding the clusters of N (default: enumerate N in memory, for N <= 10)")
-    parser.add_argument("--sample", type=int, default=20, help="clusters timed per class (default 20)")
+    parser.add_argument("--sample", type=int, default=20, help="clusters timed per class, about (default 20)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sample (default 0)")
     parser.add_argument("--numpy", action=argparse.BooleanOptionalAction, default=True,
                         help="also time the numpy reference (default: yes)")
@@ -112,6 +112,22 @@ def _path_outcomes(endpoints) -> Counter:
     return Counter((e.broken, e.outcome) for e in endpoints if e.direction != 0)
 
 
+def _stratified(members, sample: int, rng) -> list[int]:
+    """Indices of a seeded sample of ``members``, drawn apart for each number of contacts: in proportion to
+    how many clusters have it, at least one each (so about ``sample`` in all, more where a class has many
+    numbers of contacts).  A hyperstatic cluster with more contacts costs many times one with fewer (its
+    subsets grow as C(m, k)): a sample blind to them weighs the few dearest ones by chance."""
+    by_m: dict[int, list[int]] = {}
+    for i, c in enumerate(members):
+        by_m.setdefault(c.m, []).append(i)
+    pick = []
+    for m in sorted(by_m):
+        idx = by_m[m]
+        k = min(len(idx), max(1, round(sample * len(idx) / len(members))))
+        pick.extend(idx[j] for j in rng.choice(len(idx), size=k, replace=False))
+    return sorted(pick)
+
+
 def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, numpy: bool) -> list[dict]:
     """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share."""
     import numpy as np
@@ -125,13 +141,18 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
         members = [c for c, k in clusters if k == name]
         if not members:
             continue
-        pick = np.sort(rng.choice(len(members), size=min(sample, len(members)), replace=False))
+        pick = _stratified(members, sample, rng)
+        weight = Counter(members[i].m for i in range(len(members)))  # clusters with as many contacts
+        picked = Counter(members[i].m for i in pick)
         seconds = {b: [] for b in backends}
+        totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
         subsets, not_1d, same, svd_differ = [], 0, 0, 0
         for i in pick:
             results = {b: _time(members[i], params, b) for b in backends}
+            m = members[i].m
             for b, (s, _) in results.items():
                 seconds[b].append(s)
+                totals[b] += s * weight[m] / picked[m]
             ex = results["numba"][1]
             subsets.append(ex.subsets_tried)
             not_1d += sum(1 for e in ex.endpoints if e.outcome == NOT_1D)
@@ -149,9 +170,8 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
                "subsets_min": min(subsets), "subsets_max": max(subsets),
                "not_1d_share": not_1d / max(1, sum(subsets)), "svd_paths_differing": svd_differ}
         for b in backends:
-            mean = statistics.fmean(seconds[b])
-            row[f"mean_ms_{b}"] = 1e3 * mean
-            row[f"total_s_{b}"] = mean * len(members)
+            row[f"mean_ms_{b}"] = 1e3 * totals[b] / len(members)
+            row[f"total_s_{b}"] = totals[b]
         row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
         if numpy:
             row["same_endpoints"] = same

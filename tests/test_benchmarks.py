@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections import Counter
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,6 +76,22 @@ def test_the_classes_of_a_cluster():
 
     assert cluster_class(12, 30, 0) == "regular" and cluster_class(12, 30, 2) == "singular"
     assert cluster_class(12, 29, 3) == "hypostatic" and cluster_class(12, 31, 0) == "hyperstatic"
+
+
+def test_the_classes_benchmark_samples_every_number_of_contacts_in_proportion():
+    """As the hyperstatic clusters of n = 12 (174 with 31 contacts, 8 with 32, 1 with 33): each number of
+    contacts in proportion to its clusters, at least one each, none twice, the same for the same seed."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from benchmarks.classes import _stratified
+
+    members = [SimpleNamespace(m=m) for m in [31] * 174 + [32] * 8 + [33] * 1]
+    pick = _stratified(members, 20, np.random.default_rng(0))
+    assert pick == sorted(set(pick)) and pick == _stratified(members, 20, np.random.default_rng(0))
+    assert Counter(members[i].m for i in pick) == {31: 19, 32: 1, 33: 1}
+    assert len(_stratified(members, 1000, np.random.default_rng(1))) == len(members)
 
 
 def test_the_classes_benchmark_reads_a_stored_catalogue(tmp_path):

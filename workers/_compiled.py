@@ -265,6 +265,17 @@ def _fill_free_rows(x, edges, free, scale, out):
 
 
 @numba.njit(**_JIT)
+def _fill_jacobian(x, edges, free, A, J):
+    """J[:m + e, :k] = the Jacobian of the contacts and the extra rows A in the free columns (J may be a
+    transposed view)."""
+    m = edges.shape[0]
+    _fill_free_rows(x, edges, free, 2.0, J)
+    for r in range(A.shape[0]):
+        for c in range(free.size):
+            J[m + r, c] = A[r, free[c]]
+
+
+@numba.njit(**_JIT)
 def _lstsq_step(x, edges, free, A, f, dx_full):
     """The reference's Newton step: minimum-norm least squares by LAPACK (as numpy.linalg.lstsq)."""
     m = edges.shape[0]
@@ -272,10 +283,7 @@ def _lstsq_step(x, edges, free, A, f, dx_full):
     k = free.size
     n3 = x.size
     J = np.zeros((m + e, k))
-    _fill_free_rows(x, edges, free, 2.0, J)
-    for r in range(e):
-        for c in range(k):
-            J[m + r, c] = A[r, free[c]]
+    _fill_jacobian(x, edges, free, A, J)
     rhs = np.empty(m + e)
     for r in range(m + e):
         rhs[r] = -f[r]
@@ -294,48 +302,81 @@ QR_MIN_RATIO = 1e-10
 
 
 @numba.njit(**_JIT)
-def _qr_step(x, edges, free, A, f, dx_full):
-    """The same minimum-norm least-squares step as _lstsq_step, by a QR factorisation of J^T, where J has
-    full row rank with every singular value at least QR_MIN_RATIO times the largest; returns False
-    (dx_full untouched) elsewhere, and for more rows than free columns.
+def _certified_qr(M):
+    """M = Q U (M with at least as many rows as columns): (Q, L = U^T, whether every singular value of M is
+    at least QR_MIN_RATIO times the largest).  L is the Cholesky factor of M^T M up to the signs of its
+    columns, so 1 / ||L^-1||_F^2 bounds sigma_min(M)^2 from below, and ||L||_F = ||M||_F bounds sigma_max."""
+    Q, U = np.linalg.qr(M)
+    size = U.shape[0]
+    L = U.T.copy()
+    work = np.empty(size)
+    low = _eig_lower_bound(L, size, work)  # <= sigma_min(M)^2
+    top = 0.0
+    for i in range(size):
+        for j in range(i + 1):
+            top += L[i, j] * L[i, j]  # ||M||_F^2 >= sigma_max(M)^2
+    return Q, L, low >= QR_MIN_RATIO * QR_MIN_RATIO * top
 
-    J^T = Q U (U upper triangular), so J = U^T Q^T and the minimum-norm solution of J dx = -f is
-    dx = Q y with U^T y = -f.  Like the SVD's it is backward stable: the two steps differ by about
-    cond(J) times the rounding unit.  U^T is the Cholesky factor of J J^T, up to the signs of its
-    columns, so 1 / ||U^-1||_F^2 bounds the smallest eigenvalue of J J^T from below.
+
+@numba.njit(**_JIT)
+def _qr_step(x, edges, free, A, f, dx_full):
+    """The same minimum-norm least-squares step as _lstsq_step, by a QR factorisation, where J has full rank
+    with every singular value at least QR_MIN_RATIO times the largest; returns False (dx_full untouched)
+    elsewhere.
+
+    At most as many rows as free columns: J^T = Q U (U upper triangular), so J = U^T Q^T and the
+    minimum-norm solution of J dx = -f is dx = Q y with U^T y = -f.  More rows (a hyperstatic point, or
+    the contacts and a probe's row): J = Q U with full column rank, so the least-squares solution is
+    unique, the minimum-norm one LAPACK's least squares computes (which truncates nothing above eps
+    max(rows, columns) times the largest singular value), dx = -U^-1 Q^T f.  Like the SVD's both are
+    backward stable: the steps differ by about cond(J) times the rounding unit (cond(J)^2 for an
+    inconsistent system with more rows).
     """
     m = edges.shape[0]
     e = A.shape[0]
     k = free.size
     size = m + e
-    if size == 0 or size > k:
+    if size == 0:
         return False
-    Jt = np.zeros((k, size))
-    _fill_free_rows(x, edges, free, 2.0, Jt.T)
-    for r in range(e):
-        for c in range(k):
-            Jt[c, m + r] = A[r, free[c]]
-    Q, U = np.linalg.qr(Jt)
-    L = U.T.copy()
-    work = np.empty(size)
-    low = _eig_lower_bound(L, size, work)  # <= sigma_min(J)^2
-    top = 0.0
-    for i in range(size):
-        for j in range(i + 1):
-            top += L[i, j] * L[i, j]  # ||J||_F^2 >= sigma_max(J)^2
-    if not low >= QR_MIN_RATIO * QR_MIN_RATIO * top:
+    tall = size > k
+    if tall:
+        J = np.zeros((size, k))
+        _fill_jacobian(x, edges, free, A, J)
+        Q, L, ok = _certified_qr(J)
+    else:
+        Jt = np.zeros((k, size))
+        _fill_jacobian(x, edges, free, A, Jt.T)
+        Q, L, ok = _certified_qr(Jt)
+    if not ok:
         return False
-    for i in range(size):
-        work[i] = -f[i]
-    y = np.empty(size)
-    _forward_solve(L, size, work, y)  # U^T y = -f
+    rank = min(size, k)
+    work = np.empty(rank)
+    y = np.empty(rank)
+    if tall:
+        for c in range(k):  # U y = -Q^T f, U = L^T
+            s = 0.0
+            for r in range(size):
+                s += Q[r, c] * f[r]
+            work[c] = -s
+        for i in range(k - 1, -1, -1):
+            s = work[i]
+            for p in range(i + 1, k):
+                s -= L[p, i] * y[p]
+            y[i] = s / L[i, i]
+    else:
+        for i in range(size):
+            work[i] = -f[i]
+        _forward_solve(L, size, work, y)  # U^T y = -f
     for c in range(x.size):
         dx_full[c] = 0.0
     for c in range(k):
-        s = 0.0
-        for r in range(size):
-            s += Q[c, r] * y[r]
-        dx_full[free[c]] = s
+        if tall:
+            dx_full[free[c]] = y[c]
+        else:
+            s = 0.0
+            for r in range(size):
+                s += Q[c, r] * y[r]
+            dx_full[free[c]] = s
     return True
 
 
@@ -428,8 +469,9 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
 
     By the normal equations (J J^T) y = -f, dx = J^T y when the smallest
     eigenvalue of J J^T is certified to be at least 4 guard (J J^T = 4 R_f R_f^T
-    on the contacts); otherwise by a QR factorisation of J^T where J is far from
-    rank deficient (_qr_step), and else by LAPACK least squares, as the reference.
+    on the contacts); otherwise by a QR factorisation of J^T (of J where it has more
+    rows than free columns) where J is far from rank deficient (_qr_step), and else
+    by LAPACK least squares, as the reference.
     A guard of inf (the re-check of a failure) takes LAPACK's least squares at
     every step.  Returns True if the normal equations were used.
     """

@@ -303,30 +303,58 @@ def _qr_and_lstsq(x, edges, free, A):
     return taken, qr, ls
 
 
-@settings(max_examples=40, deadline=None, derandomize=True)
-@given(st.integers(5, 12), st.integers(0, 3), st.floats(0.0, 1e-2), st.integers(0, 1), st.integers(0, 2**31 - 1))
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(st.integers(5, 12), st.integers(0, 3), st.floats(0.0, 1e-2), st.integers(0, 3), st.integers(0, 2**31 - 1))
 def test_the_qr_step_is_lapacks_least_squares_step(n, drop, eps, extra, seed):
-    """Where J has full row rank, well away from losing it, the QR step is LAPACK's minimum-norm step (to
-    cond(J) times the rounding unit), with and without an extra linear row, and it moves no pinned
-    coordinate."""
+    """Where J has full rank, well away from losing it, the QR step is LAPACK's minimum-norm step, with and
+    without extra linear rows, and it moves no pinned coordinate: for full row rank (QR of J^T) to cond(J)
+    times the rounding unit; for more rows than free columns and full column rank (QR of J, the unique
+    least-squares step of an inconsistent system) to cond(J)^2 times it, as least squares itself is
+    determined."""
     x0, keep, free, _, rng = _perturbed_problem(n, drop, eps, seed)
     A = np.zeros((extra, x0.size))
     A[:, free] = rng.standard_normal((extra, free.size))
     taken, qr, ls = _qr_and_lstsq(x0, keep, free, A)
     J = np.vstack([2.0 * kernels.rigidity_matrix(x0, keep)[:, free], A[:, free]])
     sv = np.linalg.svd(J, compute_uv=False)
-    if J.shape[0] > J.shape[1] or sv.min() < 1e-10 * sv.max():
+    if sv.min() < 1e-10 * sv.max():
         assert not taken and np.isnan(qr).all()
         return
     assert taken
     pinned = np.setdiff1d(np.arange(x0.size), free)
     assert np.all(qr[pinned] == 0.0)
-    assert np.abs(qr - ls).max() <= 1e-13 * (sv.max() / sv.min()) * max(1.0, np.abs(ls).max())
+    cond = sv.max() / sv.min()
+    bound = cond**2 if J.shape[0] > J.shape[1] else cond
+    assert np.abs(qr - ls).max() <= 1e-13 * bound * max(1.0, np.abs(ls).max())
+
+
+def test_the_qr_step_of_more_rows_than_columns_is_taken_where_j_has_full_column_rank():
+    """A seed cluster's contacts and extra rows, more rows than free columns: J = [R; A] has full column rank,
+    so the QR step is taken and is LAPACK's step.  The same with a probe's row (R's one flex v) at a pre-stress
+    stable cluster (the isolation probe of the rigidity test, R itself rank deficient by one): taken too."""
+    x0, keep, free, _, rng = _perturbed_problem(9, 0, 1e-3, 7)
+    A = np.zeros((2, x0.size))
+    A[:, free] = rng.standard_normal((2, free.size))
+    assert keep.shape[0] + 2 > free.size
+    taken, qr, ls = _qr_and_lstsq(x0, keep, free, A)
+    assert taken and np.allclose(qr, ls, rtol=0, atol=1e-10)
+    stressed = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    tri = contact_triangle(stressed.edges())
+    x = kernels.to_frame(stressed.coords, tri).ravel()
+    free = kernels.free_coordinates(stressed.n, tri)
+    ns = kernels.null_spaces(x, stressed.edges(), free, P.tol_n)
+    assert ns.V.shape[1] == 1 and ns.W.shape[1] == 1
+    probe = np.zeros((1, x.size))
+    probe[0, free] = ns.V[free, 0]
+    assert stressed.m + 1 > free.size
+    taken, qr, ls = _qr_and_lstsq(x, stressed.edges(), free, probe)
+    assert taken and np.allclose(qr, ls, rtol=0, atol=1e-10)
 
 
 def test_the_qr_step_defers_to_lapack_where_j_is_rank_deficient():
-    """More rows than free columns (a hyperstatic cluster's contacts), or a row repeated (an exact self-stress):
-    no QR step.  24 independent rows of the same cluster: the QR step, equal to LAPACK's.  A stored
+    """A row repeated (an exact self-stress), with fewer rows than free columns or with more: no QR step.  A
+    hyperstatic cluster's 25 contacts, first-order rigid (full column rank), and 24 independent rows of
+    them: the QR step, equal to LAPACK's.  A stored
     pre-stress stable cluster's 24 contacts, whose smallest singular value is about 1e-9 (their self-stress
     holds to the accuracy of the coordinates): both solvers keep it, and agree to cond(J) times the
     rounding unit."""
@@ -335,11 +363,14 @@ def test_the_qr_step_defers_to_lapack_where_j_is_rank_deficient():
     x = kernels.to_frame(c.coords, tri).ravel()
     free = kernels.free_coordinates(c.n, tri)
     none = np.zeros((0, x.size))
-    assert not _qr_and_lstsq(x, c.edges(), free, none)[0]  # 25 rows, 24 columns
+    taken, qr, ls = _qr_and_lstsq(x, c.edges(), free, none)  # 25 rows, 24 columns
+    assert taken and np.allclose(qr, ls, rtol=0, atol=1e-10)
     taken, qr, ls = _qr_and_lstsq(x, c.edges()[1:], free, none)
     assert taken and np.allclose(qr, ls, rtol=0, atol=1e-10)
     repeated = np.vstack([c.edges()[2:], c.edges()[2:3]])  # 24 rows, two of them the same
     assert not _qr_and_lstsq(x, repeated, free, none)[0]
+    tall = np.vstack([c.edges()[2:], c.edges()[2:4]])  # 25 rows of rank 23
+    assert not _qr_and_lstsq(x, tall, free, none)[0]
     stressed = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     tri = contact_triangle(stressed.edges())
     x = kernels.to_frame(stressed.coords, tri).ravel()
