@@ -19,10 +19,10 @@ SVD of what is left rather than by the first-order counts from the
 self-stresses (``svd``: the code before them; its endpoints must be the same),
 and with the numpy reference kernels.  A class's time is, for each number of
 contacts, the mean time of its sampled clusters times their number, summed; its
-share is of the sum over the classes, which is what ``expand`` costs a whole run.  Also printed per class: the subsets of
-contacts tried per cluster (least and most), the share of them whose set is not
-one-dimensional, and how many sampled clusters gave the same endpoints with
-both backends.  Ratios measured in one run are what compare; absolute times
+share is of the sum over the classes, which is what ``expand`` costs a whole
+run.  Also printed per class: the subsets of contacts tried per cluster (least
+and most), the share of them whose set is not one-dimensional, and how many
+sampled clusters gave the same endpoints with both backends.  Ratios measured in one run are what compare; absolute times
 depend on the machine's load.
 """
 
@@ -142,16 +142,14 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
         if not members:
             continue
         pick = _stratified(members, sample, rng)
-        weight = Counter(members[i].m for i in range(len(members)))  # clusters with as many contacts
+        weight = Counter(c.m for c in members)  # clusters with as many contacts
         picked = Counter(members[i].m for i in pick)
-        seconds = {b: [] for b in backends}
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
         subsets, not_1d, same, svd_differ = [], 0, 0, 0
         for i in pick:
             results = {b: _time(members[i], params, b) for b in backends}
             m = members[i].m
             for b, (s, _) in results.items():
-                seconds[b].append(s)
                 totals[b] += s * weight[m] / picked[m]
             ex = results["numba"][1]
             subsets.append(ex.subsets_tried)
