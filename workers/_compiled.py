@@ -236,14 +236,20 @@ def _forward_solve(L, size, b, out):
 
 
 @numba.njit(**_JIT)
-def _chol_solve(L, size, b, out):
-    """out = (L L^T)^{-1} b[:size]."""
-    _forward_solve(L, size, b, out)
+def _backward_solve(L, size, b, out):
+    """out[:size] = L^{-T} b[:size] (L lower triangular; b may be out)."""
     for i in range(size - 1, -1, -1):
-        s = out[i]
+        s = b[i]
         for p in range(i + 1, size):
             s -= L[p, i] * out[p]
         out[i] = s / L[i, i]
+
+
+@numba.njit(**_JIT)
+def _chol_solve(L, size, b, out):
+    """out = (L L^T)^{-1} b[:size]."""
+    _forward_solve(L, size, b, out)
+    _backward_solve(L, size, out, out)
 
 
 @numba.njit(**_JIT)
@@ -358,11 +364,7 @@ def _qr_step(x, edges, free, A, f, dx_full):
             for r in range(size):
                 s += Q[r, c] * f[r]
             work[c] = -s
-        for i in range(k - 1, -1, -1):
-            s = work[i]
-            for p in range(i + 1, k):
-                s -= L[p, i] * y[p]
-            y[i] = s / L[i, i]
+        _backward_solve(L, k, work, y)
     else:
         for i in range(size):
             work[i] = -f[i]
