@@ -814,6 +814,87 @@ def follow_steps(
     return ST_TOO_LONG, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
 
 
+# Outcomes of close_at_hit (mirrored in packings.workers.paths).
+CH_CLOSED = 0  #: the projection onto every contact and hit pair counts, and its point is the endpoint's
+CH_REJECTED = 1  #: close_pairs would return nothing, or an overlapping point: the caller walks to the contact
+CH_PYTHON = 2  #: anything else (a near miss, a singular point, a near pair, more than one hit pair failing)
+
+
+@numba.njit(**_JIT)
+def _max_move(a, b):
+    """packings.workers.paths.max_move: the largest displacement of a sphere between a and b (flat)."""
+    out = 0.0
+    for s in range(a.size // 3):
+        d0 = a[3 * s] - b[3 * s]
+        d1 = a[3 * s + 1] - b[3 * s + 1]
+        d2 = a[3 * s + 2] - b[3 * s + 2]
+        out = max(out, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+    return out
+
+
+@numba.njit(**_JIT)
+def close_at_hit(x, keep, pairs, hit, free, mask, upper, tol, dx_max, max_iter, guard, tol_a, tol_a0, round_off):
+    """The common case of a path's endpoint (packings.workers.paths._endpoint) in one call:
+    returns (status, point, its distances over ``upper``, every pair i < j).
+
+    The first projection of packings.workers.paths.close_pairs: onto the contacts ``keep`` and the
+    pairs ``pairs[hit]`` that stopped the path (in that order), polished, by the same Newton
+    iteration (:func:`newton`); it counts if it converged and moved no sphere by more than
+    ``tol_a0``.  CH_CLOSED when its point's contacts (pairs closer than 1 + ``tol_a``) are all
+    constraints, no pair overlaps (closer than 1 - ``tol_a``), sum f^2 is at round-off (no
+    refinement along flexes), and no pair of ``pairs`` other than a contact lies within 1 +
+    ``tol_a0`` (packings.workers.paths.resolve_near_pairs has nothing to add): then the point and
+    the contacts ``upper[d < 1 + tol_a]`` are the endpoint close_pairs returns and keeps.
+    CH_REJECTED when close_pairs would return nothing (the projection does not count and there is
+    one hit pair, so no subset to delete) or an overlapping point; CH_PYTHON otherwise, where the
+    Python code decides from the start.
+    """
+    m = keep.shape[0]
+    n3 = x.size
+    n = n3 // 3
+    e = 0
+    for p in range(pairs.shape[0]):
+        if hit[p]:
+            e += 1
+    cons = np.empty((m + e, 2), dtype=np.int64)
+    for r in range(m):
+        cons[r, 0] = keep[r, 0]
+        cons[r, 1] = keep[r, 1]
+    r = m
+    for p in range(pairs.shape[0]):
+        if hit[p]:
+            cons[r, 0] = pairs[p, 0]
+            cons[r, 1] = pairs[p, 1]
+            r += 1
+    xn, st, _, fsq, _, _ = newton(x, cons, free, mask, np.zeros((0, n3)), np.zeros(0), tol, dx_max, max_iter, True,
+                                  guard)
+    d = pair_distances_flat(xn, upper)
+    if st != NEWTON_OK or not _max_move(xn, x) <= tol_a0:
+        return (CH_REJECTED if e == 1 else CH_PYTHON), xn, d
+    least = np.inf
+    for p in range(d.size):
+        least = min(least, d[p])
+    if least < 1.0 - tol_a:
+        return CH_REJECTED, xn, d
+    constrained = np.zeros((n, n), dtype=np.bool_)  # the constraints as close_pairs's set of (i, j) has them
+    for r in range(m + e):
+        constrained[cons[r, 0], cons[r, 1]] = True
+    for p in range(d.size):
+        if d[p] < 1.0 + tol_a and not constrained[upper[p, 0], upper[p, 1]]:
+            return CH_PYTHON, xn, d
+    if not fsq <= round_off:
+        return CH_PYTHON, xn, d
+    for p in range(pairs.shape[0]):
+        i = pairs[p, 0]
+        j = pairs[p, 1]
+        if i > j:
+            i, j = j, i
+        q = i * n - i * (i + 1) // 2 + (j - i - 1)  # the place of (i, j) in upper
+        if d[q] < 1.0 + tol_a0 and not d[q] < 1.0 + tol_a:
+            return CH_PYTHON, xn, d
+    return CH_CLOSED, xn, d
+
+
 @numba.njit(**_JIT)
 def aligned_max_error(x, y):
     """max |x R - y| over coordinates for the orthogonal R (det = +-1) minimising ||x R - y|| (Procrustes)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, replace
 from itertools import combinations
@@ -418,30 +419,72 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
     touching.  Then the endpoint rule for pairs within tol_a0 of touching: if adding them gives
     a rigid cluster within tol_a0 (:func:`resolve_near_pairs`), that cluster is the endpoint;
     the point without them is a second solution of the same contact equations closer to it
-    than the method resolves (docs/method.md, "The endpoint").
+    than the method resolves (docs/method.md, "The endpoint").  With the compiled kernels the
+    first projection and what is then looked at are one call (:func:`_close_at_hit`).
     """
-    new_t = tuple(map(tuple, pairs[hit].tolist()))
-    closed = close_pairs(x_hit, keep, pairs[hit], free, params)
-    if closed is None or overlaps(closed[0], params):
+    first = _close_at_hit(x_hit, keep, pairs, hit, free, params)
+    if first is None:
+        closed = close_pairs(x_hit, keep, pairs[hit], free, params)
+        rejected, looked = closed is None or overlaps(closed[0], params), False
+    else:
+        rejected, closed = first
+        looked = True  # no overlap, and no pair within tol_a0 that is not a contact
+    if rejected:
         y = approach_contact(x_prev, x_hit, keep, pairs, hit, free, params)
         if y is None:
-            return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+            return PathEnd(PROJECTION_FAILED, steps, new_contacts=_as_tuples(pairs[hit]))
         touching = pairs[kernels.pair_distances_flat(y, pairs) < 1.0 + params.tol_a]
         closed = close_pairs(y, keep, touching, free, params)
         if closed is None:
-            return PathEnd(PROJECTION_FAILED, steps, new_contacts=new_t)
+            return PathEnd(PROJECTION_FAILED, steps, new_contacts=_as_tuples(pairs[hit]))
+        looked = False
     xe, contacts = closed
-    resolved = resolve_near_pairs(xe, contacts, free, params, pairs)
-    if resolved is not None:
-        xr, cr, rig = resolved
-        return PathEnd(RIGID, steps, xr.reshape(-1, 3), cr, rig, _formed(cr, keep))
     coords = xe.reshape(-1, 3)
-    if overlaps(xe, params):
-        return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
+    if not looked:
+        resolved = resolve_near_pairs(xe, contacts, free, params, pairs)
+        if resolved is not None:
+            xr, cr, rig = resolved
+            return PathEnd(RIGID, steps, xr.reshape(-1, 3), cr, rig, _formed(cr, keep))
+        if overlaps(xe, params):
+            return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
     rig = endpoint_rigidity(xe, contacts, free, params)
     outcome = RIGID if rig.rigid else (
         UNPROVED if rig.method == UNPROVED_METHOD else UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
     return PathEnd(outcome, steps, coords, contacts, rig, _formed(contacts, keep))
+
+
+def _close_at_hit(x_hit, keep, pairs, hit, free, params: Params):
+    """:func:`_endpoint`'s first projection where the compiled kernel settles it
+    (``packings.workers._compiled.close_at_hit``): (True, None) when :func:`close_pairs` would return
+    nothing or an overlapping point; (False, (x, contacts)) when it would return x and its contacts
+    and neither :func:`resolve_near_pairs` nor :func:`overlaps` has anything to say there.  None
+    elsewhere, and with the numpy backend: then :func:`_endpoint` decides it all in Python.
+    """
+    if not kernels.compiled():
+        return None
+    n = x_hit.size // 3
+    upper = _kernel_pairs(n)
+    status, x, d = _compiled.close_at_hit(
+        x_hit, kernels.as_kernel_array(keep, np.int64, (-1, 2)), pairs, hit, free, kernels.free_mask(x_hit.size, free),
+        upper, params.tol, params.dx_max, params.newton_max_iter, kernels.guard_threshold(params.tol_n), params.tol_a,
+        params.tol_a0, _ROUND_OFF,
+    )  # fmt: skip
+    if status == _compiled.CH_REJECTED:
+        return True, None
+    if status == _compiled.CH_CLOSED:
+        return False, (x, contacts_from_distances(upper, d, params.tol_a))
+    return None
+
+
+@functools.lru_cache(maxsize=None)
+def _kernel_pairs(n: int) -> np.ndarray:
+    """upper_pairs(n) as the compiled kernels take it (writeable, as a read-only array would compile another
+    variant of each kernel; shared, so never written)."""
+    return upper_pairs(n).copy()
+
+
+def _as_tuples(pairs: np.ndarray) -> tuple[tuple[int, int], ...]:
+    return tuple(map(tuple, pairs.tolist()))
 
 
 def _formed(contacts, keep) -> tuple[tuple[int, int], ...]:

@@ -110,6 +110,32 @@ def test_both_backends_follow_paths_to_the_same_ends(path_sample):
     assert len(sensitive) <= 2
 
 
+def test_the_compiled_endpoint_call_gives_the_endpoint_python_gives(path_sample, monkeypatch):
+    """paths._close_at_hit (the first projection of a path's end and what is looked at there, in one
+    compiled call) changes no endpoint: every path ends exactly, bit for bit, as with the Python code
+    alone, and the sample holds endpoints the call settles both ways and some it hands back."""
+    statuses = []
+    real = _compiled.close_at_hit
+
+    def recording(*args):
+        out = real(*args)
+        statuses.append(out[0])
+        return out
+
+    monkeypatch.setattr(_compiled, "close_at_hit", recording)
+    with_call = _follow_all(path_sample, "numba")
+    monkeypatch.setattr(paths_module, "_close_at_hit", lambda *args: None)
+    python_only = _follow_all(path_sample, "numba")
+    for (label, p), a, b in zip(path_sample, with_call, python_only):
+        where = (label, p.broken_contacts, p.direction)
+        assert (a.outcome, a.steps, a.first_step_dim, a.contacts, a.new_contacts) == (
+            b.outcome, b.steps, b.first_step_dim, b.contacts, b.new_contacts), where
+        assert (a.coords is None) == (b.coords is None) and (a.coords is None or np.array_equal(a.coords, b.coords)), where
+        assert repr(a.rigidity) == repr(b.rigidity), where
+    assert {_compiled.CH_CLOSED, _compiled.CH_REJECTED, _compiled.CH_PYTHON} <= set(statuses), sorted(set(statuses))
+    assert statuses.count(_compiled.CH_CLOSED) > len(statuses) // 2
+
+
 def test_the_compiled_loop_defers_to_the_svd_where_the_guard_fails(monkeypatch):
     """With a guard no matrix passes, every Newton step is least squares and every tangent the SVD's
     (the first step's from Python, with the dimension test; the others from the compiled SVD in the
