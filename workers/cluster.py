@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import operator
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,9 +60,21 @@ def contacts_from_coords(x: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
 
 def normalise_contacts(contacts) -> tuple[Contact, ...]:
     """Contacts as a sorted tuple of (i, j) with i < j and no repeats."""
+    if type(contacts) is tuple and _normal(contacts):
+        return contacts
     if isinstance(contacts, np.ndarray):  # its rows as Python ints at once, not numpy scalars one by one
         contacts = contacts.tolist()
     return tuple(sorted({pair(int(a), int(b)) for a, b in contacts}))
+
+
+def _normal(contacts: tuple) -> bool:
+    """Whether ``contacts`` is already what :func:`normalise_contacts` makes of it: the shared tuples of
+    :func:`pair` (so each (i, j) of ints with i < j), strictly increasing.  Every path endpoint's contacts
+    are (:func:`contacts_from_distances`); checked at C speed, as a cluster is made for each endpoint."""
+    try:
+        return all(map(operator.is_, map(_PAIRS.get, contacts), contacts)) and all(map(operator.lt, contacts, contacts[1:]))
+    except TypeError:  # an unhashable element (a list): not a shared pair
+        return False
 
 
 def triangles(contacts) -> list[tuple[int, int, int]]:

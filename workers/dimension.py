@@ -141,22 +141,21 @@ def _split(basis: StressBasis, rows, tol_n: float, guard: float, vectors: bool) 
     if not basis.certain(guard, tol_n):
         return None
     k = len(rows)
+    if not basis.W.shape[1]:  # no self-stress (a regular cluster): W_B is empty, and certain() made its 0 rank sure
+        return 0, (np.eye(k) if vectors else None)
     w = np.zeros(k)
     p = None
-    if basis.W.shape[1]:
-        wb = basis.W[list(rows)]
-        if vectors:
-            p, sv, _ = np.linalg.svd(wb, full_matrices=True)
-        else:
-            sv = np.sqrt(wb @ wb[0]) if k == 1 else np.linalg.svd(wb, compute_uv=False)
-        w[: sv.size] = sv
+    wb = basis.W[list(rows)]
+    if vectors:
+        p, sv, _ = np.linalg.svd(wb, full_matrices=True)
+    else:
+        sv = np.sqrt(wb @ wb[0]) if k == 1 else np.linalg.svd(wb, compute_uv=False)
+    w[: sv.size] = sv
     nonzero = basis.smallest * w - basis.noise >= guard * tol_n
     zero = basis.largest * w + basis.noise <= tol_n / guard
     if not np.all(nonzero | zero):
         return None
     rank_wb = int(np.count_nonzero(nonzero))
-    if vectors and p is None:
-        p = np.eye(k)
     return rank_wb, (p[:, rank_wb:] if vectors else None)
 
 

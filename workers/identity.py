@@ -54,12 +54,30 @@ __all__ = [
 # --------------------------------------------------------------------------- graphs
 
 
+class _Graph(pynauty.Graph):
+    """An undirected, uncoloured pynauty graph made from adjacency lists already known to be valid
+    (distinct neighbours, each in range: a cluster's contacts).  pynauty's own constructor checks every
+    vertex and copies every list in Python, which costs about as much as nauty's labelling of a contact graph itself;
+    nauty reads the same four attributes either way (the tests compare both)."""
+
+    def __init__(self, n: int, adjacency: dict[int, list[int]]) -> None:  # not Graph.__init__: its checks are what this skips
+        self.number_of_vertices = n
+        self.directed = False
+        self._adjacency_dict = adjacency
+        self._vertex_coloring = []
+
+
 def _nauty_graph(cluster: Cluster) -> pynauty.Graph:
     """The contact graph of ``cluster`` as an undirected pynauty graph."""
-    adjacency: dict[int, list[int]] = {i: [] for i in range(cluster.n)}
-    for i, j in cluster.contacts:
+    return _contact_graph(cluster.n, cluster.contacts)
+
+
+def _contact_graph(n: int, edges: Iterable[tuple[int, int]]) -> pynauty.Graph:
+    """The graph on n vertices with these edges (distinct pairs i < j) for pynauty."""
+    adjacency: dict[int, list[int]] = {i: [] for i in range(n)}
+    for i, j in edges:
         adjacency[i].append(j)
-    return pynauty.Graph(cluster.n, directed=False, adjacency_dict=adjacency)
+    return _Graph(n, adjacency)
 
 
 def certificate(cluster: Cluster) -> bytes:
@@ -81,11 +99,8 @@ def graph_certificate(cluster: Cluster) -> bytes:
 
 
 def edges_certificate(n: int, edges: Iterable[tuple[int, int]]) -> bytes:
-    """:func:`graph_certificate` of the graph on n vertices with these edges (pairs i < j)."""
-    adjacency: dict[int, list[int]] = {i: [] for i in range(n)}
-    for i, j in edges:
-        adjacency[i].append(j)
-    return pynauty.certificate(pynauty.Graph(n, directed=False, adjacency_dict=adjacency))
+    """:func:`graph_certificate` of the graph on n vertices with these edges (distinct pairs i < j)."""
+    return pynauty.certificate(_contact_graph(n, edges))
 
 
 def certificate_hex(cluster: Cluster) -> str:

@@ -317,3 +317,18 @@ def test_the_tangent_does_not_depend_on_labels_or_orientation(name, rnd):
         strains.append(s / np.abs(s).max())
     a, b = strains
     assert min(np.abs(a - b).max(), np.abs(a + b).max()) < 1e-7
+
+
+def test_without_a_self_stress_the_counts_are_read_off_at_once():
+    """No self-stress (a regular cluster): deleting k rows leaves k flexes and no stress, and the tangent
+    of a single break is the column of R's pseudo-inverse, as the general route through W_B gives it."""
+    c = Cluster.from_dict(FIXTURES["n10_m24_first-order"])
+    basis = _basis(c, contact_triangle(c.edges()))
+    assert (basis.W.shape[1], basis.flexes) == (0, 0)
+    for k in (1, 2, 3):
+        assert counts_after_breaking(basis, list(range(k)), P.tol_n) == (basis.flexes + k, 0)
+    t = dimension.tangent_after_breaking(basis, [2], P.tol_n)
+    col = basis.pinv[:, 2]
+    assert np.array_equal(t, col / np.linalg.norm(col)) or np.array_equal(t, -col / np.linalg.norm(col))
+    unsure = StressBasis(basis.W, basis.flexes, basis.smallest, basis.largest, noise=P.tol_n)  # noise too near tol_n
+    assert counts_after_breaking(unsure, [0], P.tol_n) is None

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from packings.workers import kernels
+from packings.workers import identity, kernels
 from packings.workers.cluster import Cluster
 from packings.workers.identity import (
     ClusterIndex,
@@ -457,3 +457,30 @@ def test_certificate_key_is_portable_and_equivalent_to_the_certificate():
     # 28 pairs for n = 8 -> 4 bytes; the bits are the contacts' count
     key = bytes.fromhex(certificate_key(base))
     assert len(key) == 4 and sum(bin(b).count("1") for b in key) == base.m
+
+
+# --------------------------------------------------------------------------- the graph nauty is given
+
+
+@SETTINGS
+@given(st.integers(1, 16), st.data())
+def test_the_contact_graph_gives_nauty_what_pynauty_s_own_graph_does(n, data) -> None:
+    """_contact_graph skips pynauty.Graph's checks: the same labelling, certificate and automorphisms
+    as pynauty's own graph of those edges, whatever their order (and a pynauty that stored its graph
+    otherwise would fail here)."""
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    edges = data.draw(st.lists(st.sampled_from(pairs), unique=True) if pairs else st.just([]))
+    ours = identity._contact_graph(n, edges)
+    theirs = pynauty.Graph(n, adjacency_dict={i: [j for a, j in edges if a == i] for i in range(n)})
+    assert isinstance(ours, pynauty.Graph)
+    assert pynauty.canon_label(ours) == pynauty.canon_label(theirs)
+    assert pynauty.certificate(ours) == pynauty.certificate(theirs)
+    assert pynauty.autgrp(ours)[1:] == pynauty.autgrp(theirs)[1:]
+    assert identity.edges_certificate(n, edges) == pynauty.certificate(theirs)
+
+
+def test_the_contact_graph_of_a_cluster_is_its_contacts() -> None:
+    c = CLUSTERS["polytetrahedron"]
+    g = identity._nauty_graph(c)
+    assert (g.number_of_vertices, g.directed, g.vertex_coloring) == (c.n, False, [])
+    assert sorted((i, j) for i, js in g.adjacency_dict.items() for j in js) == list(c.contacts)
