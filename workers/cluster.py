@@ -72,7 +72,8 @@ def _normal(contacts: tuple) -> bool:
     :func:`pair` (so each (i, j) of ints with i < j), strictly increasing.  Every path endpoint's contacts
     are (:func:`contacts_from_distances`); checked at C speed, as a cluster is made for each endpoint."""
     try:
-        return all(map(operator.is_, map(_PAIRS.get, contacts), contacts)) and all(map(operator.lt, contacts, contacts[1:]))
+        shared = all(map(operator.is_, map(_PAIRS.get, contacts), contacts))
+        return shared and all(map(operator.lt, contacts, contacts[1:]))
     except TypeError:  # an unhashable element (a list): not a shared pair
         return False
 

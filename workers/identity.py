@@ -56,11 +56,11 @@ __all__ = [
 
 class _Graph(pynauty.Graph):
     """An undirected, uncoloured pynauty graph made from adjacency lists already known to be valid
-    (distinct neighbours, each in range: a cluster's contacts).  pynauty's own constructor checks every
-    vertex and copies every list in Python, which costs about as much as nauty's labelling of a contact graph itself;
-    nauty reads the same four attributes either way (the tests compare both)."""
+    (distinct neighbours, each in range: a cluster's contacts).  pynauty's own constructor checks
+    every vertex and copies every list in Python, which costs about as much as nauty's labelling of
+    a contact graph itself; nauty reads the same four attributes either way (the tests compare both)."""
 
-    def __init__(self, n: int, adjacency: dict[int, list[int]]) -> None:  # not Graph.__init__: its checks are what this skips
+    def __init__(self, n: int, adjacency: dict[int, list[int]]) -> None:  # no Graph.__init__: no checks
         self.number_of_vertices = n
         self.directed = False
         self._adjacency_dict = adjacency
