@@ -1,6 +1,6 @@
 """Close-packed fragments: every set of n sites of a close-packed structure with at least M contacts.
 
-Pure Python and numpy; no database or Dask imports.
+Numpy, and numba for the growth (:mod:`packings.workers._growth`); no database or Dask imports.
 
 Why.  The path enumeration finds the rigid clusters connected to its seed by one-dimensional paths,
 and some clusters are reached by none (docs/method.md, "Catalysis"): at n = 11 a fragment of the
@@ -29,7 +29,10 @@ most the sum of
 spans at most :func:`max_layers` layers.  The growth (:func:`_grow_stacks`) chooses the position of a
 layer when the first sphere enters it, so that a fragment is grown once for each sequence of the
 layers it spans, not again in every longer structure that holds it (growing every structure of
-one sequence after another is the reference it is tested against, in the tests).
+one sequence after another is the reference it is tested against, in the tests).  Each size is held
+as rows of small integers in a hash table, grown by compiled code (:mod:`packings.workers._growth`):
+about 120 bytes a fragment of 19 sites (a row of 23 four-byte integers, its contacts and its share of
+the table), against about 750 in a dictionary of tuples.
 
 Growth.  Fragments are grown from one site, a touching site at a time, keeping at size k only those
 with at least T(k) contacts (:func:`thresholds`).  T(n) = M, and T(k - 1) = T(k) - floor(2 T(k) / k):
@@ -142,50 +145,47 @@ def _canonical_stack(positions: tuple[int, ...], sites) -> tuple[tuple[int, ...]
     return positions, _canonical(sites)
 
 
-def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
+def _grown(n: int, t: list[int], most_layers: int) -> tuple[np.ndarray, np.ndarray]:
     """Every connected fragment of n sites of any close-packed structure spanning at most ``most_layers``
-    layers, reached through fragments meeting the thresholds ``t``: {(positions of its layers, sites):
-    contacts}, once for each sequence of the layers it spans (up to the moves of :func:`_canonical_stack`).
+    layers, reached through fragments meeting the thresholds ``t``, once for each sequence of the layers
+    it spans (up to the moves of :func:`_canonical_stack`): (rows, contacts), a row being the positions
+    of its layers (-1 past its height, ``most_layers`` columns) and then its sites in increasing order.
     The same fragments as growing every sequence's structure on its own, without growing each again in
-    every longer sequence that holds it: a layer's position is chosen when the first site enters it."""
-    level = {((0,), _canonical([_O * _S + _O])): 0}
+    every longer sequence that holds it: a layer's position is chosen when the first site enters it.
+    Grown one size at a time by :func:`packings.workers._growth.grow` (compiled; the order in which
+    fragments are first made is kept, so the listing does not depend on how they are stored)."""
+    from packings.workers import _growth
+
+    if most_layers < 1:  # no fragment of n can have so many contacts
+        return np.zeros((0, n), dtype=np.int32), np.zeros(0, dtype=np.int64)
+    rows = np.full((1, most_layers + 1), -1, dtype=np.int32)
+    rows[0, 0], rows[0, most_layers] = 0, _O * _S + _O
+    contacts = np.zeros(1, dtype=np.int64)
+    in_layer, across = _offsets()
     for k in range(2, n + 1):
-        grown: dict = {}
-        for (positions, frag), c in level.items():
-            inside = set(frag)
-            height = len(positions)
-            gain: dict = {}  # (position of a new layer or None, -1 below / 1 above, site) -> contacts it makes
-            for u in frag:
-                layer = u // (_S * _S)
-                for di, dj in _IN_LAYER:
-                    q = u + di * _S + dj
-                    if q not in inside:
-                        gain[None, 0, q] = gain.get((None, 0, q), 0) + 1
-                for dl in (-1, 1):
-                    other = layer + dl
-                    if 0 <= other < height:
-                        for di, dj in _across(positions[layer], positions[other]):
-                            q = u + dl * _S * _S + di * _S + dj
-                            if q not in inside:
-                                gain[None, 0, q] = gain.get((None, 0, q), 0) + 1
-                    elif height < most_layers:  # a new layer, above or below, in either free position
-                        for p in range(3):
-                            if p != positions[layer]:
-                                for di, dj in _across(positions[layer], p):
-                                    key = (p, dl, u + max(dl, 0) * _S * _S + di * _S + dj)
-                                    gain[key] = gain.get(key, 0) + 1
-            for (p, dl, q), g in gain.items():
-                if c + g < t[k]:
-                    continue
-                if p is None:
-                    key = (positions, _canonical(frag + (q,)))
-                elif dl == 1:  # above
-                    key = _canonical_stack(positions + (p,), frag + (q,))
-                else:  # below: every layer goes up one, q is in the new layer 0
-                    key = _canonical_stack((p,) + positions, tuple(v + _S * _S for v in frag) + (q,))
-                grown.setdefault(key, c + g)
-        level = grown
-    return level
+        rows, contacts = _growth.grow(rows, contacts, most_layers, t[k], in_layer, across, _S, _O)
+    return rows, contacts
+
+
+@functools.lru_cache(maxsize=None)
+def _offsets() -> tuple[np.ndarray, np.ndarray]:
+    """The site offsets di S + dj of the touching sites, as :func:`packings.workers._growth.grow` takes them:
+    the six of a layer, in the order of _IN_LAYER, and the three of a layer in position q from one in p
+    (3 x 3 x 3, in the order of :func:`_across`; zero where p = q)."""
+    in_layer = np.array([di * _S + dj for di, dj in _IN_LAYER], dtype=np.int64)
+    across = np.zeros((3, 3, 3), dtype=np.int64)
+    for p in range(3):
+        for q in range(3):
+            if p != q:
+                across[p, q] = [di * _S + dj for di, dj in _across(p, q)]
+    return in_layer, across
+
+
+def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
+    """:func:`_grown` as {(positions of its layers, sites): contacts}, in the order the fragments were made."""
+    rows, contacts = _grown(n, t, most_layers)
+    return {(tuple(int(p) for p in row[:most_layers] if p >= 0), tuple(int(q) for q in row[most_layers:])): int(c)
+            for row, c in zip(rows, contacts)}
 
 
 @dataclass(frozen=True)
@@ -229,13 +229,15 @@ def close_packed(n: int, min_contacts: int, params: Params = DEFAULT) -> list[Fr
     it spans)."""
     if not 1 <= n <= 30:
         raise ValueError(f"n must be between 1 and 30, got {n}")
-    by_stack: dict[tuple[int, ...], list[tuple[int, ...]]] = {}
-    for positions, frag in _grow_stacks(n, thresholds(n, min_contacts), max_layers(n, min_contacts)):
-        by_stack.setdefault(positions, []).append(frag)
+    most = max_layers(n, min_contacts)
+    rows, _ = _grown(n, thresholds(n, min_contacts), most)
+    by_stack: dict[tuple[int, ...], list[int]] = {}
+    for r, row in enumerate(rows[:, :most].tolist()):
+        by_stack.setdefault(tuple(p for p in row if p >= 0), []).append(r)
     seen: set[bytes] = set()
     out = []
-    for positions, stack in sorted(by_stack.items()):
-        frags = np.array(stack, dtype=np.int64).reshape(-1, n)
+    for positions, members in sorted(by_stack.items()):
+        frags = rows[members, most:].astype(np.int64)
         for a in range(0, len(frags), 4096):
             x = _coordinates(positions, frags[a:a + 4096])
             for key, xb in zip(_keys(x), x):

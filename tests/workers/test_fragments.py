@@ -76,6 +76,49 @@ def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], i
     return level
 
 
+def _grow_stacks_dict(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
+    """The growth of F._grow_stacks as a dictionary of tuples, one fragment at a time in Python (the code the
+    compiled growth replaced): {(positions of its layers, sites): contacts}, in the order first made."""
+    level = {((0,), F._canonical([F._O * F._S + F._O])): 0}
+    for k in range(2, n + 1):
+        grown: dict = {}
+        for (positions, frag), c in level.items():
+            inside = set(frag)
+            height = len(positions)
+            gain: dict = {}  # (position of a new layer or None, -1 below / 1 above, site) -> contacts it makes
+            for u in frag:
+                layer = u // (F._S * F._S)
+                for di, dj in F._IN_LAYER:
+                    q = u + di * F._S + dj
+                    if q not in inside:
+                        gain[None, 0, q] = gain.get((None, 0, q), 0) + 1
+                for dl in (-1, 1):
+                    other = layer + dl
+                    if 0 <= other < height:
+                        for di, dj in F._across(positions[layer], positions[other]):
+                            q = u + dl * F._S * F._S + di * F._S + dj
+                            if q not in inside:
+                                gain[None, 0, q] = gain.get((None, 0, q), 0) + 1
+                    elif height < most_layers:  # a new layer, above or below, in either free position
+                        for p in range(3):
+                            if p != positions[layer]:
+                                for di, dj in F._across(positions[layer], p):
+                                    key = (p, dl, u + max(dl, 0) * F._S * F._S + di * F._S + dj)
+                                    gain[key] = gain.get(key, 0) + 1
+            for (p, dl, q), g in gain.items():
+                if c + g < t[k]:
+                    continue
+                if p is None:
+                    key = (positions, F._canonical(frag + (q,)))
+                elif dl == 1:  # above
+                    key = F._canonical_stack(positions + (p,), frag + (q,))
+                else:  # below: every layer goes up one, q is in the new layer 0
+                    key = F._canonical_stack((p,) + positions, tuple(v + F._S * F._S for v in frag) + (q,))
+                grown.setdefault(key, c + g)
+        level = grown
+    return level
+
+
 def _all_connected(n: int, min_contacts: int) -> set[bytes]:
     """The keys of every connected fragment of n sites with at least ``min_contacts`` contacts, grown
     without thresholds (every connected fragment is kept at every size), in the same structures."""
@@ -107,6 +150,31 @@ def test_growing_the_stacks_finds_what_growing_each_sequence_finds(n, m):
     for positions, frag in F._grow_stacks(n, t, F.max_layers(n, m)):
         stacks.update(F._keys(F._coordinates(positions, np.array([frag], dtype=np.int64))))
     assert stacks == per_sequence and len(stacks) > 10
+
+
+@pytest.mark.parametrize("n, m", [(1, 0), (2, 1), (6, 11), (7, 13), (8, 15), (9, 18)])
+def test_the_compiled_growth_makes_the_dictionarys_fragments_in_its_order(n, m):
+    """F._grow_stacks (rows of integers in a hash table, compiled) and the dictionary of tuples give the same
+    fragments with the same contacts, made in the same order (the listing's order and representatives)."""
+    t = F.thresholds(n, m)
+    want = _grow_stacks_dict(n, t, F.max_layers(n, m))
+    got = F._grow_stacks(n, t, F.max_layers(n, m))
+    assert list(got.items()) == list(want.items()) and want
+
+
+def test_the_compiled_growth_grows_its_table():
+    """Many more fragments of one size than the last (a table that starts at twice the parents and doubles):
+    every fragment kept once, in the dictionary's order."""
+    n, t = 6, [0] * 7
+    rows, contacts = F._grown(n, t, 3)
+    want = _grow_stacks_dict(n, t, 3)
+    assert len(rows) == len(want) > 4 * 1024
+    assert len({r.tobytes() for r in rows}) == len(rows)
+    assert list(F._grow_stacks(n, t, 3).items()) == list(want.items())
+
+
+def test_no_fragment_can_have_more_contacts_than_the_layers_allow():
+    assert F._grow_stacks(13, F.thresholds(13, 39), F.max_layers(13, 39)) == {} and F.close_packed(13, 39) == []
 
 
 def test_no_fragment_spans_more_layers_than_the_bound_allows():
