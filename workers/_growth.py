@@ -1,8 +1,9 @@
 """The growth of close-packed fragments (:func:`packings.workers.fragments._grow_stacks`), compiled.
 
 Nothing outside :mod:`packings.workers.fragments` should import this module.  One call grows every
-fragment of one size by one site, exactly as the dictionary of the module's docstring would (the
-same fragments, in the same order, with the same contacts), but holds each fragment as one row of
+fragment of one size by one site, exactly as a dictionary of tuples grown one fragment at a time in
+Python would (the same fragments, in the same order, with the same contacts; the tests compare the
+two), but holds each fragment as one row of
 small integers and tells them apart with an open-addressing hash table instead of a dictionary of
 tuples: about 120 bytes a fragment of 19 sites instead of about 750, and no Python per candidate
 site.
