@@ -1,4 +1,4 @@
-"""The growth of close-packed fragments (:func:`packings.workers.fragments._grow_stacks`), compiled.
+"""The growth of close-packed fragments (:func:`packings.workers.fragments._grown`), compiled.
 
 Nothing outside :mod:`packings.workers.fragments` should import this module.  One call grows every
 fragment of one size by one site, exactly as a dictionary of tuples grown one fragment at a time in
@@ -11,7 +11,7 @@ site.
 A row is ``[positions of the layers (-1 past the stack's height), sites in increasing order]``,
 with the encodings of :mod:`packings.workers.fragments` (site = layer S^2 + (i + O) S + (j + O);
 position 0, 1, 2 for A, B, C); its lowest layer is in position A and its first site at (0, 0)
-(:func:`packings.workers.fragments._canonical_stack`).
+(:func:`packings.workers.fragments._grown` says how a fragment is moved there).
 """
 
 from __future__ import annotations
@@ -60,11 +60,12 @@ def _find(table, rows, row, h):
 
 
 @numba.njit(**_JIT)
-def _count(keys, stamp, slot, kind, q, nkeys):
-    """One more contact for the candidate (kind, q) of the parent stamped ``stamp``, a new candidate if it is
-    the first; returns the number of candidates.  ``keys`` = (stamp of each slot, its candidate's index,
-    and each candidate's kind, site and gain)."""
+def _count(keys, stamp, kind, q, qmax, nkeys):
+    """One more contact for the candidate (kind, q) of the parent stamped ``stamp`` (sites below ``qmax``), a
+    new candidate if it is the first; returns the number of candidates.  ``keys`` = (stamp of each slot,
+    its candidate's index, and each candidate's kind, site and gain)."""
     key_stamp, key_index, kind_of, q_of, gain = keys
+    slot = kind * qmax + q
     if key_stamp[slot] != stamp:
         key_stamp[slot] = stamp
         key_index[slot] = nkeys
@@ -127,21 +128,21 @@ def grow(rows, contacts, most, threshold, in_layer, across, S, O):
             for o in range(6):
                 q = u + in_layer[o]
                 if inside[q] != stamp:
-                    nkeys = _count(keys, stamp, q, 0, q, nkeys)
+                    nkeys = _count(keys, stamp, 0, q, qmax, nkeys)
             for dl in (-1, 1):
                 other = layer + dl
                 if 0 <= other < height:
                     for o in range(3):
                         q = u + dl * S2 + across[pos[layer], pos[other], o]
                         if inside[q] != stamp:
-                            nkeys = _count(keys, stamp, q, 0, q, nkeys)
+                            nkeys = _count(keys, stamp, 0, q, qmax, nkeys)
                 elif height < most:
                     for p in range(3):
                         if p != pos[layer]:
                             kind = 1 + p if dl == 1 else 4 + p
                             for o in range(3):
                                 q = u + max(dl, 0) * S2 + across[pos[layer], p, o]
-                                nkeys = _count(keys, stamp, kind * qmax + q, kind, q, nkeys)
+                                nkeys = _count(keys, stamp, kind, q, qmax, nkeys)
         c = contacts[b]
         for e in range(nkeys):
             if c + gain[e] < threshold:

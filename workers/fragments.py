@@ -26,7 +26,7 @@ most the sum of
   touches at most three of an adjacent layer).
 
 :func:`layer_bound` maximises that over n_1 + ... + n_L = n; a fragment with at least M contacts
-spans at most :func:`max_layers` layers.  The growth (:func:`_grow_stacks`) chooses the position of a
+spans at most :func:`max_layers` layers.  The growth (:func:`_grown`) chooses the position of a
 layer when the first sphere enters it, so that a fragment is grown once for each sequence of the
 layers it spans, not again in every longer structure that holds it (growing every structure of
 one sequence after another is the reference it is tested against, in the tests).  Each size is held
@@ -117,13 +117,6 @@ def thresholds(n: int, min_contacts: int) -> list[int]:
     return t
 
 
-def _canonical(sites) -> tuple[int, ...]:
-    """The fragment moved within its layers (by a lattice vector) so that its first site is at (0, 0)."""
-    first = min(sites)
-    shift = first % (_S * _S) - (_O * _S + _O)
-    return tuple(sorted(q - shift for q in sites))
-
-
 _IN_LAYER = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, -1), (-1, 1))  #: (di, dj) of the six touching sites of a layer
 
 
@@ -134,22 +127,14 @@ def _across(p: int, q: int) -> tuple[tuple[int, int], ...]:
                  if abs(np.linalg.norm(np.append(di * _A1 + dj * _A2 + _SHIFT[q] - _SHIFT[p], _H)) - 1.0) < 1e-9)
 
 
-def _canonical_stack(positions: tuple[int, ...], sites) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """The fragment moved so that its lowest layer is in position A (every layer moved by the same third of
-    a lattice vector) and its first site is at (0, 0) (:func:`_canonical`)."""
-    p0 = positions[0]
-    if p0:
-        # layer position p becomes p - p0; where that is negative, + 3, and the site moves by -(a1 + a2)
-        sites = [q - (_S + 1 if positions[q // (_S * _S)] < p0 else 0) for q in sites]
-        positions = tuple((p - p0) % 3 for p in positions)
-    return positions, _canonical(sites)
-
-
 def _grown(n: int, t: list[int], most_layers: int) -> tuple[np.ndarray, np.ndarray]:
     """Every connected fragment of n sites of any close-packed structure spanning at most ``most_layers``
     layers, reached through fragments meeting the thresholds ``t``, once for each sequence of the layers
-    it spans (up to the moves of :func:`_canonical_stack`): (rows, contacts), a row being the positions
-    of its layers (-1 past its height, ``most_layers`` columns) and then its sites in increasing order.
+    it spans: (rows, contacts), a row being the positions of its layers (-1 past its height,
+    ``most_layers`` columns) and then its sites in increasing order, moved so that its lowest layer is
+    in position A (every layer by the same third of a lattice vector: a layer in position p goes to
+    p - p0 mod 3, and where p < p0 its sites move by -(a1 + a2)) and its first site is at (0, 0) of
+    its layer (every site by the same lattice vector).
     The same fragments as growing every sequence's structure on its own, without growing each again in
     every longer sequence that holds it: a layer's position is chosen when the first site enters it.
     Grown one size at a time by :func:`packings.workers._growth.grow` (compiled; the order in which
@@ -179,13 +164,6 @@ def _offsets() -> tuple[np.ndarray, np.ndarray]:
             if p != q:
                 across[p, q] = [di * _S + dj for di, dj in _across(p, q)]
     return in_layer, across
-
-
-def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
-    """:func:`_grown` as {(positions of its layers, sites): contacts}, in the order the fragments were made."""
-    rows, contacts = _grown(n, t, most_layers)
-    return {(tuple(int(p) for p in row[:most_layers] if p >= 0), tuple(int(q) for q in row[most_layers:])): int(c)
-            for row, c in zip(rows, contacts)}
 
 
 @dataclass(frozen=True)
@@ -225,8 +203,8 @@ def _coordinates(seq: tuple[int, ...], frags: np.ndarray) -> np.ndarray:
 
 def close_packed(n: int, min_contacts: int, params: Params = DEFAULT) -> list[Fragment]:
     """Every close-packed fragment of n spheres with at least ``min_contacts`` contacts, once each up to
-    congruence (module doc), in the order found (:func:`_grow_stacks`, by the sequence of the layers
-    it spans)."""
+    congruence (module doc), in the order found (:func:`_grown`, by the sequence of the layers it
+    spans)."""
     if not 1 <= n <= 30:
         raise ValueError(f"n must be between 1 and 30, got {n}")
     most = max_layers(n, min_contacts)

@@ -21,9 +21,37 @@ P = Params()
 DATA = Path(__file__).parent.parent / "data"
 
 
+# ----------------------------------------------------------------- the canonical form of a fragment
+# fragments._grown (compiled) moves each fragment so, as these do one tuple at a time.
+
+def _canonical(sites) -> tuple[int, ...]:
+    """The fragment moved within its layers (by a lattice vector) so that its first site is at (0, 0)."""
+    first = min(sites)
+    shift = first % (F._S * F._S) - (F._O * F._S + F._O)
+    return tuple(sorted(q - shift for q in sites))
+
+
+def _canonical_stack(positions: tuple[int, ...], sites) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The fragment moved so that its lowest layer is in position A (every layer moved by the same third of
+    a lattice vector) and its first site is at (0, 0) (:func:`_canonical`)."""
+    p0 = positions[0]
+    if p0:
+        # layer position p becomes p - p0; where that is negative, + 3, and the site moves by -(a1 + a2)
+        sites = [q - (F._S + 1 if positions[q // (F._S * F._S)] < p0 else 0) for q in sites]
+        positions = tuple((p - p0) % 3 for p in positions)
+    return positions, _canonical(sites)
+
+
+def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
+    """F._grown as {(positions of its layers, sites): contacts}, in the order the fragments were made."""
+    rows, contacts = F._grown(n, t, most_layers)
+    return {(tuple(int(p) for p in row[:most_layers] if p >= 0), tuple(int(q) for q in row[most_layers:])): int(c)
+            for row, c in zip(rows, contacts)}
+
+
 # ----------------------------------------------------------------- the reference: one structure at a time
 # Every structure of ``layers`` layers, one stacking sequence after another, each grown on its own with the
-# twelve touching sites of every site: what fragments._grow_stacks must find, more slowly.
+# twelve touching sites of every site: what fragments._grown must find, more slowly.
 
 def sequences(layers: int) -> list[tuple[int, ...]]:
     """The stacking sequences of ``layers`` layers beginning with A (0), adjacent layers different."""
@@ -58,7 +86,7 @@ def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], i
     """Every connected fragment of n sites of the structure ``seq`` reached through fragments meeting the
     thresholds ``t``, up to moves within the layers: {sites: contacts}."""
     steps = _steps(seq)
-    level = {F._canonical([layer * F._S * F._S + F._O * F._S + F._O]): 0 for layer in range(len(seq))}
+    level = {_canonical([layer * F._S * F._S + F._O * F._S + F._O]): 0 for layer in range(len(seq))}
     for k in range(2, n + 1):
         grown: dict[tuple[int, ...], int] = {}
         for frag, c in level.items():
@@ -71,15 +99,15 @@ def _grow(seq: tuple[int, ...], n: int, t: list[int]) -> dict[tuple[int, ...], i
                         gain[q] = gain.get(q, 0) + 1
             for q, g in gain.items():
                 if c + g >= t[k]:
-                    grown.setdefault(F._canonical(frag + (q,)), c + g)
+                    grown.setdefault(_canonical(frag + (q,)), c + g)
         level = grown
     return level
 
 
 def _grow_stacks_dict(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
-    """The growth of F._grow_stacks as a dictionary of tuples, one fragment at a time in Python (the code the
+    """The growth of F._grown as a dictionary of tuples, one fragment at a time in Python (the code the
     compiled growth replaced): {(positions of its layers, sites): contacts}, in the order first made."""
-    level = {((0,), F._canonical([F._O * F._S + F._O])): 0}
+    level = {((0,), _canonical([F._O * F._S + F._O])): 0}
     for k in range(2, n + 1):
         grown: dict = {}
         for (positions, frag), c in level.items():
@@ -109,11 +137,11 @@ def _grow_stacks_dict(n: int, t: list[int], most_layers: int) -> dict[tuple[tupl
                 if c + g < t[k]:
                     continue
                 if p is None:
-                    key = (positions, F._canonical(frag + (q,)))
+                    key = (positions, _canonical(frag + (q,)))
                 elif dl == 1:  # above
-                    key = F._canonical_stack(positions + (p,), frag + (q,))
+                    key = _canonical_stack(positions + (p,), frag + (q,))
                 else:  # below: every layer goes up one, q is in the new layer 0
-                    key = F._canonical_stack((p,) + positions, tuple(v + F._S * F._S for v in frag) + (q,))
+                    key = _canonical_stack((p,) + positions, tuple(v + F._S * F._S for v in frag) + (q,))
                 grown.setdefault(key, c + g)
         level = grown
     return level
@@ -139,7 +167,7 @@ def test_the_thresholds_lose_no_fragment(n, m):
 
 @pytest.mark.parametrize("n, m", [(7, 13), (8, 15)])
 def test_growing_the_stacks_finds_what_growing_each_sequence_finds(n, m):
-    """_grow_stacks (a layer's position chosen as it is entered) and _grow over every sequence of
+    """F._grown (a layer's position chosen as it is entered) and _grow over every sequence of
     max_layers layers, with the same thresholds, give the same fragments."""
     t = F.thresholds(n, m)
     per_sequence = set()
@@ -147,18 +175,18 @@ def test_growing_the_stacks_finds_what_growing_each_sequence_finds(n, m):
         frags = np.array(list(_grow(seq, n, t)), dtype=np.int64).reshape(-1, n)
         per_sequence.update(F._keys(F._coordinates(seq, frags)))
     stacks = set()
-    for positions, frag in F._grow_stacks(n, t, F.max_layers(n, m)):
+    for positions, frag in _grow_stacks(n, t, F.max_layers(n, m)):
         stacks.update(F._keys(F._coordinates(positions, np.array([frag], dtype=np.int64))))
     assert stacks == per_sequence and len(stacks) > 10
 
 
 @pytest.mark.parametrize("n, m", [(1, 0), (2, 1), (6, 11), (7, 13), (8, 15), (9, 18)])
 def test_the_compiled_growth_makes_the_dictionarys_fragments_in_its_order(n, m):
-    """F._grow_stacks (rows of integers in a hash table, compiled) and the dictionary of tuples give the same
+    """F._grown (rows of integers in a hash table, compiled) and the dictionary of tuples give the same
     fragments with the same contacts, made in the same order (the listing's order and representatives)."""
     t = F.thresholds(n, m)
     want = _grow_stacks_dict(n, t, F.max_layers(n, m))
-    got = F._grow_stacks(n, t, F.max_layers(n, m))
+    got = _grow_stacks(n, t, F.max_layers(n, m))
     assert list(got.items()) == list(want.items()) and want
 
 
@@ -170,11 +198,11 @@ def test_the_compiled_growth_grows_its_table():
     want = _grow_stacks_dict(n, t, 3)
     assert len(rows) == len(want) > 4 * 1024
     assert len({r.tobytes() for r in rows}) == len(rows)
-    assert list(F._grow_stacks(n, t, 3).items()) == list(want.items())
+    assert list(_grow_stacks(n, t, 3).items()) == list(want.items())
 
 
 def test_no_fragment_can_have_more_contacts_than_the_layers_allow():
-    assert F._grow_stacks(13, F.thresholds(13, 39), F.max_layers(13, 39)) == {} and F.close_packed(13, 39) == []
+    assert _grow_stacks(13, F.thresholds(13, 39), F.max_layers(13, 39)) == {} and F.close_packed(13, 39) == []
 
 
 def test_no_fragment_spans_more_layers_than_the_bound_allows():
