@@ -28,9 +28,11 @@ Numerics (docs/method.md, "Following a path"), exactly as in the numpy reference
 * At every point a path reaches the tangent is computed here only when the
   guard certifies R_f R_f^T there; on the first step the dimension is then the
   reference's "regular" |V| = k - m.  Otherwise (Cholesky fails, or more
-  contacts than free coordinates) the loop hands the step back to Python,
-  which uses the SVD (``kernels.null_spaces``, and on the first step the
-  dimension test) exactly as the reference does.
+  contacts than free coordinates) the first step goes back to Python, which
+  uses the SVD (``kernels.null_spaces``) and the dimension test exactly as the
+  reference does; later steps take the SVD's tangent here (_svd_tangent), or,
+  where R_f loses rank only through rows that are combinations of others to
+  rounding, the same projection without the SVD (_reduced_tangent).
 * The tangent is carried by projecting the previous one onto the null space of
   R_f: t - R_f^T (R_f R_f^T)^{-1} R_f t, with one step of iterative refinement.
   Where the guard passes, every singular value of R_f is at least
@@ -382,6 +384,171 @@ def _qr_step(x, edges, free, A, f, dx_full):
     return True
 
 
+#: a row of J is dropped as a combination of the others (_reduced_step) only where all the rows so dropped
+#: differ from combinations of the rows kept by at most this fraction of LAPACK's own threshold for a zero
+#: singular value (eps max(rows, columns) times the largest, here the largest row norm, no larger), so that the
+#: singular values they leave are below it with room for LAPACK's own rounding: LAPACK counts them zero too
+DEPENDENT_FRACTION = 0.5
+#: rows whose pivot^2 in a Cholesky of J J^T is below this times their diagonal are taken for dependent (a guess,
+#: which _reduced_step then checks on J itself: the Gram matrix cannot resolve it)
+_DEPENDENT_PIVOT = 1e-12
+#: a row further than this times the largest row norm from the span of the rows kept, measured through the
+#: normal equations, is no combination of them (_far_from_kept; their error is far below this)
+_NEARLY = 1e-8
+
+
+@numba.njit(**_JIT)
+def _independent_rows(G, size, keep, L):
+    """A Cholesky of G[:size, :size] that skips every row whose pivot^2 is below _DEPENDENT_PIVOT times its
+    diagonal: the rows kept, in order, in keep[:r], and L[:r, :r] the factor of G on them; returns r."""
+    row = np.empty(size)
+    r = 0
+    for j in range(size):
+        s = G[j, j]
+        for p in range(r):
+            t = G[j, keep[p]]
+            for q in range(p):
+                t -= row[q] * L[p, q]
+            row[p] = t / L[p, p]
+            s -= row[p] * row[p]
+        if s > _DEPENDENT_PIVOT * G[j, j]:
+            for p in range(r):
+                L[r, p] = row[p]
+            L[r, r] = np.sqrt(s)
+            keep[r] = j
+            r += 1
+    return r
+
+
+@numba.njit(**_JIT)
+def _far_from_kept(J, G, keep, L, r, size, bound):
+    """Whether some row of J not in keep[:r] is further than ``bound`` from the span of the rows kept, by the
+    normal equations on G's factor L: a cheap test that refuses the rows that are only nearly dependent (too
+    coarse to accept any: _reduced_step then measures on J itself)."""
+    kept = np.zeros(size, dtype=np.bool_)
+    for p in range(r):
+        kept[keep[p]] = True
+    b = np.empty(r)
+    c = np.empty(r)
+    k = J.shape[1]
+    for i in range(size):
+        if kept[i]:
+            continue
+        for p in range(r):
+            b[p] = G[keep[p], i]
+        _chol_solve(L, r, b, c)
+        left = 0.0
+        for col in range(k):
+            v = J[i, col]
+            for p in range(r):
+                v -= c[p] * J[keep[p], col]
+            left += v * v
+        if np.sqrt(left) > bound:
+            return True
+    return False
+
+
+@numba.njit(**_JIT)
+def _split_rows(M, G, size):
+    """The rows of M (size x k, G = M M^T up to a positive factor) split into rows kept and rows that are
+    combinations of them: (r, keep, Q, L, ok, C, left).  keep[:r] are the rows kept (_independent_rows),
+    M_I^T = Q U with L = U^T and ok whether every singular value of M_I is at least QR_MIN_RATIO times the
+    largest (_certified_qr); C[i] the coefficients on Q's columns of each row i not kept; ``left`` the norm
+    (summed in squares) of what is left of those rows after projecting onto Q, against DEPENDENT_FRACTION of
+    LAPACK's threshold for a zero singular value: dependent to rounding where left <= 1.  r = -1 where no row
+    is dropped, none is kept, the rows kept have full column rank, or the rows dropped are far from their span
+    by the cheap test through the normal equations (_far_from_kept)."""
+    k = M.shape[1]
+    keep = np.empty(size, dtype=np.int64)
+    LG = np.zeros((size, size))
+    r = _independent_rows(G, size, keep, LG)
+    Q = np.empty((0, 0))
+    C = np.zeros((size, max(r, 0)))
+    if r == size or r == 0 or r >= k:  # nothing dropped, or full column rank left: _qr_step's case
+        return -1, keep, Q, Q, False, C, np.inf
+    rowmax = 0.0
+    for i in range(size):
+        s = 0.0
+        for c in range(k):
+            s += M[i, c] * M[i, c]
+        rowmax = max(rowmax, np.sqrt(s))
+    if _far_from_kept(M, G, keep, LG, r, size, _NEARLY * rowmax):
+        return -1, keep, Q, Q, False, C, np.inf
+    MIt = np.empty((k, r))
+    for p in range(r):
+        for c in range(k):
+            MIt[c, p] = M[keep[p], c]
+    Q, L, ok = _certified_qr(MIt)
+    kept = np.zeros(size, dtype=np.bool_)
+    for p in range(r):
+        kept[keep[p]] = True
+    left = 0.0
+    for i in range(size):
+        if kept[i]:
+            continue
+        for p in range(r):
+            s = 0.0
+            for c in range(k):
+                s += Q[c, p] * M[i, c]
+            C[i, p] = s
+        for c in range(k):
+            s = M[i, c]
+            for p in range(r):
+                s -= Q[c, p] * C[i, p]
+            left += s * s
+    threshold = DEPENDENT_FRACTION * np.finfo(np.float64).eps * max(size, k) * rowmax
+    return r, keep, Q, L, ok, C, np.sqrt(left) / threshold
+
+
+@numba.njit(**_JIT)
+def _reduced_step(x, edges, free, A, f, G, dx_full):
+    """LAPACK's minimum-norm least-squares step (_lstsq_step) where J is rank deficient because some of its rows
+    are combinations of the others (a self-stress that persists wherever the point moves, as when a hyperstatic
+    set of contacts is kept), by two QR factorisations of full-rank matrices instead of an SVD; returns False
+    (dx_full untouched) where that cannot be shown to be LAPACK's step.
+
+    The rows to drop are guessed from a Cholesky of G = J J^T (up to a positive factor) that skips small
+    pivots (_independent_rows).  The rows kept, J_I^T = Q U, must have every singular value at least
+    QR_MIN_RATIO times the largest; the rows dropped must lie in their span to DEPENDENT_FRACTION of LAPACK's
+    threshold (the norm of what is left of them after projecting onto Q, summed in squares): _split_rows.
+    Then J is J' = T Q^T (T = J Q) plus a matrix below that threshold, whose singular values LAPACK counts
+    zero, and J' has rank r = |I|: the least-squares step of smallest norm is dx = Q z with z the
+    least-squares solution of T z = -f (QR of T, certified like the other), the solution LAPACK computes up
+    to rounding.
+    """
+    k = free.size
+    size = edges.shape[0] + A.shape[0]
+    if size == 0:
+        return False
+    J = np.zeros((size, k))
+    _fill_jacobian(x, edges, free, A, J)
+    r, keep, Q, L, ok, T, left = _split_rows(J, G, size)
+    if r < 0 or not ok or not left <= 1.0:
+        return False
+    for p in range(r):
+        for q in range(p + 1):
+            T[keep[p], q] = L[p, q]  # J_I = U^T Q^T: T's rows of I are U^T = L; the others are C
+    QT, LT, ok = _certified_qr(T)
+    if not ok:
+        return False
+    w = np.empty(r)
+    z = np.empty(r)
+    for p in range(r):  # U_T z = -Q_T^T f, U_T = LT^T
+        s = 0.0
+        for i in range(size):
+            s += QT[i, p] * f[i]
+        w[p] = -s
+    _backward_solve(LT, r, w, z)
+    for c in range(x.size):
+        dx_full[c] = 0.0
+    for c in range(k):
+        s = 0.0
+        for p in range(r):
+            s += Q[c, p] * z[p]
+        dx_full[free[c]] = s
+    return True
+
+
 @numba.njit(**_JIT)
 def _full_residual(x, edges, A, b, f):
     """f[:m] = contact residuals, f[m:] = A x - b; returns sum f^2."""
@@ -472,8 +639,9 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
     By the normal equations (J J^T) y = -f, dx = J^T y when the smallest
     eigenvalue of J J^T is certified to be at least 4 guard (J J^T = 4 R_f R_f^T
     on the contacts); otherwise by a QR factorisation of J^T (of J where it has more
-    rows than free columns) where J is far from rank deficient (_qr_step), and else
-    by LAPACK least squares, as the reference.
+    rows than free columns) where J is far from rank deficient (_qr_step), by two QR
+    factorisations where J loses rank only through rows that are combinations of
+    others (_reduced_step), and else by LAPACK least squares, as the reference.
     A guard of inf (the re-check of a failure) takes LAPACK's least squares at
     every step.  Returns True if the normal equations were used.
     """
@@ -503,7 +671,8 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
         ok = _cholesky(G, L, size) and _certify(L, size, 4.0 * guard, work)
         scale = 1.0
     if not ok:
-        if not (guard < np.inf and _qr_step(x, edges, free, A, f, dx)):
+        # where _reduced_step takes the step, J has rank below min(rows, columns): _qr_step has refused it
+        if not (guard < np.inf and (_qr_step(x, edges, free, A, f, dx) or _reduced_step(x, edges, free, A, f, G, dx))):
             _lstsq_step(x, edges, free, A, f, dx)
         return False
     for r in range(size):
@@ -687,6 +856,47 @@ def _svd_tangent(x, edges, free, t, tol_n, tn):
 
 
 @numba.njit(**_JIT)
+def _reduced_tangent(x, edges, free, mask, t, guard, ws, tn):
+    """tn = V V^T t as _svd_tangent computes it, where R_f loses rank only through rows that are combinations of
+    others: returns |tn|, or -1.0 where that cannot be shown (then the SVD decides).
+
+    The rows kept (_split_rows on R_f), R_I^T = Q U, must have every singular value at least sqrt(guard) =
+    100 tol_n (the rank guard's bound on L = U^T), and the rows dropped must lie in their span to
+    DEPENDENT_FRACTION of LAPACK's threshold for a zero singular value.  Then the SVD counts exactly |I|
+    singular values of R_f at least tol_n and the others below it, and its null space V is the orthogonal
+    complement of Q's columns up to rounding: V V^T t = t - Q Q^T t on the free coordinates.
+    """
+    ptr, idx, sign, D, G, _, _, _, work, _ = ws
+    m = edges.shape[0]
+    k = free.size
+    if m == 0:
+        return -1.0
+    _differences(x, edges, D)
+    _gram(D, mask, ptr, idx, sign, 1.0, G)
+    R = np.zeros((m, k))
+    _fill_free_rows(x, edges, free, 1.0, R)
+    r, _, Q, L, _, _, left = _split_rows(R, G, m)
+    if r < 0 or not left <= 1.0 or not _eig_lower_bound(L, r, work) >= guard:
+        return -1.0
+    coef = np.empty(r)
+    for p in range(r):
+        s = 0.0
+        for c in range(k):
+            s += Q[c, p] * t[free[c]]
+        coef[p] = s
+    for c in range(x.size):
+        tn[c] = 0.0
+    norm = 0.0
+    for c in range(k):
+        v = t[free[c]]
+        for p in range(r):
+            v -= Q[c, p] * coef[p]
+        tn[free[c]] = v
+        norm += v * v
+    return np.sqrt(norm)
+
+
+@numba.njit(**_JIT)
 def follow_steps(
     x,
     t,
@@ -790,7 +1000,9 @@ def follow_steps(
             stats[4] += 1
             if first_pending:
                 return ST_NEED_SVD, x, t, d_prev, h, h_max, steps, first_dim, xn, d, hit, stats
-            norm = _svd_tangent(xn, edges, free, t, tol_n, tn)
+            norm = _reduced_tangent(xn, edges, free, mask, t, guard, ws, tn)
+            if norm < 0.0:
+                norm = _svd_tangent(xn, edges, free, t, tol_n, tn)
         else:
             if first_pending:  # the reference's solution_dimension, "regular" branch: D = |V| = k - m
                 first_pending = False

@@ -10,6 +10,7 @@
 
 import json
 import os
+from itertools import combinations
 import subprocess
 import sys
 from pathlib import Path
@@ -474,3 +475,115 @@ def test_warm_up_compiles_and_reports_seconds():
     seconds = warm_up()
     assert isinstance(seconds, float) and seconds >= 0.0
     assert warm_up() < 5.0  # everything is compiled (or cached) now
+
+
+def _stressed_problem(n, eps, seed, extra=0):
+    """A seed cluster (perturbed as in _perturbed_problem) with one more row, the pair of apexes of two of its
+    tetrahedra that share a face, so that those five spheres are all joined (a complete graph on five vertices
+    has a self-stress at every position), and 1 + ``extra`` contacts fewer elsewhere, with ``extra`` random
+    linear rows: J loses rank through a row that is a combination of others, wherever the point is."""
+    x0, keep, free, tri, rng = _perturbed_problem(n, 0, eps, seed)
+    adjacent = {tuple(e) for e in keep.tolist()} | {tuple(e[::-1]) for e in keep.tolist()}
+    bipyramids = [(i, j, face) for i in range(n) for j in range(i + 1, n) if (i, j) not in adjacent
+                  for face in combinations([v for v in range(n) if (i, v) in adjacent and (j, v) in adjacent], 3)
+                  if all((a, b) in adjacent for a, b in combinations(face, 2))]
+    i, j, face = bipyramids[rng.integers(len(bipyramids))]
+    five = {i, j, *face}
+    held = set(combinations(sorted(tri), 2))
+    removable = [k for k, (a, b) in enumerate(keep.tolist()) if not {a, b} <= five and (a, b) not in held]
+    edges = np.vstack([np.delete(keep, rng.choice(removable, size=1 + extra, replace=False), axis=0), [[i, j]]])
+    A = np.zeros((extra, x0.size))
+    A[:, free] = rng.standard_normal((extra, free.size))
+    return x0, edges, free, A
+
+
+def _jacobian(x, edges, free, A):
+    return np.vstack([2.0 * kernels.rigidity_matrix(x, edges)[:, free], A[:, free]])
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(st.integers(6, 12), st.floats(0.0, 1e-2), st.integers(0, 2), st.integers(0, 2**31 - 1))
+def test_the_reduced_step_is_lapacks_step_where_a_stress_persists(n, eps, extra, seed):
+    """Where a row of J is a combination of others at every point (five spheres all joined), J is rank deficient
+    to rounding: no QR step, and the reduced step (two QR factorisations of full-rank matrices) is LAPACK's
+    minimum-norm least-squares step, to cond(J)^2 times the rounding unit (cond over its nonzero singular values),
+    and moves no pinned coordinate."""
+    x0, edges, free, A = _stressed_problem(n, eps, seed, extra)
+    J = _jacobian(x0, edges, free, A)
+    sv = np.linalg.svd(J, compute_uv=False)
+    rank = int(np.count_nonzero(sv > 1e-12 * sv[0]))
+    assert rank < min(J.shape)  # the stress persists off the solution set
+    f = np.random.default_rng(seed).standard_normal(J.shape[0])
+    G = J @ J.T
+    red, qr, ls = np.full(x0.size, np.nan), np.full(x0.size, np.nan), np.empty(x0.size)
+    assert not _compiled._qr_step(x0, edges, free, A, f, qr)
+    taken = _compiled._reduced_step(x0, edges, free, A, f, G, red)
+    _compiled._lstsq_step(x0, edges, free, A, f, ls)
+    if sv[rank - 1] < 1e-10 * sv[0]:  # not certified: the rows kept are themselves nearly dependent
+        assert not taken and np.isnan(red).all()
+        return
+    assert taken
+    pinned = np.setdiff1d(np.arange(x0.size), free)
+    assert np.all(red[pinned] == 0.0)
+    cond = sv[0] / sv[rank - 1]
+    assert np.abs(red - ls).max() <= 1e-13 * cond**2 * max(1.0, np.abs(ls).max())
+
+
+def test_the_reduced_step_defers_to_lapack_unless_the_dependence_is_at_rounding_level():
+    """A stored pre-stress stable cluster's 24 contacts, whose smallest singular value is about 1e-9 (the stress
+    holds only to the accuracy of the coordinates, not at every point): LAPACK keeps that singular value, so the
+    reduced step, which would drop its row, is not taken.  Nor where no row is dependent (a regular seed), nor
+    where the rows left have full column rank (a hyperstatic cluster's 25 contacts in 24 columns: QR's case)."""
+    stressed = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    tri = contact_triangle(stressed.edges())
+    x = kernels.to_frame(stressed.coords, tri).ravel()
+    free = kernels.free_coordinates(stressed.n, tri)
+    none = np.zeros((0, x.size))
+    J = _jacobian(x, stressed.edges(), free, none)
+    sv = np.linalg.svd(J, compute_uv=False)
+    assert 1e-12 * sv[0] < sv.min() < 1e-7
+    dx = np.full(x.size, np.nan)
+    f = np.ones(J.shape[0])
+    assert not _compiled._reduced_step(x, stressed.edges(), free, none, f, J @ J.T, dx)
+    x0, keep, free0, _, _ = _perturbed_problem(9, 1, 1e-3, 3)
+    J0 = _jacobian(x0, keep, free0, np.zeros((0, x0.size)))
+    assert not _compiled._reduced_step(x0, keep, free0, np.zeros((0, x0.size)), np.ones(J0.shape[0]), J0 @ J0.T, dx)
+    c = Cluster.from_dict(FIXTURES["n10_m25_first-order"])
+    tri = contact_triangle(c.edges())
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(c.n, tri)
+    J = _jacobian(x, c.edges(), free, none)
+    assert J.shape[0] > J.shape[1]
+    assert not _compiled._reduced_step(x, c.edges(), free, none, np.ones(J.shape[0]), J @ J.T, dx)
+    assert np.isnan(dx).all()
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.integers(6, 12), st.floats(0.0, 1e-2), st.integers(0, 2**31 - 1))
+def test_the_reduced_tangent_is_the_svds_where_a_stress_persists(n, eps, seed):
+    """The tangent of a path along which a self-stress persists (five spheres all joined, one contact fewer
+    elsewhere): the projection of t onto the SVD's null space (singular values below
+    tol_n), without the SVD; and where it cannot show that (the pre-stress stable cluster, whose smallest
+    singular value is about 1e-9), -1 so that the SVD decides."""
+    x0, edges, free, _ = _stressed_problem(n, eps, seed)
+    rng = np.random.default_rng(seed)
+    mask = kernels.free_mask(x0.size, free)
+    guard = kernels.guard_threshold(P.tol_n)
+    t = rng.standard_normal(x0.size) * mask
+    ws = _compiled._workspace(x0.size, edges, 0)
+    tn, ref = np.empty(x0.size), np.empty(x0.size)
+    norm = _compiled._reduced_tangent(x0, edges, free, mask, t, guard, ws, tn)
+    ref_norm = _compiled._svd_tangent(x0, edges, free, t, P.tol_n, ref)
+    sv = np.linalg.svd(kernels.rigidity_matrix(x0, edges)[:, free], compute_uv=False)
+    if norm < 0.0:  # refused: only where the rows kept are not certified far from rank loss
+        assert sv[sv > 1e-12 * sv[0]].min() < 1e-2
+        return
+    assert abs(norm - ref_norm) <= 1e-9 and np.allclose(tn, ref, rtol=0, atol=1e-9)
+    stressed = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    tri = contact_triangle(stressed.edges())
+    x = kernels.to_frame(stressed.coords, tri).ravel()
+    free = kernels.free_coordinates(stressed.n, tri)
+    mask = kernels.free_mask(x.size, free)
+    ws = _compiled._workspace(x.size, stressed.edges(), 0)
+    t = rng.standard_normal(x.size) * mask
+    assert _compiled._reduced_tangent(x, stressed.edges(), free, mask, t, guard, ws, np.empty(x.size)) == -1.0
