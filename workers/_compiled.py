@@ -315,15 +315,35 @@ def _certified_qr(M):
     at least QR_MIN_RATIO times the largest).  L is the Cholesky factor of M^T M up to the signs of its
     columns, so 1 / ||L^-1||_F^2 bounds sigma_min(M)^2 from below, and ||L||_F = ||M||_F bounds sigma_max."""
     Q, U = np.linalg.qr(M)
-    size = U.shape[0]
     L = U.T.copy()
+    return Q, L, _ratio_certified(L)
+
+
+@numba.njit(**_JIT)
+def _ratio_certified(L):
+    """Whether every singular value of M is at least QR_MIN_RATIO times the largest, for L L^T = M^T M
+    (L = U^T of _certified_qr's QR): 1 / ||L^-1||_F^2 <= sigma_min(M)^2, ||L||_F^2 >= sigma_max(M)^2."""
+    size = L.shape[0]
     work = np.empty(size)
-    low = _eig_lower_bound(L, size, work)  # <= sigma_min(M)^2
+    low = _eig_lower_bound(L, size, work)
     top = 0.0
     for i in range(size):
         for j in range(i + 1):
-            top += L[i, j] * L[i, j]  # ||M||_F^2 >= sigma_max(M)^2
-    return Q, L, low >= QR_MIN_RATIO * QR_MIN_RATIO * top
+            top += L[i, j] * L[i, j]
+    return low >= QR_MIN_RATIO * QR_MIN_RATIO * top
+
+
+@numba.njit(**_JIT)
+def _qr_least_squares(Q, L, rows, cols, f, out):
+    """out[:cols] = -U^-1 Q^T f[:rows] (U = L^T, Q rows x cols): the least-squares solution of M y = -f for
+    M = Q U of full column rank."""
+    work = np.empty(cols)
+    for c in range(cols):
+        s = 0.0
+        for r in range(rows):
+            s += Q[r, c] * f[r]
+        work[c] = -s
+    _backward_solve(L, cols, work, out)
 
 
 @numba.njit(**_JIT)
@@ -361,12 +381,7 @@ def _qr_step(x, edges, free, A, f, dx_full):
     work = np.empty(rank)
     y = np.empty(rank)
     if tall:
-        for c in range(k):  # U y = -Q^T f, U = L^T
-            s = 0.0
-            for r in range(size):
-                s += Q[r, c] * f[r]
-            work[c] = -s
-        _backward_solve(L, k, work, y)
+        _qr_least_squares(Q, L, size, k, f, y)
     else:
         for i in range(size):
             work[i] = -f[i]
@@ -421,17 +436,14 @@ def _independent_rows(G, size, keep, L):
 
 
 @numba.njit(**_JIT)
-def _far_from_kept(J, G, keep, L, r, size, bound):
-    """Whether some row of J not in keep[:r] is further than ``bound`` from the span of the rows kept, by the
+def _far_from_kept(J, G, keep, kept, L, r, bound):
+    """Whether some row of J not in keep[:r] (``kept`` False) is further than ``bound`` from the span of the rows kept, by the
     normal equations on G's factor L: a cheap test that refuses the rows that are only nearly dependent (too
     coarse to accept any: _reduced_step then measures on J itself)."""
-    kept = np.zeros(size, dtype=np.bool_)
-    for p in range(r):
-        kept[keep[p]] = True
     b = np.empty(r)
     c = np.empty(r)
     k = J.shape[1]
-    for i in range(size):
+    for i in range(J.shape[0]):
         if kept[i]:
             continue
         for p in range(r):
@@ -451,9 +463,9 @@ def _far_from_kept(J, G, keep, L, r, size, bound):
 @numba.njit(**_JIT)
 def _split_rows(M, G, size):
     """The rows of M (size x k, G = M M^T up to a positive factor) split into rows kept and rows that are
-    combinations of them: (r, keep, Q, L, ok, C, left).  keep[:r] are the rows kept (_independent_rows),
-    M_I^T = Q U with L = U^T and ok whether every singular value of M_I is at least QR_MIN_RATIO times the
-    largest (_certified_qr); C[i] the coefficients on Q's columns of each row i not kept; ``left`` the norm
+    combinations of them: (r, keep, Q, L, C, left).  keep[:r] are the rows kept (_independent_rows),
+    M_I^T = Q U with L = U^T (uncertified: the caller bounds L's singular values as it needs); C[i] the
+    coefficients on Q's columns of each row i not kept; ``left`` the norm
     (summed in squares) of what is left of those rows after projecting onto Q, against DEPENDENT_FRACTION of
     LAPACK's threshold for a zero singular value: dependent to rounding where left <= 1.  r = -1 where no row
     is dropped, none is kept, the rows kept have full column rank, or the rows dropped are far from their span
@@ -465,23 +477,24 @@ def _split_rows(M, G, size):
     Q = np.empty((0, 0))
     C = np.zeros((size, max(r, 0)))
     if r == size or r == 0 or r >= k:  # nothing dropped, or full column rank left: _qr_step's case
-        return -1, keep, Q, Q, False, C, np.inf
+        return -1, keep, Q, Q, C, np.inf
     rowmax = 0.0
     for i in range(size):
         s = 0.0
         for c in range(k):
             s += M[i, c] * M[i, c]
         rowmax = max(rowmax, np.sqrt(s))
-    if _far_from_kept(M, G, keep, LG, r, size, _NEARLY * rowmax):
-        return -1, keep, Q, Q, False, C, np.inf
+    kept = np.zeros(size, dtype=np.bool_)
+    for p in range(r):
+        kept[keep[p]] = True
+    if _far_from_kept(M, G, keep, kept, LG, r, _NEARLY * rowmax):
+        return -1, keep, Q, Q, C, np.inf
     MIt = np.empty((k, r))
     for p in range(r):
         for c in range(k):
             MIt[c, p] = M[keep[p], c]
-    Q, L, ok = _certified_qr(MIt)
-    kept = np.zeros(size, dtype=np.bool_)
-    for p in range(r):
-        kept[keep[p]] = True
+    Q, U = np.linalg.qr(MIt)
+    L = U.T.copy()
     left = 0.0
     for i in range(size):
         if kept[i]:
@@ -497,7 +510,7 @@ def _split_rows(M, G, size):
                 s -= Q[c, p] * C[i, p]
             left += s * s
     threshold = DEPENDENT_FRACTION * np.finfo(np.float64).eps * max(size, k) * rowmax
-    return r, keep, Q, L, ok, C, np.sqrt(left) / threshold
+    return r, keep, Q, L, C, np.sqrt(left) / threshold
 
 
 @numba.njit(**_JIT)
@@ -522,8 +535,8 @@ def _reduced_step(x, edges, free, A, f, G, dx_full):
         return False
     J = np.zeros((size, k))
     _fill_jacobian(x, edges, free, A, J)
-    r, keep, Q, L, ok, T, left = _split_rows(J, G, size)
-    if r < 0 or not ok or not left <= 1.0:
+    r, keep, Q, L, T, left = _split_rows(J, G, size)
+    if r < 0 or not left <= 1.0 or not _ratio_certified(L):
         return False
     for p in range(r):
         for q in range(p + 1):
@@ -531,14 +544,8 @@ def _reduced_step(x, edges, free, A, f, G, dx_full):
     QT, LT, ok = _certified_qr(T)
     if not ok:
         return False
-    w = np.empty(r)
     z = np.empty(r)
-    for p in range(r):  # U_T z = -Q_T^T f, U_T = LT^T
-        s = 0.0
-        for i in range(size):
-            s += QT[i, p] * f[i]
-        w[p] = -s
-    _backward_solve(LT, r, w, z)
+    _qr_least_squares(QT, LT, size, r, f, z)
     for c in range(x.size):
         dx_full[c] = 0.0
     for c in range(k):
@@ -875,7 +882,7 @@ def _reduced_tangent(x, edges, free, mask, t, guard, ws, tn):
     _gram(D, mask, ptr, idx, sign, 1.0, G)
     R = np.zeros((m, k))
     _fill_free_rows(x, edges, free, 1.0, R)
-    r, _, Q, L, _, _, left = _split_rows(R, G, m)
+    r, _, Q, L, _, left = _split_rows(R, G, m)
     if r < 0 or not left <= 1.0 or not _eig_lower_bound(L, r, work) >= guard:
         return -1.0
     coef = np.empty(r)
