@@ -587,3 +587,98 @@ def test_the_reduced_tangent_is_the_svds_where_a_stress_persists(n, eps, seed):
     ws = _compiled._workspace(x.size, stressed.edges(), 0)
     t = rng.standard_normal(x.size) * mask
     assert _compiled._reduced_tangent(x, stressed.edges(), free, mask, t, guard, ws, np.empty(x.size)) == -1.0
+
+
+# --------------------------------------------------------------------------- the triangular kernels, four rows at a time
+
+
+def _cholesky_one_row(G):
+    """The left-looking Cholesky one entry at a time, each sum in the order p = 0, 1, ... (plain Python floats:
+    IEEE double arithmetic, the order written), or None where a pivot is not positive."""
+    size = G.shape[0]
+    L = [[0.0] * size for _ in range(size)]
+    for j in range(size):
+        s = float(G[j, j])
+        for p in range(j):
+            s -= L[j][p] * L[j][p]
+        if not s > 0.0:
+            return None
+        L[j][j] = float(np.sqrt(s))
+        for i in range(j + 1, size):
+            t = float(G[i, j])
+            for p in range(j):
+                t -= L[i][p] * L[j][p]
+            L[i][j] = t / L[j][j]
+    return np.array(L)
+
+
+def _forward_one_row(L, b, start, plus):
+    """out[i] = (b[i] -/+ sum_{p < i} L'[i, p] out[p]) / L[i, i] one row at a time (L' = L, or |L| with ``plus``)."""
+    out = []
+    for i in range(L.shape[0]):
+        s = float(b[i]) if start is None else start
+        for p in range(i):
+            s = s + abs(L[i, p]) * out[p] if plus else s - L[i, p] * out[p]
+        out.append(s / L[i, i])
+    return np.array(out)
+
+
+def _spd_problems():
+    """Gram matrices R_f R_f^T of real contact graphs (sparse, as the path loop factors them), and random dense
+    SPD matrices of every size up to 13 (every remainder of the four-row blocks)."""
+    out = []
+    for n in (6, 9, 12):
+        c = seed_cluster(n, P)
+        edges = c.edges()[1:]
+        tri = contact_triangle(edges)
+        x = kernels.to_frame(c.coords, tri).ravel()
+        R = kernels.rigidity_matrix(x, edges)[:, kernels.free_coordinates(n, tri)]
+        out.append(R @ R.T)
+    rng = np.random.default_rng(5)
+    for size in range(1, 14):
+        A = rng.standard_normal((size, size + 3))
+        out.append(A @ A.T)
+    return out
+
+
+@pytest.mark.parametrize("G", _spd_problems(), ids=lambda G: f"size{G.shape[0]}")
+def test_the_four_row_triangular_kernels_are_the_one_row_loops_bit_for_bit(G):
+    """_cholesky, _forward_solve and the comparison-matrix bound take four rows through each inner loop at once,
+    each row's sum in the one-row loop's order: their results are the one-row loops' to the last bit (so
+    that no path, projection or certificate moves).  The factor must also be a Cholesky factor of G."""
+    size = G.shape[0]
+    L = np.full((size, size), np.nan)
+    assert _compiled._cholesky(np.ascontiguousarray(G), L, size)
+    ref = _cholesky_one_row(G)
+    low = np.tril_indices(size)
+    assert np.array_equal(L[low], ref[low])
+    L = np.tril(L)
+    assert np.allclose(L @ L.T, G, rtol=0, atol=1e-12 * np.abs(G).max())
+    b = np.random.default_rng(size).standard_normal(size)
+    out = np.empty(size)
+    _compiled._forward_solve(L, size, b, out)
+    assert np.array_equal(out, _forward_one_row(L, b, None, False))
+    inplace = b.copy()
+    _compiled._forward_solve(L, size, inplace, inplace)  # b may be out
+    assert np.array_equal(inplace, out)
+    z = _forward_one_row(L, None, 1.0, True)  # M z = e for the comparison matrix M of L
+    w = np.ones(size)
+    for i in range(size - 1, -1, -1):  # M^T w = e, one row at a time
+        s = 1.0
+        for p in range(i + 1, size):
+            s += abs(L[p, i]) * w[p]
+        w[i] = s / L[i, i]
+    assert _compiled._comparison_lower_bound(L, size, np.empty(size)) == 1.0 / (z.max() * w.max())
+
+
+def test_cholesky_refuses_a_matrix_that_is_not_positive_definite():
+    """A zero pivot in any position of the four-row blocks, and a nan, stop the factorisation."""
+    rng = np.random.default_rng(1)
+    for size in (3, 6, 9):
+        A = rng.standard_normal((size, size - 1))  # rank size - 1: a zero pivot (to rounding) or a negative one
+        G = A @ A.T
+        G[-1, -1] -= abs(G).max()  # certainly not positive definite
+        assert not _compiled._cholesky(G, np.zeros((size, size)), size)
+        H = np.eye(size)
+        H[size // 2, size // 2] = np.nan
+        assert not _compiled._cholesky(H, np.zeros((size, size)), size)
