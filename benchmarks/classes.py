@@ -20,7 +20,11 @@ self-stresses (``svd``: the code before them; its endpoints must be the same),
 and with the numpy reference kernels.  A class's time is, for each number of
 contacts, the mean time of its sampled clusters times their number, summed; its
 share is of the sum over the classes, which is what ``expand`` costs a whole
-run.  Also printed per class: the subsets of contacts tried per cluster (least
+run.  With ``--against FILE`` (a ``workers/_compiled.py`` of another version, e.g. ``git show
+REV:workers/_compiled.py > before.py``) the compiled kernels of that file are timed too, in the
+same process and alternating with the others: a change to the kernels measured as a ratio in one
+run, with the attempts of the two compared one by one (outcome, steps and endpoint coordinates to
+the last bit).  Also printed per class: the subsets of contacts tried per cluster (least
 and most), the share of them whose set is not one-dimensional, and how many
 sampled clusters gave the same endpoints with both backends.  Ratios measured in one run are what compare; absolute times
 depend on the machine's load.
@@ -29,6 +33,7 @@ depend on the machine's load.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -46,6 +51,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the sample (default 0)")
     parser.add_argument("--numpy", action=argparse.BooleanOptionalAction, default=True,
                         help="also time the numpy reference (default: yes)")
+    parser.add_argument("--against", metavar="FILE", default=None,
+                        help="also time the compiled kernels of FILE, a workers/_compiled.py of another version "
+                             "(e.g. `git show REV:workers/_compiled.py > before.py`), in this process, and count "
+                             "the attempts that differ from the current code's")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -95,16 +104,56 @@ VARIANTS = {
 }
 
 
-def _time(cluster, params, variant: str):
-    """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`)."""
+#: the variant that runs the kernels of ``--against FILE``: as "numba", with that file's compiled module
+AGAINST = "against"
+
+
+def load_kernels(path: str):
+    """The compiled kernels of ``path`` (a ``workers/_compiled.py`` of any version) as a module of their own."""
+    import importlib.util
+
+    if not os.path.isfile(path):
+        raise SystemExit(f"--against: no such file: {path}")
+    spec = importlib.util.spec_from_file_location("packings_benchmark_against_compiled", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@contextlib.contextmanager
+def kernels_from(module):
+    """Run the compiled backend with ``module``'s kernels in place of the package's: the two places that hold
+    the compiled module (:mod:`packings.workers.kernels` once it has loaded it, and
+    :mod:`packings.workers.paths`) point at ``module`` until the block ends."""
+    from packings.workers import kernels, paths
+
+    saved = kernels._numba(), paths._compiled
+    kernels._compiled = paths._compiled = module
+    try:
+        yield
+    finally:
+        kernels._compiled, paths._compiled = saved
+
+
+def _time(cluster, params, variant: str, against=None):
+    """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`, or :data:`AGAINST` with the
+    kernels module ``against``)."""
     from packings.workers import kernels
     from packings.workers.expand import expand
 
-    backend, first_order = VARIANTS[variant]
-    with kernels.backend(backend):
+    backend, first_order = VARIANTS["numba" if variant == AGAINST else variant]
+    swap = kernels_from(against) if variant == AGAINST else contextlib.nullcontext()
+    with kernels.backend(backend), swap:
         t0 = time.perf_counter()
         ex = expand(cluster, params, first_order)
         return time.perf_counter() - t0, ex
+
+
+def _attempt_keys(ex) -> list[tuple]:
+    """Every attempt of an expansion as (subset, direction, outcome, steps, new contacts, endpoint coordinates'
+    bytes): what must be the same, to the last bit, after a change that moves no number."""
+    return [(e.broken, e.direction, e.outcome, e.steps, e.new_contacts,
+             None if e.cluster is None else e.cluster.coords.tobytes()) for e in ex.endpoints]
 
 
 def _path_outcomes(endpoints) -> Counter:
@@ -128,13 +177,15 @@ def _stratified(members, sample: int, rng) -> list[int]:
     return sorted(pick)
 
 
-def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, numpy: bool) -> list[dict]:
-    """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share."""
+def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, numpy: bool,
+            against=None) -> list[dict]:
+    """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share; with
+    ``against`` (a kernels module, :func:`load_kernels`) also its time and the attempts that differ."""
     import numpy as np
 
     from packings.workers.expand import NOT_1D
 
-    backends = ["numba", "svd"] + (["numpy"] if numpy else [])
+    backends = ["numba", "svd"] + ([AGAINST] if against is not None else []) + (["numpy"] if numpy else [])
     rng = np.random.default_rng(seed)
     rows = []
     for name in CLASSES:
@@ -145,9 +196,9 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
         weight = Counter(c.m for c in members)  # clusters with as many contacts
         picked = Counter(members[i].m for i in pick)
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
-        subsets, not_1d, same, svd_differ = [], 0, 0, 0
+        subsets, not_1d, same, svd_differ, against_differ, attempts = [], 0, 0, 0, 0, 0
         for i in pick:
-            results = {b: _time(members[i], params, b) for b in backends}
+            results = {b: _time(members[i], params, b, against) for b in backends}
             m = members[i].m
             for b, (s, _) in results.items():
                 totals[b] += s * weight[m] / picked[m]
@@ -164,13 +215,20 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
             assert [(e.broken, e.direction == 0) for e in ex.endpoints] == [(e.broken, e.direction == 0) for e in svd]
             assert [e.outcome for e in ex.endpoints if e.direction == 0] == [e.outcome for e in svd if e.direction == 0]
             svd_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(svd)).values())
+            attempts += len(ex.endpoints)
+            if against is not None:
+                mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
+                against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
         row = {"class": name, "clusters": len(members), "sampled": len(pick),
                "subsets_min": min(subsets), "subsets_max": max(subsets),
-               "not_1d_share": not_1d / max(1, sum(subsets)), "svd_paths_differing": svd_differ}
+               "not_1d_share": not_1d / max(1, sum(subsets)), "svd_paths_differing": svd_differ, "attempts": attempts}
         for b in backends:
             row[f"mean_ms_{b}"] = 1e3 * totals[b] / len(members)
             row[f"total_s_{b}"] = totals[b]
         row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
+        if against is not None:
+            row["against_ratio"] = row[f"mean_ms_{AGAINST}"] / row["mean_ms_numba"]
+            row["against_attempts_differing"] = against_differ
         if numpy:
             row["same_endpoints"] = same
             row["ratio"] = row["mean_ms_numpy"] / row["mean_ms_numba"]
@@ -194,11 +252,18 @@ def run(args: argparse.Namespace) -> int:
         print("--sample must be at least 1", file=sys.stderr)
         return 2
     params = Params()
+    against = load_kernels(args.against) if args.against else None
     with kernels.backend("numba"):
         warm_up()
+        if against is not None:
+            with kernels_from(against):
+                try:
+                    warm_up()
+                except AttributeError as exc:  # a version older than the code that calls it
+                    raise SystemExit(f"--against: {args.against} lacks a kernel the current code calls ({exc})")
         clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
-    rows = measure(clusters, params, args.sample, args.seed, args.numpy)
-    result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed,
+    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against)
+    result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed, "against": args.against,
               "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
               "rows": rows}
     if args.json:
@@ -208,6 +273,8 @@ def run(args: argparse.Namespace) -> int:
           f"a sample of up to {args.sample} each")
     head = (f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
             f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}")
+    if against is not None:
+        head += f"{'before ms':>10}{'before/':>8}{'differ':>11}"
     if args.numpy:
         head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}"
     print(head)
@@ -215,13 +282,18 @@ def run(args: argparse.Namespace) -> int:
         line = (f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
                 f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
                 f"{r['not_1d_share']:>9.0%}{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}")
+        if against is not None:
+            line += (f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
+                     f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}")
         if args.numpy:
             line += (f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
                      f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}")
         print(line)
     print("(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
           "times the class's clusters; svd: every subset decided by an SVD of what is left, not by the "
-          "first-order counts; svd/ = svd / ms each; ratio = numpy / compiled)")
+          "first-order counts; svd/ = svd / ms each; ratio = numpy / compiled"
+          + ("; before: the kernels of --against, before/ = before / ms each, differ: attempts not the same "
+             "to the last bit, of all" if against is not None else "") + ")")
     differ = sum(r["svd_paths_differing"] for r in rows)
     if differ:
         print(f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "

@@ -71,6 +71,38 @@ def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
         assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0 and r["svd_paths_differing"] == 0
 
 
+SHIM = """
+import packings.workers._compiled as _real
+
+globals().update({k: v for k, v in vars(_real).items() if not k.startswith("__")})
+
+
+def follow_steps(*args):  # every path ends as if its projection had failed
+    return (ST_PROJECTION_FAILED,) + tuple(_real.follow_steps(*args)[1:])
+"""
+
+
+def test_the_classes_benchmark_times_the_kernels_of_another_file_against_the_current_ones(tmp_path):
+    """``--against FILE`` times FILE's kernels beside the package's and compares every attempt: none differs
+    when FILE is the package's own _compiled.py, and every path does when FILE changes where paths end."""
+    import packings.workers._compiled as compiled
+
+    same = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--against", compiled.__file__)
+    [row] = same["rows"]
+    assert same["against"] == compiled.__file__ and row["class"] == "regular"
+    assert row["attempts"] == 2 * 18 and row["against_attempts_differing"] == 0
+    assert row["mean_ms_against"] > 0 and row["against_ratio"] > 0
+    assert abs(row["share_against"] - 1.0) < 1e-9
+    shim = tmp_path / "failing.py"
+    shim.write_text(SHIM)
+    other = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--against", str(shim))
+    [row] = other["rows"]
+    assert row["attempts"] == 2 * 18 and row["against_attempts_differing"] > 0
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(tmp_path / "none.py")],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "no such file" in r.stderr
+
+
 def test_the_classes_of_a_cluster():
     from benchmarks.classes import cluster_class
 
