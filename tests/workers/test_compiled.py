@@ -643,7 +643,7 @@ def _spd_problems():
 
 @pytest.mark.parametrize("G", _spd_problems(), ids=lambda G: f"size{G.shape[0]}")
 def test_the_four_row_triangular_kernels_are_the_one_row_loops_bit_for_bit(G):
-    """_cholesky, _forward_solve and the comparison-matrix bound take four rows through each inner loop at once,
+    """_cholesky, _forward_solve and the two eigenvalue bounds take four rows through each inner loop at once,
     each row's sum in the one-row loop's order: their results are the one-row loops' to the last bit (so
     that no path, projection or certificate moves).  The factor must also be a Cholesky factor of G."""
     size = G.shape[0]
@@ -669,6 +669,16 @@ def test_the_four_row_triangular_kernels_are_the_one_row_loops_bit_for_bit(G):
             s += abs(L[p, i]) * w[p]
         w[i] = s / L[i, i]
     assert _compiled._comparison_lower_bound(L, size, np.empty(size)) == 1.0 / (z.max() * w.max())
+    total = 0.0  # ||L^-1||_F^2, column by column, one row at a time
+    for j in range(size):
+        u = [0.0] * size
+        for i in range(j, size):
+            s = 1.0 if i == j else 0.0
+            for p in range(j, i):
+                s -= L[i, p] * u[p]
+            u[i] = s / L[i, i]
+            total += u[i] * u[i]
+    assert _compiled._eig_lower_bound(L, size, np.empty(size)) == 1.0 / total
 
 
 def test_cholesky_refuses_a_matrix_that_is_not_positive_definite():
