@@ -116,7 +116,10 @@ def load_kernels(path: str):
         raise SystemExit(f"--against: no such file: {path}")
     spec = importlib.util.spec_from_file_location("packings_benchmark_against_compiled", path)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    try:
+        spec.loader.exec_module(module)
+    except Exception as exc:  # not Python, or not a kernels module of any version
+        raise SystemExit(f"--against: cannot load {path}: {type(exc).__name__}: {exc}") from None
     return module
 
 

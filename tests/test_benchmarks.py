@@ -101,6 +101,11 @@ def test_the_classes_benchmark_times_the_kernels_of_another_file_against_the_cur
     r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(tmp_path / "none.py")],
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "no such file" in r.stderr
+    broken = tmp_path / "broken.py"
+    broken.write_text("def follow_steps(:\n")
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(broken)],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and r.stderr.strip().startswith("--against: cannot load") and "Traceback" not in r.stderr
 
 
 def test_the_classes_of_a_cluster():
