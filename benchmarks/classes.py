@@ -114,11 +114,16 @@ def load_kernels(path: str):
 
     if not os.path.isfile(path):
         raise SystemExit(f"--against: no such file: {path}")
-    spec = importlib.util.spec_from_file_location("packings_benchmark_against_compiled", path)
+    name = "packings_benchmark_against_compiled"
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
+    # importable by its name while it runs: numba's on-disk cache records each kernel's module by name and
+    # imports it when it loads the kernel again (a module it cannot import fails the second run)
+    sys.modules[name] = module
     try:
         spec.loader.exec_module(module)
     except Exception as exc:  # not Python, or not a kernels module of any version
+        del sys.modules[name]
         raise SystemExit(f"--against: cannot load {path}: {type(exc).__name__}: {exc}") from None
     return module
 

@@ -93,6 +93,12 @@ def test_the_classes_benchmark_times_the_kernels_of_another_file_against_the_cur
     assert row["attempts"] == 2 * 18 and row["against_attempts_differing"] == 0
     assert row["mean_ms_against"] > 0 and row["against_ratio"] > 0
     assert abs(row["share_against"] - 1.0) < 1e-9
+    copy = tmp_path / "copy.py"  # a file of its own: compiled on the first run, from numba's cache on the second
+    copy.write_text(Path(compiled.__file__).read_text())
+    for _ in range(2):
+        [row] = benchmark("classes", "--n", "8", "--sample", "1", "--no-numpy", "--against", str(copy))["rows"]
+        assert row["against_attempts_differing"] == 0 and row["attempts"] == 18
+    assert list((tmp_path / "__pycache__").glob("copy.*.nbi"))
     shim = tmp_path / "failing.py"
     shim.write_text(SHIM)
     other = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--against", str(shim))

@@ -238,52 +238,16 @@ def _cholesky(G, L, size):
 def _eig_lower_bound(L, size, work):
     """1 / ||L^{-1}||_F^2: a lower bound on the smallest eigenvalue of L L^T.
 
-    Column j of L^{-1} by forward substitution, four rows at a time below its diagonal as in
-    _forward_solve (each row's sum, and the running total, in the one-row loop's order)."""
+    Column j of L^{-1} by forward substitution from row j (_forward_rows: u[:j] = 0), its squares added to
+    the total in the order of its rows."""
     total = 0.0
+    e = np.zeros(size)
     for j in range(size):  # column j of L^{-1}: solve L u = e_j (u[:j] = 0)
-        u = 1.0 / L[j, j]
-        work[j] = u
-        total += u * u
-        i = j + 1
-        while i + 3 < size:
-            s0 = 0.0
-            s1 = 0.0
-            s2 = 0.0
-            s3 = 0.0
-            for p in range(j, i):
-                w = work[p]
-                s0 -= L[i, p] * w
-                s1 -= L[i + 1, p] * w
-                s2 -= L[i + 2, p] * w
-                s3 -= L[i + 3, p] * w
-            u0 = s0 / L[i, i]
-            s1 -= L[i + 1, i] * u0
-            u1 = s1 / L[i + 1, i + 1]
-            s2 -= L[i + 2, i] * u0
-            s2 -= L[i + 2, i + 1] * u1
-            u2 = s2 / L[i + 2, i + 2]
-            s3 -= L[i + 3, i] * u0
-            s3 -= L[i + 3, i + 1] * u1
-            s3 -= L[i + 3, i + 2] * u2
-            u3 = s3 / L[i + 3, i + 3]
-            work[i] = u0
-            work[i + 1] = u1
-            work[i + 2] = u2
-            work[i + 3] = u3
-            total += u0 * u0
-            total += u1 * u1
-            total += u2 * u2
-            total += u3 * u3
-            i += 4
-        while i < size:
-            s = 0.0
-            for p in range(j, i):
-                s -= L[i, p] * work[p]
-            u = s / L[i, i]
-            work[i] = u
-            total += u * u
-            i += 1
+        e[j] = 1.0
+        _forward_rows(L, j, size, e, work)
+        e[j] = 0.0
+        for i in range(j, size):
+            total += work[i] * work[i]
     if not total > 0.0 or not np.isfinite(total):
         return 0.0
     return 1.0 / total
@@ -291,18 +255,24 @@ def _eig_lower_bound(L, size, work):
 
 @numba.njit(**_JIT)
 def _forward_solve(L, size, b, out):
-    """out[:size] = L^{-1} b[:size] (L lower triangular; b may be out).
+    """out[:size] = L^{-1} b[:size] (L lower triangular; b may be out)."""
+    _forward_rows(L, 0, size, b, out)
 
-    out[i] = (b[i] - sum_{p < i} L[i, p] out[p]) / L[i, i], each sum in the order p = 0, 1, ...; four
-    rows at a time share the loop over the p before them (as in _cholesky), then finish in order, so
-    the result is the one-row loop's bit for bit."""
-    i = 0
+
+@numba.njit(**_JIT)
+def _forward_rows(L, start, size, b, out):
+    """out[i] = (b[i] - sum_{start <= p < i} L[i, p] out[p]) / L[i, i] for i = start, ..., size - 1: forward
+    substitution in L[start:size, start:size] (b may be out).
+
+    Each sum in the order p = start, start + 1, ...; four rows at a time share the loop over the p before
+    them (as in _cholesky), then finish in order, so the result is the one-row loop's bit for bit."""
+    i = start
     while i + 3 < size:
         s0 = b[i]
         s1 = b[i + 1]
         s2 = b[i + 2]
         s3 = b[i + 3]
-        for p in range(i):
+        for p in range(start, i):
             o = out[p]
             s0 -= L[i, p] * o
             s1 -= L[i + 1, p] * o
@@ -324,7 +294,7 @@ def _forward_solve(L, size, b, out):
         i += 4
     while i < size:
         s = b[i]
-        for p in range(i):
+        for p in range(start, i):
             s -= L[i, p] * out[p]
         out[i] = s / L[i, i]
         i += 1
