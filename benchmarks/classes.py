@@ -101,10 +101,11 @@ VARIANTS = {
     "numba": ("numba", True),  # the code a run uses
     "svd": ("numba", False),  # every subset decided by an SVD of what is left, as before the counts
     "numpy": ("numpy", True),  # the numpy reference kernels
+    "against": ("numba", True),  # as "numba", with the kernels of --against FILE (kernels_from)
 }
 
 
-#: the variant that runs the kernels of ``--against FILE``: as "numba", with that file's compiled module
+#: the variant that runs the kernels of ``--against FILE`` (:data:`VARIANTS`)
 AGAINST = "against"
 
 
@@ -144,12 +145,12 @@ def kernels_from(module):
 
 
 def _time(cluster, params, variant: str, against=None):
-    """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`, or :data:`AGAINST` with the
+    """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`; :data:`AGAINST` with the
     kernels module ``against``)."""
     from packings.workers import kernels
     from packings.workers.expand import expand
 
-    backend, first_order = VARIANTS["numba" if variant == AGAINST else variant]
+    backend, first_order = VARIANTS[variant]
     swap = kernels_from(against) if variant == AGAINST else contextlib.nullcontext()
     with kernels.backend(backend), swap:
         t0 = time.perf_counter()

@@ -612,11 +612,12 @@ def _cholesky_one_row(G):
     return np.array(L)
 
 
-def _forward_one_row(L, b, start, plus):
-    """out[i] = (b[i] -/+ sum_{p < i} L'[i, p] out[p]) / L[i, i] one row at a time (L' = L, or |L| with ``plus``)."""
+def _forward_one_row(L, b, each, plus):
+    """out[i] = (b[i] -/+ sum_{p < i} L'[i, p] out[p]) / L[i, i] one row at a time (L' = L, or |L| with ``plus``;
+    b[i] = ``each`` for every i where b is None)."""
     out = []
     for i in range(L.shape[0]):
-        s = float(b[i]) if start is None else start
+        s = each if b is None else float(b[i])
         for p in range(i):
             s = s + abs(L[i, p]) * out[p] if plus else s - L[i, p] * out[p]
         out.append(s / L[i, i])
