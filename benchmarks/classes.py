@@ -24,7 +24,9 @@ run.  With ``--against FILE`` (a ``workers/_compiled.py`` of another version, e.
 REV:workers/_compiled.py > before.py``) the compiled kernels of that file are timed too, in the
 same process and alternating with the others: a change to the kernels measured as a ratio in one
 run, with the attempts of the two compared one by one (outcome, steps and endpoint coordinates to
-the last bit).  Also printed per class: the subsets of contacts tried per cluster (least
+the last bit).  Unless ``--no-every``, expand is also timed following every path (``every``: the
+code before it followed one path of each set that a symmetry of the cluster makes congruent), with
+the paths whose outcome then differs counted.  Also printed per class: the subsets of contacts tried per cluster (least
 and most), the share of them whose set is not one-dimensional, and how many
 sampled clusters gave the same endpoints with both backends.  Ratios measured in one run are what compare; absolute times
 depend on the machine's load.
@@ -55,6 +57,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="also time the compiled kernels of FILE, a workers/_compiled.py of another version "
                              "(e.g. `git show REV:workers/_compiled.py > before.py`), in this process, and count "
                              "the attempts that differ from the current code's")
+    parser.add_argument("--every", action=argparse.BooleanOptionalAction, default=True,
+                        help="also time expand following every path, not one of each set a symmetry of the cluster "
+                             "makes congruent, and count the paths whose outcome differs (default: yes)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -96,12 +101,14 @@ def _from_memory(n: int, params) -> list[tuple[object, str]]:
     return out
 
 
-#: what is timed: name -> (kernel backend, decide subsets by the first-order counts)
+#: what is timed: name -> (kernel backend, decide subsets by the first-order counts, follow one path of
+#: each set of paths a symmetry of the cluster makes congruent)
 VARIANTS = {
-    "numba": ("numba", True),  # the code a run uses
-    "svd": ("numba", False),  # every subset decided by an SVD of what is left, as before the counts
-    "numpy": ("numpy", True),  # the numpy reference kernels
-    "against": ("numba", True),  # as "numba", with the kernels of --against FILE (kernels_from)
+    "numba": ("numba", True, True),  # the code a run uses
+    "svd": ("numba", False, True),  # every subset decided by an SVD of what is left, as before the counts
+    "numpy": ("numpy", True, True),  # the numpy reference kernels
+    "against": ("numba", True, True),  # as "numba", with the kernels of --against FILE (kernels_from)
+    "every": ("numba", True, False),  # as "numba", every path followed, as before the symmetries
 }
 
 
@@ -150,11 +157,11 @@ def _time(cluster, params, variant: str, against=None):
     from packings.workers import kernels
     from packings.workers.expand import expand
 
-    backend, first_order = VARIANTS[variant]
+    backend, first_order, symmetric = VARIANTS[variant]
     swap = kernels_from(against) if variant == AGAINST else contextlib.nullcontext()
     with kernels.backend(backend), swap:
         t0 = time.perf_counter()
-        ex = expand(cluster, params, first_order)
+        ex = expand(cluster, params, first_order, symmetric)
         return time.perf_counter() - t0, ex
 
 
@@ -187,14 +194,16 @@ def _stratified(members, sample: int, rng) -> list[int]:
 
 
 def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, numpy: bool,
-            against=None) -> list[dict]:
+            against=None, every: bool = False) -> list[dict]:
     """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share; with
-    ``against`` (a kernels module, :func:`load_kernels`) also its time and the attempts that differ."""
+    ``against`` (a kernels module, :func:`load_kernels`) also its time and the attempts that differ; with
+    ``every``, the time of following every path and the paths whose outcome differs."""
     import numpy as np
 
     from packings.workers.expand import NOT_1D
 
-    backends = ["numba", "svd"] + ([AGAINST] if against is not None else []) + (["numpy"] if numpy else [])
+    backends = (["numba", "svd"] + ([AGAINST] if against is not None else []) + (["numpy"] if numpy else [])
+                + (["every"] if every else []))
     rng = np.random.default_rng(seed)
     rows = []
     for name in CLASSES:
@@ -205,7 +214,7 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
         weight = Counter(c.m for c in members)  # clusters with as many contacts
         picked = Counter(members[i].m for i in pick)
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
-        subsets, not_1d, same, svd_differ, against_differ, attempts = [], 0, 0, 0, 0, 0
+        subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
         for i in pick:
             results = {b: _time(members[i], params, b, against) for b in backends}
             m = members[i].m
@@ -225,6 +234,11 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
             assert [e.outcome for e in ex.endpoints if e.direction == 0] == [e.outcome for e in svd if e.direction == 0]
             svd_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(svd)).values())
             attempts += len(ex.endpoints)
+            images += ex.paths_by_symmetry
+            if every:  # the same subsets; each path's outcome as the path of its image's subset ended
+                everyone = results["every"][1].endpoints
+                assert [e.broken for e in ex.endpoints] == [e.broken for e in everyone]
+                every_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(everyone)).values())
             if against is not None:
                 mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
                 against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
@@ -235,6 +249,10 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
             row[f"mean_ms_{b}"] = 1e3 * totals[b] / len(members)
             row[f"total_s_{b}"] = totals[b]
         row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
+        row["paths_by_symmetry"] = images
+        if every:
+            row["every_ratio"] = row["mean_ms_every"] / row["mean_ms_numba"]
+            row["every_paths_differing"] = every_differ
         if against is not None:
             row["against_ratio"] = row[f"mean_ms_{AGAINST}"] / row["mean_ms_numba"]
             row["against_attempts_differing"] = against_differ
@@ -271,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
                 except AttributeError as exc:  # a version older than the code that calls it
                     raise SystemExit(f"--against: {args.against} lacks a kernel the current code calls ({exc})")
         clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
-    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against)
+    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every)
     result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed, "against": args.against,
               "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
               "rows": rows}
@@ -284,6 +302,8 @@ def run(args: argparse.Namespace) -> int:
             f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}")
     if against is not None:
         head += f"{'before ms':>10}{'before/':>8}{'differ':>11}"
+    if args.every:
+        head += f"{'every ms':>10}{'every/':>7}{'images':>8}{'differ':>7}"
     if args.numpy:
         head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}"
     print(head)
@@ -294,6 +314,9 @@ def run(args: argparse.Namespace) -> int:
         if against is not None:
             line += (f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
                      f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}")
+        if args.every:
+            line += (f"{r['mean_ms_every']:>10.1f}{r['every_ratio']:>7.2f}{r['paths_by_symmetry']:>8}"
+                     f"{r['every_paths_differing']:>7}")
         if args.numpy:
             line += (f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
                      f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}")
@@ -302,7 +325,10 @@ def run(args: argparse.Namespace) -> int:
           "times the class's clusters; svd: every subset decided by an SVD of what is left, not by the "
           "first-order counts; svd/ = svd / ms each; ratio = numpy / compiled"
           + ("; before: the kernels of --against, before/ = before / ms each, differ: attempts not the same "
-             "to the last bit, of all" if against is not None else "") + ")")
+             "to the last bit, of all" if against is not None else "")
+          + ("; every: every path followed, not one of each set congruent by a symmetry of the cluster, every/ = "
+             "every / ms each, images: paths taken as images, differ: paths whose outcome is not the one following "
+             "every path gave" if args.every else "") + ")")
     differ = sum(r["svd_paths_differing"] for r in rows)
     if differ:
         print(f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "

@@ -532,6 +532,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         distinct, which = distinct_endpoints(f.expansion)
         outcomes = dict(sorted(f.expansion.outcomes().items()))
         outcomes["widened_paths"] = f.expansion.widened_paths
+        outcomes["paths_by_symmetry"] = f.expansion.paths_by_symmetry
         prepared.append((f, distinct, which, json.dumps(outcomes)))
     engine = Session_.kw["bind"]
     values = unstored_values(engine, [(f.task.params.tol_d, distinct) for f, distinct, _, _ in prepared])
@@ -653,9 +654,11 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
         paths += p or 0
     f = frontier(s, run_id)
     widened = total.pop("widened_paths", 0)
+    images = total.pop("paths_by_symmetry", 0)
     return {
         "expansions": f.get(DONE, 0),
         "paths_followed": paths,
+        "paths_by_symmetry": images,
         "widened_paths": widened,
         **dict(sorted(total.items())),
         "failed_tasks": f.get(FAILED, 0),

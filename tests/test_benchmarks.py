@@ -71,6 +71,16 @@ def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
         assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0 and r["svd_paths_differing"] == 0
 
 
+def test_the_classes_benchmark_times_following_every_path_against_one_of_each_congruent_set():
+    """n = 8, all 13 clusters: some have symmetries, whose images are counted, and following every path
+    instead reaches the same outcomes; --no-every leaves the variant out."""
+    [row] = benchmark("classes", "--n", "8", "--sample", "20", "--no-numpy")["rows"]
+    assert row["sampled"] == 13 and row["paths_by_symmetry"] > 0
+    assert row["mean_ms_every"] > 0 and row["every_ratio"] > 0 and row["every_paths_differing"] == 0
+    [row] = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--no-every")["rows"]
+    assert "mean_ms_every" not in row and "every_paths_differing" not in row
+
+
 SHIM = """
 import packings.workers._compiled as _real
 

@@ -11,7 +11,7 @@ from typing import Iterator
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster
+from packings.workers.cluster import Cluster, pair
 from packings.workers.dimension import (
     Dimension,
     StressBasis,
@@ -19,7 +19,7 @@ from packings.workers.dimension import (
     may_decide,
     solution_dimension,
 )
-from packings.workers.identity import ClusterIndex, certificate, forget_canonical, same_geometry
+from packings.workers.identity import ClusterIndex, certificate, forget_canonical, same_geometry, symmetries
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attempt beyond a path's, named here too
     BELOW_MIN_CONTACTS,
     CIRCULAR,
@@ -53,6 +53,9 @@ class Endpoint:
     rigidity: Rigidity | None = None
     new_contacts: tuple[tuple[int, int], ...] = ()
     first_step_dim: int | None = None  #: dimension of the path's set after its first step
+    #: True when this attempt was not made but is the image of an earlier one under a symmetry of the
+    #: source (the subset's image, the endpoint relabelled alike): :func:`expand` with ``symmetric``
+    image: bool = False
 
 
 @dataclass(frozen=True)
@@ -74,7 +77,14 @@ class Expansion:
 
     @property
     def paths_followed(self) -> int:
-        return sum(1 for e in self.endpoints if e.direction != 0)
+        """Paths followed: attempts with a direction, less those taken as images of others (:attr:`paths_by_symmetry`)."""
+        return sum(1 for e in self.endpoints if e.direction != 0 and not e.image)
+
+    @property
+    def paths_by_symmetry(self) -> int:
+        """Attempts with a direction whose path was not followed, as the image of a path followed under a
+        symmetry of the source gives its endpoint."""
+        return sum(1 for e in self.endpoints if e.direction != 0 and e.image)
 
     @property
     def widened_paths(self) -> int:
@@ -132,8 +142,52 @@ class PathStart:
         return follow_path(self.x, self.keep, self.broken, self.tangent, self.free, params)
 
 
-def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Iterator[Endpoint | PathStart]:
+@dataclass(frozen=True)
+class Image:
+    """A subset whose attempts are those of an earlier subset relabelled: ``broken`` is ``relabel``'s image
+    of ``of`` (sphere ``i`` of ``of``'s attempts is sphere ``relabel[i]`` of this subset's)."""
+
+    broken: tuple[tuple[int, int], ...]
+    of: tuple[tuple[int, int], ...]
+    relabel: np.ndarray
+
+
+class _Orbits:
+    """The subsets of a cluster's contacts under its symmetries (:func:`packings.workers.identity.symmetries`).
+
+    Subsets of one size are tried in lexicographic order of their contacts' indices, so the first of
+    each orbit is its smallest member: that one is tried, and each other member is its image.
+    """
+
+    def __init__(self, cluster: Cluster, perms: np.ndarray) -> None:
+        at = {p: q for q, p in enumerate(cluster.contacts)}
+        self.perms = perms[1:]
+        #: the contact index each contact goes to under each symmetry but the identity (first)
+        self.moves = np.array([[at[pair(int(t[i]), int(t[j]))] for i, j in cluster.contacts] for t in self.perms],
+                              dtype=np.int64).reshape(len(self.perms), cluster.m)
+
+    def first(self, idx: tuple[int, ...]) -> tuple[tuple[int, ...], np.ndarray] | None:
+        """None if ``idx`` is the first of its orbit; else that first subset and the relabelling that takes
+        it to ``idx``."""
+        images = np.sort(self.moves[:, idx], axis=1)
+        best, g = idx, -1
+        for k, row in enumerate(images.tolist()):
+            if tuple(row) < best:
+                best, g = tuple(row), k
+        if g < 0:
+            return None
+        inverse = np.empty_like(self.perms[g])  # symmetry g takes idx to best: its inverse takes best to idx
+        inverse[self.perms[g]] = np.arange(inverse.size)
+        return best, inverse
+
+
+def _attempts(cluster: Cluster, params: Params, first_order: bool = True,
+              perms: np.ndarray | None = None) -> Iterator[Endpoint | PathStart | Image]:
     """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart.
+
+    Given the cluster's symmetries ``perms`` (:func:`packings.workers.identity.symmetries`), a subset that
+    is the image of an earlier one under one of them (:class:`_Orbits`) is an :class:`Image` of it
+    instead, decided and followed no further.
 
     With ``first_order``, a subset whose first-order count after breaking already decides that its set
     is not one-dimensional (no flex left; or no stress left and a number of flexes other than one) is
@@ -172,8 +226,14 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True) -> Ite
     # The first triangle of what is left is the cluster's own unless a broken contact is one of its sides:
     # every contact before its first side had no triangle, and deleting contacts makes none.
     own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
+    orbits = _Orbits(cluster, perms) if perms is not None and len(perms) > 1 else None
     for k in break_sizes(m, rank, params):
         for idx in combinations(range(m), k):
+            if orbits is not None:
+                first = orbits.first(idx)
+                if first is not None:
+                    yield Image(tuple(pairs[q] for q in idx), tuple(pairs[q] for q in first[0]), first[1])
+                    continue
             broken = all_edges[list(idx)]
             kept = np.ones(m, dtype=bool)
             kept[list(idx)] = False
@@ -214,7 +274,7 @@ def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
     return [a for a in _attempts(cluster, params) if isinstance(a, PathStart)]
 
 
-def expand(cluster: Cluster, params: Params, first_order: bool = True) -> Expansion:
+def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric: bool = True) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
     A pure function of its inputs.  For every subset B whose removal leaves a
@@ -223,24 +283,41 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True) -> Expans
     first order) is followed to its endpoint.  ``first_order`` False decides
     every subset by an SVD of what is left (the reference :func:`_attempts` is
     measured and tested against); the result is the same.
+
+    With ``symmetric`` (the default), a subset that a symmetry of ``cluster`` takes an earlier subset
+    to gets the earlier subset's attempts relabelled (:attr:`Endpoint.image`): the same outcomes and
+    the same clusters reached, congruent paths being followed once.  ``symmetric`` False follows
+    every path (the reference it is tested against).
     """
     cert = certificate(cluster)
     out: list[Endpoint] = []
-    for a in _attempts(cluster, params, first_order):
+    made: dict[tuple, list[int]] = {}  # with symmetries: where each subset's attempts are in out
+    images: dict[int, int] = {}  # attempt -> the earlier attempt it is the image of
+    perms = symmetries(cluster, params.tol_d) if symmetric else None
+    symmetric = perms is not None and len(perms) > 1
+    for a in _attempts(cluster, params, first_order, perms):
+        if isinstance(a, Image):
+            for i in made[a.of]:
+                images[len(out)] = i
+                out.append(_image(out[i], a.broken, a.relabel))
+            continue
+        if symmetric:
+            made.setdefault(a.broken if isinstance(a, Endpoint) else a.broken_contacts, []).append(len(out))
         if isinstance(a, Endpoint):
             out.append(a)
         else:
             out.append(_classify(cluster, cert, a.broken_contacts, a.direction, a.follow(params), params))
-    first = same_as(out, params.tol_d)
+    first = same_as(out, params.tol_d, images)
     for i, e in enumerate(out):  # only the distinct rigid endpoints are compared again (the write-back)
         if e.cluster is not None and first[i] != i:
             forget_canonical(e.cluster)
     return Expansion(cluster, tuple(out), first)
 
 
-def same_as(endpoints, tol_d: float) -> tuple[int | None, ...]:
+def same_as(endpoints, tol_d: float, images: dict[int, int] | None = None) -> tuple[int | None, ...]:
     """:attr:`Expansion.same_as` of these endpoints: rigid endpoints that are the same cluster (same
-    certificate, same geometry within ``tol_d``) point at the first of them."""
+    certificate, same geometry within ``tol_d``) point at the first of them.  ``images`` maps an
+    endpoint that is an earlier one relabelled (the same cluster) to that one, not compared again."""
     index = ClusterIndex()
     first: list[int] = []  # endpoint index of each cluster of the index
     out: list[int | None] = []
@@ -248,11 +325,30 @@ def same_as(endpoints, tol_d: float) -> tuple[int | None, ...]:
         if e.outcome != RIGID:
             out.append(None)
             continue
+        if images and i in images:
+            out.append(out[images[i]])
+            continue
         k, is_new = index.add(e.cluster, tol_d)
         if is_new:
             first.append(i)
         out.append(first[k])
     return tuple(out)
+
+
+def _image(e: Endpoint, broken: tuple[tuple[int, int], ...], relabel: np.ndarray) -> Endpoint:
+    """Attempt ``e`` with sphere ``i`` relabelled ``relabel[i]``: the attempt on ``broken``, its image."""
+    t = relabel.tolist()
+
+    def moved(pairs):
+        return tuple(sorted(pair(t[i], t[j]) for i, j in pairs))
+
+    c = None
+    if e.cluster is not None:
+        coords = np.empty_like(e.cluster.coords)
+        coords[relabel] = e.cluster.coords
+        c = Cluster(coords, moved(e.cluster.contacts))
+    return Endpoint(broken, e.direction, e.outcome, e.dim, e.steps, c, e.rigidity, moved(e.new_contacts),
+                    e.first_step_dim, image=True)
 
 
 def _lengthening(x: np.ndarray, v: np.ndarray, i: int, j: int) -> float:

@@ -30,6 +30,7 @@ class Catalogue:
     expansions: int = 0
     paths_followed: int = 0
     widened_paths: int = 0
+    paths_by_symmetry: int = 0  #: paths not followed, their endpoints the images of paths followed (expand)
     seconds: float = 0.0
 
     def by_contacts(self) -> dict[int, int]:
@@ -45,6 +46,7 @@ class Catalogue:
         return {
             "expansions": self.expansions,
             "paths_followed": self.paths_followed,
+            "paths_by_symmetry": self.paths_by_symmetry,
             "widened_paths": self.widened_paths,
             **{k: v for k, v in sorted(self.outcomes.items())},
             "seconds": round(self.seconds, 2),
@@ -70,6 +72,7 @@ def explore(
         cat.outcomes.update(ex.outcomes())
         cat.paths_followed += ex.paths_followed
         cat.widened_paths += ex.widened_paths
+        cat.paths_by_symmetry += ex.paths_by_symmetry
         for e in ex.endpoints:
             if e.outcome == RIGID:
                 index.add(e.cluster, params.tol_d)

@@ -229,6 +229,7 @@ class _Canonical:
     n: int
     cert: bytes
     adjacency: np.ndarray  #: canonical adjacency matrix
+    labelling: np.ndarray  #: canonical sphere k is the cluster's sphere labelling[k] (canonical_labelling)
     x: np.ndarray  #: centred coordinates in canonical order
     dist: np.ndarray  #: pair-distance matrix in canonical order
     sorted_dist: np.ndarray  #: sorted upper-triangle pair distances
@@ -263,6 +264,7 @@ def _compute_canonical(cluster: Cluster) -> _Canonical:
         n=cluster.n,
         cert=pynauty.certificate(g),
         adjacency=_canonical_adjacency(cluster, p),
+        labelling=p,
         x=x,
         dist=d,
         sorted_dist=np.sort(d[_upper(cluster.n)]),
@@ -344,6 +346,32 @@ def find_match(cluster: Cluster, candidates: Iterable[Cluster], tol_d: float) ->
         if _same_geometry_canonical(c, o, autos, tol_d):
             return idx
     return None
+
+
+def symmetries(cluster: Cluster, tol_d: float) -> np.ndarray:
+    """The permutations of the spheres that are symmetries of ``cluster``, one a row, the identity first.
+
+    A row ``t`` is an automorphism of the contact graph, in the cluster's own labels, that is also an
+    isometry: after the optimal orthogonal alignment (reflections allowed), sphere ``i`` of the
+    cluster lies within ``tol_d`` of where sphere ``t[i]`` is, in every coordinate (the rule of
+    :func:`same_geometry`: the cluster is the same cluster as itself relabelled by ``t``).  They form
+    a group: the graph automorphisms that move the geometry are left out.  Breaking contacts B of a
+    cluster and breaking their image under ``t`` start congruent paths
+    (:func:`packings.workers.expand.expand` follows one path of each such set, see docs/method.md).
+    """
+    c = _canonical(cluster)
+    group = _group(c)
+    if len(group) == 1 or c.n == 0:
+        return np.arange(c.n, dtype=np.int64)[None, :]
+    # The cheap rejection of same_geometry (distances within 4 tol_d), then the alignment.
+    relabelled = c.dist[group[:, :, None], group[:, None, :]]
+    near = np.abs(relabelled - c.dist).max(axis=(1, 2)) <= 4.0 * tol_d
+    keep = [s for s, ok in zip(group, near) if ok and kernels.aligned_max_error(c.x, c.x[s]) <= tol_d]
+    p = c.labelling
+    out = np.empty((len(keep), c.n), dtype=np.int64)
+    for row, s in zip(out, keep):  # canonical k -> s[k] is the cluster's p[k] -> p[s[k]]
+        row[p] = p[s]
+    return out
 
 
 # --------------------------------------------------------------------------- embedding order

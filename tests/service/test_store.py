@@ -266,6 +266,10 @@ def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
         assert s.get(Run, run_id).status == "complete"
         d = store.run_diagnostics(s, run_id)
         assert d["expansions"] == 13 and d["failed_tasks"] == 0 and d["paths_followed"] > 0
+        # a path not followed, as the image of one followed under a symmetry of its cluster, is a transition too
+        with_path = s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == run_id,
+                                                                                Transition.direction != 0)).scalar()
+        assert d["paths_by_symmetry"] > 0 and d["paths_followed"] + d["paths_by_symmetry"] == with_path
         # every rigid transition points at a stored cluster of the run, and every cluster is reached
         n_rigid = s.execute(select(func.count()).select_from(Transition).where(Transition.outcome == "rigid",
                                                                                   Transition.target_id.is_(None))).scalar()

@@ -114,6 +114,69 @@ def test_an_expansion_holds_each_contact_pair_once_and_canonical_forms_of_distin
     assert all((ex.endpoints[i].cluster in _CANONICAL) == (ex.same_as[i] == i) for i in rigid)
 
 
+def _symmetric_clusters():
+    """Clusters with symmetries: the seed of n = 6 (4), the n = 10 hyperstatic cluster of the test data (4),
+    the n = 9 clusters with the most symmetries."""
+    import json
+    from pathlib import Path
+
+    from packings.workers.explore import explore
+    from packings.workers.identity import symmetries
+
+    d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    nine = sorted(explore(9).clusters, key=lambda c: -len(symmetries(c, P.tol_d)))[:2]
+    return [seed_cluster(6), Cluster.from_dict(d["n10_m25_first-order"])] + nine
+
+
+def _by_subset(ex):
+    """Each subset's attempts: (outcome, contacts formed, certificate of the cluster reached), sorted."""
+    out = {}
+    for e in ex.endpoints:
+        cert = certificate_hex(e.cluster) if e.cluster is not None else None
+        out.setdefault(e.broken, []).append((e.outcome, e.new_contacts, cert))
+    return {k: sorted(v, key=repr) for k, v in out.items()}
+
+
+def test_a_symmetric_cluster_follows_one_path_of_each_congruent_set_and_reaches_what_every_path_does():
+    """A subset that a symmetry of the cluster takes an earlier one to is not followed again: its attempts are
+    the earlier subset's relabelled, and they are what following its own paths gives: the same outcomes, the
+    same contacts formed, the same clusters reached (certificate and geometry), subset by subset."""
+    from packings.workers.identity import same_geometry, symmetries
+
+    for c in _symmetric_clusters():
+        assert len(symmetries(c, P.tol_d)) > 1
+        a, every = expand(c, P), expand(c, P, symmetric=False)
+        assert [e.broken for e in a.endpoints] == [e.broken for e in every.endpoints]
+        assert not any(e.image for e in every.endpoints) and every.paths_by_symmetry == 0
+        assert a.paths_by_symmetry > 0 and a.paths_followed + a.paths_by_symmetry == every.paths_followed
+        assert _by_subset(a) == _by_subset(every)
+        reached = {}
+        for e in every.endpoints:
+            if e.outcome == RIGID:
+                reached.setdefault(e.broken, []).append(e.cluster)
+        for e in a.endpoints:
+            if e.outcome == RIGID:
+                assert any(same_geometry(e.cluster, f, P.tol_d) for f in reached[e.broken])
+        assert Counter(certificate_hex(a.endpoints[i].cluster) for i in a.distinct()) == \
+            Counter(certificate_hex(every.endpoints[i].cluster) for i in every.distinct())
+
+
+def test_an_image_is_an_attempt_made_relabelled_by_a_symmetry():
+    """Each image's endpoint is its own subset's: the contacts broken are not among the endpoint's, the contacts
+    formed are, and it is the same cluster (a relabelled copy) as an attempt made with the same outcome."""
+    from packings.workers.identity import same_geometry
+
+    c = seed_cluster(6)  # three tetrahedra around an edge: four symmetries, five orbits of the 12 contacts
+    ex = expand(c, P)
+    made = [e for e in ex.endpoints if not e.image]
+    images = [e for e in ex.endpoints if e.image]
+    assert len({e.broken for e in made}) == 5 and len(images) == 7
+    for e in images:
+        assert not set(e.broken) & set(e.cluster.contacts) and set(e.new_contacts) <= set(e.cluster.contacts)
+        assert any(same_geometry(e.cluster, f.cluster, P.tol_d) for f in made if f.outcome == e.outcome)
+        assert e.cluster.min_distance() > 1 - P.tol_a
+
+
 def test_hyperstatic_cluster_breaks_pairs():
     import json
     from pathlib import Path

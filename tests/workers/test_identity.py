@@ -21,6 +21,7 @@ from packings.workers.identity import (
     embedding_position,
     find_match,
     same_geometry,
+    symmetries,
 )
 from packings.workers.params import DEFAULT
 from packings.workers.seeds import seed_cluster
@@ -484,3 +485,62 @@ def test_the_contact_graph_of_a_cluster_is_its_contacts() -> None:
     g = identity._nauty_graph(c)
     assert (g.number_of_vertices, g.directed, g.vertex_coloring) == (c.n, False, [])
     assert sorted((i, j) for i, js in g.adjacency_dict.items() for j in js) == list(c.contacts)
+
+
+# --------------------------------------------------------------------------- symmetries
+
+
+def bent_chain() -> Cluster:
+    """A 4-sphere chain 0-1-2-3 with unit bonds and bond angles of 120 and 90 degrees: its contact graph has
+    the reversal 0123 -> 3210 as an automorphism, which no isometry realises."""
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.5, np.sqrt(3.0) / 2.0, 0.0], [1.5, np.sqrt(3.0) / 2.0, 1.0]])
+    return Cluster(x, ((0, 1), (1, 2), (2, 3)))
+
+
+def _is_symmetry(c: Cluster, t: np.ndarray) -> bool:
+    x = c.coords - c.coords.mean(axis=0)
+    moved = {tuple(sorted((int(t[i]), int(t[j])))) for i, j in c.contacts}
+    return moved == set(c.contacts) and kernels.aligned_max_error(x, x[t]) <= 1e-9
+
+
+@pytest.mark.parametrize(
+    "name,order",
+    [("tetrahedron", 24), ("bipyramid", 12), ("octahedron", 48), ("chain60", 2), ("polytetrahedron", 4)],
+)
+def test_the_symmetries_of_clusters_whose_graph_automorphisms_are_all_isometries(name, order) -> None:
+    c = CLUSTERS[name]
+    group = symmetries(c, TOL_D)
+    assert len(group) == len(automorphisms(c)) == order
+    assert np.array_equal(group[0], np.arange(c.n))
+    assert all(_is_symmetry(c, t) for t in group)
+
+
+def test_a_graph_automorphism_that_moves_the_geometry_is_no_symmetry() -> None:
+    c = bent_chain()
+    assert len(automorphisms(c)) == 2
+    assert symmetries(c, TOL_D).tolist() == [[0, 1, 2, 3]]
+    assert not _is_symmetry(c, np.array([3, 2, 1, 0]))
+
+
+def test_a_glued_cluster_without_symmetry_has_the_identity_only() -> None:
+    c = CLUSTERS["glued10"]
+    assert symmetries(c, TOL_D).tolist() == [list(range(c.n))]
+
+
+@SETTINGS
+@given(names, seeds, st.booleans())
+def test_symmetries_follow_rotation_reflection_and_relabelling(name, seed, reflect) -> None:
+    """The symmetries of a moved, mirrored and relabelled copy are the cluster's own, relabelled alike
+    (new sphere k is old sphere perm[k]: t becomes inv[t[perm]]), and form a group."""
+    c = CLUSTERS[name]
+    rng = np.random.default_rng(seed)
+    q = random_orthogonal(rng, reflect)
+    perm = rng.permutation(c.n)
+    moved = relabel(c, perm, c.coords @ q.T + rng.uniform(-5.0, 5.0, size=3))
+    inv = np.argsort(perm)
+    own = {tuple(inv[t[perm]].tolist()) for t in symmetries(c, TOL_D)}
+    theirs = symmetries(moved, TOL_D)
+    assert {tuple(t.tolist()) for t in theirs} == own
+    assert all(_is_symmetry(moved, t) for t in theirs)
+    keys = {t.tobytes() for t in theirs}
+    assert all(s[t].tobytes() in keys for s in theirs for t in theirs)
