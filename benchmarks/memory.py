@@ -38,6 +38,7 @@ retained, peak = tracemalloc.get_traced_memory()
 tracemalloc.stop()
 after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 print(json.dumps({"n": c.n, "contacts": c.m, "attempts": len(ex.endpoints), "paths": ex.paths_followed,
+                  "paths_by_symmetry": ex.paths_by_symmetry,
                   "rigid_endpoints": len(ex.rigid_endpoints()), "distinct": len(ex.distinct()),
                   "seconds": round(seconds, 2), "retained_mib": round(retained / 2**20, 2),
                   "retained_bytes_per_attempt": round(retained / max(len(ex.endpoints), 1)),
@@ -65,7 +66,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(row))
         return 0
     print(f"expand of the close-packed fragment of n = {row['n']} ({row['contacts']} contacts): "
-          f"{row['attempts']:,} attempts, {row['paths']:,} paths, {row['rigid_endpoints']:,} rigid endpoints "
+          f"{row['attempts']:,} attempts, {row['paths']:,} paths followed and {row['paths_by_symmetry']:,} taken as "
+          f"images by a symmetry, {row['rigid_endpoints']:,} rigid endpoints "
           f"({row['distinct']:,} distinct), {row['seconds']} s traced")
     print(f"  retained {row['retained_mib']} MiB ({row['retained_bytes_per_attempt']} B an attempt), "
           f"traced peak {row['traced_peak_mib']} MiB, "
