@@ -77,9 +77,10 @@ def test_the_page_shows_the_run_as_the_database_has_it(db_url):
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no chromium on PATH (Debian: apt-get install chromium)")
 def test_the_page_draws_in_a_browser(sqlite_url):
-    """Headless Chromium draws the page during a run: the run's numbers, and no script error."""
+    """Headless Chromium draws the page during a run: the run's numbers, and no script error.  n = 11, which
+    lasts long enough (n = 10 can end, and its dashboard with it, before the browser has loaded the page)."""
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "10", "--db", sqlite_url,
+    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "11", "--db", sqlite_url,
                              "--workers", "2", "--quiet", "--dashboard-address", f"127.0.0.1:{port}"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -88,7 +89,7 @@ def test_the_page_draws_in_a_browser(sqlite_url):
         proc.communicate(timeout=900)
     finally:
         proc.kill()
-    assert drawn["errors"] == [] and "run 1 (n = 10), running" in drawn["text"], drawn["text"][-600:]
+    assert drawn["errors"] == [] and "run 1 (n = 11), running" in drawn["text"], drawn["text"][-600:]
     assert "clusters found" in drawn["text"] and "expansions done" in drawn["text"]
     assert drawn["png"].startswith(b"\x89PNG")
 
