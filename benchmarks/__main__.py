@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import classes, enumeration, memory, paths, screenshot, soak
+from benchmarks import classes, enumeration, memory, paths, retrace, screenshot, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
@@ -17,6 +17,7 @@ SUBCOMMANDS = {
     "classes": classes,
     "enumerate": enumeration,
     "memory": memory,
+    "retrace": retrace,
     "soak": soak,
     "screenshot": screenshot,
 }

@@ -170,3 +170,22 @@ def test_the_memory_benchmark_reports_what_one_expansion_holds():
     assert row["rigid_endpoints"] >= row["distinct"] > 0 and row["paths"] + row["paths_by_symmetry"] >= row["rigid_endpoints"]
     assert 0 < row["retained_mib"] <= row["traced_peak_mib"] and row["retained_bytes_per_attempt"] > 0
     assert row["max_rss_mib_after"] >= row["max_rss_mib_before"] > 0
+
+
+def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both_ends(tmp_path):
+    url = f"sqlite:///{tmp_path / 'c.db'}"
+    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "9", "--db", url, "--workers", "1", "--json"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    diagnostics = json.loads(r.stdout)["diagnostics"]
+    report = benchmark("retrace", "--n", "9", "--db", url)
+    assert report["paths_followed"] == diagnostics["paths_followed"]
+    assert report["attempts_with_direction"] == diagnostics["paths_followed"] + diagnostics["paths_by_symmetry"]
+    # n = 9's 52 clusters are all regular, and every path between two of them has its reverse
+    assert report["ordered_pairs"] > 100 and report["rule_holds"] == report["ordered_pairs"]
+    assert report["rule_fails"] == report["no_reverse"] == 0
+    # one path of each pair is counted: at most half of the attempts between regular clusters
+    assert 0 < 2 * report["retracing"] <= report["regular_one_to_one"] <= report["attempts_with_direction"]
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "retrace", "--n", "10", "--db", url], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "no complete run of n = 10" in r.stderr

@@ -297,3 +297,28 @@ def test_every_path_starts_in_the_frame_of_the_first_triangle_of_what_is_left():
                 reused += tri == own
                 changed += tri != own
     assert reused > 0 and changed > 0
+
+
+def test_a_path_between_regular_clusters_is_retraced_by_the_path_back():
+    """The path from A that breaks contact c and ends at a regular B by forming c' is the curve that B's
+    path breaking c' follows back: it ends at A, forming c (docs/performance.md, "Paths that retrace
+    another path"; ``python -m benchmarks retrace`` counts them in a stored run)."""
+    import json
+    from pathlib import Path
+
+    from packings.workers.expand import cluster_rank
+    from packings.workers.identity import same_geometry
+
+    fixtures = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    retraced = 0
+    for a in (seed_cluster(9), Cluster.from_dict(fixtures["n10_m24_first-order"])):
+        regular = 3 * a.n - 6
+        for e in expand(a, P).rigid_endpoints():
+            b = e.cluster
+            if len(e.broken) != 1 or len(e.new_contacts) != 1 or b.m != regular or cluster_rank(b, P) != regular:
+                continue
+            [back] = [f for f in expand(b, P).endpoints if f.broken == e.new_contacts and f.direction != 0]
+            assert back.outcome == RIGID and back.new_contacts == e.broken
+            assert same_geometry(back.cluster, a, P.tol_d)
+            retraced += 1
+    assert retraced >= 20

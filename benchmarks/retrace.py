@@ -1,0 +1,99 @@
+"""Paths of a complete run that retrace another path of it: how many, from a stored catalogue.
+
+A path from a cluster A that breaks one contact and ends at a regular cluster B by forming one contact
+lies on a curve that B's path breaking the contact formed follows back to A, so a complete run follows
+that curve twice (docs/performance.md, "Paths that retrace another path").  From the transitions of
+the newest complete, unrestricted run of n in ``--db URL``: the attempts with a direction, those from a
+regular cluster with one contact broken to a regular cluster with one formed, and their ordered pairs
+of clusters (A, B).  Counted from each end up to that end's symmetries, the paths A -> B and B -> A of
+one pair obey k(A -> B) |Sym(B)| = k(B -> A) |Sym(A)| (``identity.symmetries``, reflections
+included); the pairs that do not, or that have no reverse at all, are where a path back ended
+otherwise.  ``retracing`` sums min(k(A -> B), k(B -> A)) over the pairs that obey it: the paths a run
+could take from the other end instead of following them, against ``paths_followed``.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--n", type=int, required=True, help="the number of spheres")
+    p.add_argument("--db", required=True, metavar="URL", help="a catalogue holding a complete run of N")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def count(url: str, n: int) -> dict:
+    """The report (see the module's doc) for the newest complete run of ``n`` in ``url``."""
+    import numpy as np
+    from sqlalchemy import func, select
+
+    import packings
+    from packings.models import COMPLETE, ClusterRow, ExpansionRow, Run, Transition
+    from packings.workers.cluster import Cluster
+    from packings.workers.identity import symmetries
+    from packings.workers.outcomes import RIGID
+    from packings.workers.params import Params
+
+    with packings.connect(url) as cat, cat.session() as s:
+        runs = [(rid, json.loads(params)) for rid, params in s.execute(
+            select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE).order_by(Run.id.desc()))]
+        runs = [(rid, params) for rid, params in runs if params.get("min_contacts") is None]
+        if not runs:
+            raise SystemExit(f"no complete run of n = {n} (without --min-contacts) in {url}")
+        run_id, params = runs[0]
+        tol_d = Params.from_dict(params).tol_d
+        regular = {}
+        for cid, coords, contacts in s.execute(
+                select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
+                .where(ClusterRow.n == n, ClusterRow.contacts == 3 * n - 6, ClusterRow.flexes == 0)):
+            regular[cid] = (coords, contacts)
+        followed = s.execute(select(func.sum(ExpansionRow.paths)).where(ExpansionRow.run_id == run_id)).scalar() or 0
+        with_direction, k = 0, Counter()
+        for source, broken, target, new in s.execute(
+                select(Transition.source_id, Transition.broken, Transition.target_id, Transition.new_contacts)
+                .where(Transition.run_id == run_id, Transition.direction != 0, Transition.outcome == RIGID)):
+            with_direction += 1
+            if source in regular and target in regular and len(json.loads(broken)) == 1 and len(json.loads(new)) == 1:
+                k[(source, target)] += 1
+        others = s.execute(select(func.count()).select_from(Transition).where(
+            Transition.run_id == run_id, Transition.direction != 0, Transition.outcome != RIGID)).scalar()
+    order = {}
+    for cid in {c for pair in k for c in pair}:
+        coords, contacts = regular[cid]
+        c = Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3).copy(),
+                    tuple(tuple(p) for p in json.loads(contacts)))
+        order[cid] = len(symmetries(c, tol_d))
+    holds = fails = lonely = retracing = 0
+    for (a, b), forth in k.items():
+        back = k.get((b, a), 0)
+        if back == 0:
+            lonely += 1
+        elif forth * order[b] == back * order[a]:
+            holds += 1
+            if a < b:
+                retracing += min(forth, back)
+        else:
+            fails += 1
+    return {"n": n, "run": run_id, "attempts_with_direction": with_direction + others, "paths_followed": int(followed),
+            "regular_one_to_one": sum(k.values()), "ordered_pairs": len(k), "rule_holds": holds, "rule_fails": fails,
+            "no_reverse": lonely, "retracing": retracing,
+            "retracing_share_of_followed": round(retracing / followed, 4) if followed else 0.0}
+
+
+def run(args) -> int:
+    report = count(args.db, args.n)
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return 0
+    r = report
+    print(f"n = {r['n']}, run {r['run']}: {r['attempts_with_direction']} attempts with a direction, "
+          f"{r['paths_followed']} paths followed")
+    print(f"  regular -> regular, one contact broken and one formed: {r['regular_one_to_one']} attempts, "
+          f"{r['ordered_pairs']} ordered pairs of clusters")
+    print(f"  pairs whose paths are each other's reverses (k(A->B)|Sym(B)| = k(B->A)|Sym(A)|): {r['rule_holds']}; "
+          f"other counts: {r['rule_fails']}; no reverse: {r['no_reverse']}")
+    print(f"  paths a run could take from the other end: {r['retracing']} "
+          f"({100 * r['retracing_share_of_followed']:.1f} % of the paths followed)")
+    return 0
