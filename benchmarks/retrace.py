@@ -26,12 +26,10 @@ def add_arguments(p) -> None:
 
 def count(url: str, n: int) -> dict:
     """The report (see the module's doc) for the newest complete run of ``n`` in ``url``."""
-    import numpy as np
     from sqlalchemy import func, select
 
     import packings
-    from packings.models import COMPLETE, ClusterRow, ExpansionRow, Run, Transition
-    from packings.workers.cluster import Cluster
+    from packings.models import COMPLETE, ClusterRow, ExpansionRow, Run, Transition, core_cluster
     from packings.workers.identity import symmetries
     from packings.workers.outcomes import RIGID
     from packings.workers.params import Params
@@ -50,21 +48,15 @@ def count(url: str, n: int) -> dict:
                 .where(ClusterRow.n == n, ClusterRow.contacts == 3 * n - 6, ClusterRow.flexes == 0)):
             regular[cid] = (coords, contacts)
         followed = s.execute(select(func.sum(ExpansionRow.paths)).where(ExpansionRow.run_id == run_id)).scalar() or 0
-        with_direction, k = 0, Counter()
+        with_direction = s.execute(select(func.count()).select_from(Transition).where(
+            Transition.run_id == run_id, Transition.direction != 0)).scalar()
+        k = Counter()
         for source, broken, target, new in s.execute(
                 select(Transition.source_id, Transition.broken, Transition.target_id, Transition.new_contacts)
                 .where(Transition.run_id == run_id, Transition.direction != 0, Transition.outcome == RIGID)):
-            with_direction += 1
             if source in regular and target in regular and len(json.loads(broken)) == 1 and len(json.loads(new)) == 1:
                 k[(source, target)] += 1
-        others = s.execute(select(func.count()).select_from(Transition).where(
-            Transition.run_id == run_id, Transition.direction != 0, Transition.outcome != RIGID)).scalar()
-    order = {}
-    for cid in {c for pair in k for c in pair}:
-        coords, contacts = regular[cid]
-        c = Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3).copy(),
-                    tuple(tuple(p) for p in json.loads(contacts)))
-        order[cid] = len(symmetries(c, tol_d))
+    order = {cid: len(symmetries(core_cluster(n, *regular[cid]), tol_d)) for cid in {c for pair in k for c in pair}}
     holds = fails = lonely = retracing = 0
     for (a, b), forth in k.items():
         back = k.get((b, a), 0)
@@ -76,7 +68,7 @@ def count(url: str, n: int) -> dict:
                 retracing += min(forth, back)
         else:
             fails += 1
-    return {"n": n, "run": run_id, "attempts_with_direction": with_direction + others, "paths_followed": int(followed),
+    return {"n": n, "run": run_id, "attempts_with_direction": with_direction, "paths_followed": int(followed),
             "regular_one_to_one": sum(k.values()), "ordered_pairs": len(k), "rule_holds": holds, "rule_fails": fails,
             "no_reverse": lonely, "retracing": retracing,
             "retracing_share_of_followed": round(retracing / followed, 4) if followed else 0.0}
