@@ -60,6 +60,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--every", action=argparse.BooleanOptionalAction, default=True,
                         help="also time expand following every path, not one of each set a symmetry of the cluster "
                              "makes congruent, and count the paths whose outcome differs (default: yes)")
+    parser.add_argument("--max-break", type=int, default=None, metavar="K",
+                        help="break at most K contacts at once, as the run of a restricted catalogue did "
+                             "(`packings enumerate N --max-break K`; default: no cap)")
+    parser.add_argument("--min-contacts", type=int, default=None, metavar="M",
+                        help="endpoints with fewer than M contacts are not kept, as in a run with "
+                             "`--min-contacts M` (default: all kept)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -278,7 +284,7 @@ def run(args: argparse.Namespace) -> int:
     if args.sample < 1:
         print("--sample must be at least 1", file=sys.stderr)
         return 2
-    params = Params()
+    params = Params(max_break=args.max_break, min_contacts=args.min_contacts)
     against = load_kernels(args.against) if args.against else None
     with kernels.backend("numba"):
         warm_up()
@@ -291,12 +297,15 @@ def run(args: argparse.Namespace) -> int:
         clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
     rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every)
     result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed, "against": args.against,
+              "max_break": args.max_break, "min_contacts": args.min_contacts,
               "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
               "rows": rows}
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"n = {args.n}: {len(clusters)} clusters ({result['source']}); time in expand by class, "
+    limits = "".join(f", {name} {value}" for name, value in (("--max-break", args.max_break),
+                                                             ("--min-contacts", args.min_contacts)) if value is not None)
+    print(f"n = {args.n}: {len(clusters)} clusters ({result['source']}{limits}); time in expand by class, "
           f"a sample of up to {args.sample} each")
     head = (f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
             f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}")

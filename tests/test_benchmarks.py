@@ -71,6 +71,16 @@ def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
         assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0 and r["svd_paths_differing"] == 0
 
 
+def test_the_classes_benchmark_expands_as_a_restricted_run_does():
+    """--max-break and --min-contacts expand as `enumerate --max-break K --min-contacts M` would: n = 9's singular
+    cluster, whose 21 contacts get pairs too in a full run, gets its 21 single breaks only."""
+    report = benchmark("classes", "--n", "9", "--sample", "1", "--no-numpy", "--no-every", "--max-break", "1",
+                       "--min-contacts", "21")
+    assert report["max_break"] == 1 and report["min_contacts"] == 21
+    rows = {r["class"]: r for r in report["rows"]}
+    assert rows["singular"]["subsets_min"] == rows["singular"]["subsets_max"] == 21
+
+
 def test_the_classes_benchmark_times_following_every_path_against_one_of_each_congruent_set():
     """n = 8, all 13 clusters: some have symmetries, whose images are counted, and following every path
     instead reaches the same outcomes; --no-every leaves the variant out."""

@@ -735,7 +735,7 @@ def _certify(L, size, threshold, work):
 
 
 @numba.njit(**_JIT)
-def _newton_step(x, edges, free, mask, A, f, guard, ws):
+def _newton_step(x, edges, free, mask, A, f, guard, ws, order):
     """dx = minimum-norm solution of J dx = -f (full 3n vector, in ws[9]).
 
     By the normal equations (J J^T) y = -f, dx = J^T y when the smallest
@@ -746,6 +746,15 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
     others (_reduced_step), and else by LAPACK least squares, as the reference.
     A guard of inf (the re-check of a failure) takes LAPACK's least squares at
     every step.  Returns True if the normal equations were used.
+
+    The QR and the reduced steps never both take a step: where _reduced_step does, J is within rounding
+    of a rank below min(rows, columns) (the rows it drops lie in the span of the others to DEPENDENT_FRACTION
+    of LAPACK's threshold), so its smallest singular value is below that threshold, far under QR_MIN_RATIO
+    times its largest, and _qr_step refuses.  Which is asked first therefore changes no step, only what a
+    refusal costs (a QR for _qr_step, a Cholesky of G for _reduced_step, when J has no dependent rows):
+    ``order[0]`` is 1 to ask _reduced_step first, 0 for _qr_step, and is set to the one that took the step,
+    so that the steps of one projection, or of one path (where a self-stress persists, every step), ask the
+    one that served the last.
     """
     ptr, idx, sign, D, G, L, _, y, work, dx = ws
     m = edges.shape[0]
@@ -773,8 +782,17 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
         ok = _cholesky(G, L, size) and _certify(L, size, 4.0 * guard, work)
         scale = 1.0
     if not ok:
-        # where _reduced_step takes the step, J has rank below min(rows, columns): _qr_step has refused it
-        if not (guard < np.inf and (_qr_step(x, edges, free, A, f, dx) or _reduced_step(x, edges, free, A, f, G, dx))):
+        taken = False
+        if guard < np.inf:
+            if order[0] == 1:
+                taken = _reduced_step(x, edges, free, A, f, G, dx)
+                if not taken and _qr_step(x, edges, free, A, f, dx):
+                    taken, order[0] = True, 0
+            else:
+                taken = _qr_step(x, edges, free, A, f, dx)
+                if not taken and _reduced_step(x, edges, free, A, f, G, dx):
+                    taken, order[0] = True, 1
+        if not taken:
             _lstsq_step(x, edges, free, A, f, dx)
         return False
     for r in range(size):
@@ -790,11 +808,11 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws):
 
 
 @numba.njit(**_JIT)
-def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall):
+def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall, order):
     """The iteration of packings.workers.kernels.project_numpy; returns (x, status, iterations, sum f^2, normal steps).
 
     ``stall`` > 0: fail once sum f^2 has not gone below its smallest value so far for
-    that many consecutive iterations (before convergence); 0: never.
+    that many consecutive iterations (before convergence); 0: never.  ``order`` as in _newton_step.
     """
     f = ws[6]
     dx = ws[9]
@@ -833,7 +851,7 @@ def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, gua
                     return x, NEWTON_FAILED, it, fsq, n_normal
         if it == max_iter:
             break
-        if _newton_step(x, edges, free, mask, A, f, guard, ws):
+        if _newton_step(x, edges, free, mask, A, f, guard, ws, order):
             n_normal += 1
         step = 0.0
         for c in range(x.size):
@@ -851,18 +869,19 @@ def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, gua
 
 
 @numba.njit(**_JIT)
-def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall=0):
+def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, order, stall=0):
     """Newton by the normal equations; a failure is re-checked with least squares throughout.
 
     A projection that fails after using the normal equations is redone from x0
     with every step by least squares (the reference's iteration), so that a
     reported failure is the reference's failure.  Returns (x, status,
-    iterations, sum f^2, normal-equation steps, retried).
+    iterations, sum f^2, normal-equation steps, retried).  ``order`` as in _newton_step.
     """
-    x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall)
+    x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall, order)
     if st == NEWTON_OK or nn == 0:
         return x, st, it, fsq, nn, False
-    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, np.inf, ws, stall)
+    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, np.inf, ws, stall,
+                                       order)
     return x, st, it, fsq, nn + nn2, True
 
 
@@ -876,7 +895,7 @@ def newton(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, st
     least squares).
     """
     ws = _workspace(x0.size, edges, A.shape[0])
-    return _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall)
+    return _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, np.zeros(1, np.int64), stall)
 
 
 @numba.njit(**_JIT)
@@ -1058,10 +1077,12 @@ def follow_steps(
     d = d_prev.copy()
     first_dim = -1
     stats = np.zeros(5, dtype=np.int64)
+    order = np.zeros(1, dtype=np.int64)  # which of the QR and reduced steps to ask first (_newton_step), along the path
     while steps < max_steps:
         for c in range(n3):
             xp[c] = x[c] + h * t[c]
-        xn, st, _, _, nn, retried = _newton_ws(xp, edges, free, mask, noA, nob, tol, dx_max, max_iter, False, guard, ws)
+        xn, st, _, _, nn, retried = _newton_ws(xp, edges, free, mask, noA, nob, tol, dx_max, max_iter, False, guard, ws,
+                                               order)
         stats[1] += 1
         stats[2] += nn
         if retried:

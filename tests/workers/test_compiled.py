@@ -558,6 +558,48 @@ def test_the_reduced_step_defers_to_lapack_unless_the_dependence_is_at_rounding_
     assert np.isnan(dx).all()
 
 
+@settings(max_examples=80, deadline=None, derandomize=True)
+@given(st.booleans(), st.integers(6, 12), st.integers(0, 3), st.floats(0.0, 1e-2), st.integers(0, 3), st.integers(0, 2**31 - 1))
+def test_a_newton_step_is_the_same_whichever_of_the_qr_and_reduced_steps_is_asked_first(stressed, n, drop, eps, extra, seed):
+    """Where the normal equations are refused, Newton's step asks the QR and the reduced steps in either order
+    (the one that served the last step first). The two never both take a step (rows dependent to rounding leave
+    J a singular value far below QR's bound), so the step is the same to the last bit in either order: the QR
+    step where it is taken, else the reduced step, else LAPACK's; and the order then asks first the one taken.  Problems with a persisting self-stress and without; with no extra row, a random
+    one, repeated contacts (dependent everywhere), or a row within 1e-12 of a combination of the contacts'
+    (nearly dependent: neither step is taken)."""
+    if stressed:
+        x0, edges, free, A = _stressed_problem(n, eps, seed, min(extra, 2))
+    else:
+        x0, edges, free, _, rng = _perturbed_problem(n, drop, eps, seed)
+        if extra == 2:
+            edges = np.vstack([edges, edges[: drop + 1]])
+        A = np.zeros((int(extra in (1, 3)), x0.size))
+        A[:, free] = rng.standard_normal((A.shape[0], free.size))
+        if extra == 3:
+            R = 2.0 * kernels.rigidity_matrix(x0, edges)[:, free]
+            A[:, free] = rng.standard_normal(R.shape[0]) @ R + 1e-12 * np.linalg.norm(R) * A[:, free]
+    f = np.random.default_rng(seed).standard_normal(edges.shape[0] + A.shape[0])
+    mask = kernels.free_mask(x0.size, free)
+    ws = _compiled._workspace(x0.size, edges, A.shape[0])
+    ws[6][:] = f
+    refused = 0
+    for guard in (np.finfo(np.float64).max, kernels.guard_threshold(P.tol_n)):  # the first refuses the normal equations
+        for first in (0, 1):
+            order = np.array([first])
+            if _compiled._newton_step(x0, edges, free, mask, A, ws[6], guard, ws, order):
+                continue
+            refused += 1
+            G = ws[4].copy()  # J J^T (up to a power of two) as the step computed it
+            qr, red, ls = (np.full(x0.size, np.nan) for _ in range(3))
+            took_qr = _compiled._qr_step(x0, edges, free, A, f, qr)
+            took_reduced = _compiled._reduced_step(x0, edges, free, A, f, G, red)
+            assert not (took_qr and took_reduced)
+            _compiled._lstsq_step(x0, edges, free, A, f, ls)
+            assert np.array_equal(ws[9], qr if took_qr else red if took_reduced else ls)
+            assert order[0] == (0 if took_qr else 1 if took_reduced else first)
+    assert refused >= 2
+
+
 @settings(max_examples=40, deadline=None, derandomize=True)
 @given(st.integers(6, 12), st.floats(0.0, 1e-2), st.integers(0, 2**31 - 1))
 def test_the_reduced_tangent_is_the_svds_where_a_stress_persists(n, eps, seed):
