@@ -448,9 +448,15 @@ def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
             assert time.monotonic() < deadline
             replaced = d.revive_workers()
             time.sleep(0.3)
-        assert replaced == 1 and d.cluster.workers.get(name) is not nanny  # a new nanny in its slot
+        assert replaced == 1 and d.cluster.workers.get(name) is not nanny  # the nanny that gave up is gone
         client.wait_for_workers(2, timeout=120)
-        assert len(client.nthreads()) == 2 and len(d.cluster.workers) == 2
+        # Dask's SpecCluster records a new nanny once its start has returned, which can be after its worker
+        # has joined the scheduler: wait for the record too
+        deadline = time.monotonic() + 60
+        while len(d.cluster.workers) != 2:
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        assert len(client.nthreads()) == 2 and all(n is not nanny for n in d.cluster.workers.values())
 
 
 class _DaskCluster:
