@@ -564,9 +564,10 @@ def test_a_newton_step_is_the_same_whichever_of_the_qr_and_reduced_steps_is_aske
     """Where the normal equations are refused, Newton's step asks the QR and the reduced steps in either order
     (the one that served the last step first). The two never both take a step (rows dependent to rounding leave
     J a singular value far below QR's bound), so the step is the same to the last bit in either order: the QR
-    step where it is taken, else the reduced step, else LAPACK's; and the order then asks first the one taken.  Problems with a persisting self-stress and without; with no extra row, a random
-    one, repeated contacts (dependent everywhere), or a row within 1e-12 of a combination of the contacts'
-    (nearly dependent: neither step is taken)."""
+    step where it is taken, else the reduced step, else LAPACK's; and the order then asks first the one taken.
+    Problems with a persisting self-stress and without; with no extra row, a random one, repeated contacts
+    (dependent everywhere), or a row within 1e-12 of a combination of the contacts' (nearly dependent: neither
+    step is taken)."""
     if stressed:
         x0, edges, free, A = _stressed_problem(n, eps, seed, min(extra, 2))
     else:
