@@ -735,6 +735,14 @@ def _certify(L, size, threshold, work):
 
 
 @numba.njit(**_JIT)
+def _qr_or_reduced_step(which, x, edges, free, A, f, G, dx):
+    """_reduced_step if ``which`` is 1, _qr_step if 0 (the order of _newton_step)."""
+    if which == 1:
+        return _reduced_step(x, edges, free, A, f, G, dx)
+    return _qr_step(x, edges, free, A, f, dx)
+
+
+@numba.njit(**_JIT)
 def _newton_step(x, edges, free, mask, A, f, guard, ws, order):
     """dx = minimum-norm solution of J dx = -f (full 3n vector, in ws[9]).
 
@@ -784,14 +792,10 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws, order):
     if not ok:
         taken = False
         if guard < np.inf:
-            if order[0] == 1:
-                taken = _reduced_step(x, edges, free, A, f, G, dx)
-                if not taken and _qr_step(x, edges, free, A, f, dx):
-                    taken, order[0] = True, 0
-            else:
-                taken = _qr_step(x, edges, free, A, f, dx)
-                if not taken and _reduced_step(x, edges, free, A, f, G, dx):
-                    taken, order[0] = True, 1
+            first = order[0]
+            taken = _qr_or_reduced_step(first, x, edges, free, A, f, G, dx)
+            if not taken and _qr_or_reduced_step(1 - first, x, edges, free, A, f, G, dx):
+                taken, order[0] = True, 1 - first
         if not taken:
             _lstsq_step(x, edges, free, A, f, dx)
         return False
