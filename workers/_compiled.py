@@ -21,10 +21,11 @@ Numerics (docs/method.md, "Following a path"), exactly as in the numpy reference
   only when the first bound is too weak).  The guard is (100 tol_n)^2
   (``packings.workers.kernels.guard_threshold``).
 * Newton steps use the normal equations only where the guard certifies
-  J J^T, and otherwise the same LAPACK least-squares solve as the reference.
+  J J^T, and otherwise the same least-squares step as the reference's LAPACK
+  solve (by QR factorisations where they are certified, else by LAPACK).
   Convergence is always judged on the residual itself, and a projection that
-  fails after using the normal equations is redone by least squares
-  throughout, so that failures (which shorten the step) are the reference's.
+  fails after using the normal equations is redone without them, so that no
+  failure (which shortens the step) comes of their rounding.
 * At every point a path reaches the tangent is computed here only when the
   guard certifies R_f R_f^T there; on the first step the dimension is then the
   reference's "regular" |V| = k - m.  Otherwise (Cholesky fails, or more
@@ -57,6 +58,10 @@ ST_TOO_LONG = 5
 # Status codes of newton (mirrored in packings.workers.kernels).
 NEWTON_OK = 0
 NEWTON_FAILED = 1
+
+#: the guard of _newton_step that refuses the normal equations at every step and leaves each to the QR, reduced
+#: or LAPACK step (the re-check of a failure, _newton_ws); no Gram matrix is certified above it
+NO_NORMAL = np.finfo(np.float64).max
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -752,8 +757,10 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws, order):
     rows than free columns) where J is far from rank deficient (_qr_step), by two QR
     factorisations where J loses rank only through rows that are combinations of
     others (_reduced_step), and else by LAPACK least squares, as the reference.
-    A guard of inf (the re-check of a failure) takes LAPACK's least squares at
-    every step.  Returns True if the normal equations were used.
+    A guard of NO_NORMAL (the re-check of a failure) refuses the normal equations
+    at every step, so that the QR, reduced or LAPACK step takes each; a guard of
+    inf takes LAPACK's least squares at every step.  Returns True if the normal
+    equations were used.
 
     The QR and the reduced steps never both take a step: where _reduced_step does, J is within rounding
     of a rank below min(rows, columns) (the rows it drops lie in the span of the others to DEPENDENT_FRACTION
@@ -773,7 +780,7 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws, order):
         # (4 R_f R_f^T) y = -f, dx = 2 R_f^T y, solved as (R_f R_f^T) z = -f / 2, dx = R_f^T z
         # (the same numbers: the factors are powers of two)
         _gram(D, mask, ptr, idx, sign, 1.0, G)
-        ok = size > 0 and _cholesky(G, L, size) and _certify(L, size, guard, work)
+        ok = size > 0 and guard < NO_NORMAL and _cholesky(G, L, size) and _certify(L, size, guard, work)
         scale = 0.5
     else:
         _gram(D, mask, ptr, idx, sign, 4.0, G)
@@ -787,7 +794,7 @@ def _newton_step(x, edges, free, mask, A, f, guard, ws, order):
                 for c in range(x.size):
                     t += A[r, c] * A[s2, c]
                 G[m + r, m + s2] = t
-        ok = _cholesky(G, L, size) and _certify(L, size, 4.0 * guard, work)
+        ok = guard < NO_NORMAL and _cholesky(G, L, size) and _certify(L, size, 4.0 * guard, work)
         scale = 1.0
     if not ok:
         taken = False
@@ -874,18 +881,22 @@ def _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, gua
 
 @numba.njit(**_JIT)
 def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, order, stall=0):
-    """Newton by the normal equations; a failure is re-checked with least squares throughout.
+    """Newton by the normal equations; a failure is re-checked without them.
 
     A projection that fails after using the normal equations is redone from x0
-    with every step by least squares (the reference's iteration), so that a
-    reported failure is the reference's failure.  Returns (x, status,
-    iterations, sum f^2, normal-equation steps, retried).  ``order`` as in _newton_step.
+    with every step a backward-stable least-squares step (the QR or reduced step
+    where it is certified, LAPACK's otherwise: the steps the reference's least
+    squares computes, up to rounding), so that no reported failure comes of the
+    normal equations' rounding (cond(J)^2 where theirs is cond(J)).  A projection
+    that fails with no normal-equation step is not redone: it already is such an
+    iteration.  Returns (x, status, iterations, sum f^2, normal-equation steps,
+    retried).  ``order`` as in _newton_step.
     """
     x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall, order)
     if st == NEWTON_OK or nn == 0:
         return x, st, it, fsq, nn, False
-    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, np.inf, ws, stall,
-                                       order)
+    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, NO_NORMAL, ws,
+                                       stall, order)
     return x, st, it, fsq, nn + nn2, True
 
 

@@ -584,7 +584,7 @@ def test_a_newton_step_is_the_same_whichever_of_the_qr_and_reduced_steps_is_aske
     ws = _compiled._workspace(x0.size, edges, A.shape[0])
     ws[6][:] = f
     refused = 0
-    for guard in (np.finfo(np.float64).max, kernels.guard_threshold(P.tol_n)):  # the first refuses the normal equations
+    for guard in (_compiled.NO_NORMAL, kernels.guard_threshold(P.tol_n)):  # the first refuses the normal equations
         for first in (0, 1):
             order = np.array([first])
             if _compiled._newton_step(x0, edges, free, mask, A, ws[6], guard, ws, order):
@@ -599,6 +599,61 @@ def test_a_newton_step_is_the_same_whichever_of_the_qr_and_reduced_steps_is_aske
             assert np.array_equal(ws[9], qr if took_qr else red if took_reduced else ls)
             assert order[0] == (0 if took_qr else 1 if took_reduced else first)
     assert refused >= 2
+
+
+def _isolation_probes():
+    """The projections of the isolation probe (packings.workers.rigidity.on_a_curve) at the pre-stress stable
+    n = 10 fixtures, and at larger steps: (x0, edges, free, A, b), a row holding the correction orthogonal to
+    the flex."""
+    out = []
+    for name, raw in FIXTURES.items():
+        if "prestress" not in name:
+            continue
+        c = Cluster.from_dict(raw)
+        edges = c.edges()
+        tri = contact_triangle(edges)
+        x = kernels.to_frame(c.coords, tri).ravel()
+        free = kernels.free_coordinates(c.n, tri)
+        V = kernels.null_spaces(x, edges, free, P.tol_n).V
+        for j in range(V.shape[1]):
+            vf = V[free, j]
+            for eps in (4 * P.ds0, 2 * P.ds0, P.ds0, P.ds0 / 2):
+                for sign in (1.0, -1.0):
+                    x0 = x + sign * eps * V[:, j]
+                    A = np.zeros((1, x.size))
+                    A[0, free] = vf
+                    out.append((x0, edges, free, A, np.array([vf @ x0[free]])))
+    return out
+
+
+def test_a_failure_after_normal_equations_is_redone_without_them_and_fails_as_lapacks_iteration_does():
+    """A projection that fails after a normal-equation step is redone from its start with none: the QR or
+    reduced step where certified, LAPACK's elsewhere (NO_NORMAL). Its verdict is that of LAPACK's least squares
+    at every step (a guard of inf) and of the numpy reference; where they converge, to the same point."""
+    guard = kernels.guard_threshold(P.tol_n)
+    kw = (P.tol, P.dx_max, P.newton_max_iter, False)
+    retried = 0
+    for x0, edges, free, A, b in _isolation_probes():
+        mask = kernels.free_mask(x0.size, free)
+        x, status, _, _, normal, redone = _compiled.newton(x0, edges, free, mask, A, b, *kw, guard, P.probe_stall)
+        ws = _compiled._workspace(x0.size, edges, 1)
+        first = _compiled._newton_core(x0, edges, free, mask, A, b, *kw, guard, ws, P.probe_stall, np.zeros(1, np.int64))
+        assert redone == (first[1] == _compiled.NEWTON_FAILED and first[4] > 0)
+        if not redone:
+            continue
+        retried += 1
+        assert normal == first[4]  # the second pass took no normal-equation step
+        again = _compiled._newton_core(x0, edges, free, mask, A, b, *kw, _compiled.NO_NORMAL, ws, P.probe_stall,
+                                       np.zeros(1, np.int64))
+        assert again[4] == 0 and np.array_equal(again[0], x) and again[1] == status
+        lapack = _compiled._newton_core(x0, edges, free, mask, A, b, *kw, np.inf, ws, P.probe_stall,
+                                        np.zeros(1, np.int64))
+        with kernels.backend("numpy"):
+            reference = kernels.project(x0, edges, free, extra=(A[:, free], b), stall=P.probe_stall, **P.newton())
+        assert status == lapack[1] and (status == _compiled.NEWTON_OK) == reference.ok
+        if reference.ok:
+            assert np.abs(x - reference.x).max() < 1e-9
+    assert retried >= 4
 
 
 @settings(max_examples=40, deadline=None, derandomize=True)
