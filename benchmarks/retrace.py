@@ -9,7 +9,9 @@ of clusters (A, B).  Counted from each end up to that end's symmetries, the path
 one pair obey k(A -> B) |Sym(B)| = k(B -> A) |Sym(A)| (``identity.symmetries``, reflections
 included); the pairs that do not, or that have no reverse at all, are where a path back ended
 otherwise.  ``retracing`` sums min(k(A -> B), k(B -> A)) over the pairs that obey it: the paths a run
-could take from the other end instead of following them, against ``paths_followed``.
+could take from the other end instead of following them, against the paths a run following every one
+would follow (``paths_followed`` + ``paths_retraced``).  ``paths_retraced`` are those the run did take
+from the other end (``expand`` with arrivals: docs/method.md, "Paths followed from one end only").
 """
 
 from __future__ import annotations
@@ -48,6 +50,9 @@ def count(url: str, n: int) -> dict:
                 .where(ClusterRow.n == n, ClusterRow.contacts == 3 * n - 6, ClusterRow.flexes == 0)):
             regular[cid] = (coords, contacts)
         followed = s.execute(select(func.sum(ExpansionRow.paths)).where(ExpansionRow.run_id == run_id)).scalar() or 0
+        retraced = sum(json.loads(o).get("paths_retraced", 0) for o in s.execute(
+            select(ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id, ExpansionRow.outcomes.is_not(None))
+        ).scalars())
         with_direction = s.execute(select(func.count()).select_from(Transition).where(
             Transition.run_id == run_id, Transition.direction != 0)).scalar()
         k = Counter()
@@ -68,10 +73,11 @@ def count(url: str, n: int) -> dict:
                 retracing += min(forth, back)
         else:
             fails += 1
+    every = int(followed) + retraced
     return {"n": n, "run": run_id, "attempts_with_direction": with_direction, "paths_followed": int(followed),
-            "regular_one_to_one": sum(k.values()), "ordered_pairs": len(k), "rule_holds": holds, "rule_fails": fails,
-            "no_reverse": lonely, "retracing": retracing,
-            "retracing_share_of_followed": round(retracing / followed, 4) if followed else 0.0}
+            "paths_retraced": retraced, "regular_one_to_one": sum(k.values()), "ordered_pairs": len(k),
+            "rule_holds": holds, "rule_fails": fails, "no_reverse": lonely, "retracing": retracing,
+            "retracing_share": round(retracing / every, 4) if every else 0.0}
 
 
 def run(args) -> int:
@@ -81,11 +87,11 @@ def run(args) -> int:
         return 0
     r = report
     print(f"n = {r['n']}, run {r['run']}: {r['attempts_with_direction']} attempts with a direction, "
-          f"{r['paths_followed']} paths followed")
+          f"{r['paths_followed']} paths followed, {r['paths_retraced']} taken from the other end")
     print(f"  regular -> regular, one contact broken and one formed: {r['regular_one_to_one']} attempts, "
           f"{r['ordered_pairs']} ordered pairs of clusters")
     print(f"  pairs whose paths are each other's reverses (k(A->B)|Sym(B)| = k(B->A)|Sym(A)|): {r['rule_holds']}; "
           f"other counts: {r['rule_fails']}; no reverse: {r['no_reverse']}")
     print(f"  paths a run could take from the other end: {r['retracing']} "
-          f"({100 * r['retracing_share_of_followed']:.1f} % of the paths followed)")
+          f"({100 * r['retracing_share']:.1f} % of the paths followed and taken from the other end)")
     return 0

@@ -211,6 +211,11 @@ class Transition(Base):
     target_id: Mapped[int | None] = mapped_column(ForeignKey("clusters.id"), nullable=True)
     steps: Mapped[int] = mapped_column(Integer, default=0)
     new_contacts: Mapped[str] = mapped_column(Text, default="[]")  #: JSON [[i, j], ...] formed at the endpoint
+    #: JSON [t_0, ..., t_(n-1)]: sphere i of the endpoint (in the source's labels) is sphere t_i of the target
+    #: as stored.  Set where the target's path breaking the contact formed retraces this one (both clusters
+    #: regular, one contact broken and one formed: docs/method.md, "Paths followed from one end only"),
+    #: NULL elsewhere and on rows stored before revision 0006
+    target_labels: Mapped[str | None] = mapped_column(Text, nullable=True)
 
     __table_args__ = (
         UniqueConstraint("run_id", "source_id", "broken", "direction", name="uq_transitions_attempt"),

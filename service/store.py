@@ -58,7 +58,7 @@ from packings.models import (
 )
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
-from packings.workers.identity import certificate_key, embedding_position, find_match
+from packings.workers.identity import alignment, certificate_key, embedding_position, find_match
 from packings.workers.outcomes import CIRCULAR
 from packings.workers.params import Params
 from packings.workers.rigidity import Rigidity, rigidity
@@ -114,7 +114,14 @@ _INSERT_CLUSTER = insert(_C)
 _RENUMBER = update(_C).where(_C.c.id == bindparam("cid")).values(embedding=bindparam("new_embedding"))
 _INSERT_EXPANSION = insert(_E)
 #: a transition's values, in this order (as tuples: see :func:`insert_transitions`)
-TRANSITION_COLUMNS = ("run_id", "source_id", "broken", "direction", "outcome", "target_id", "steps", "new_contacts")
+TRANSITION_COLUMNS = ("run_id", "source_id", "broken", "direction", "outcome", "target_id", "steps", "new_contacts",
+                      "target_labels")
+#: the paths that arrived at these clusters and can be retraced from them (transitions.target_labels), of
+#: every run: a condition on run_id would let SQLite search the unique index (run_id, ...), every
+#: transition of the run, instead of ix_transitions_target; the caller keeps its run's
+_ARRIVALS = (select(_T.c.run_id, _T.c.target_id, _T.c.source_id, _T.c.broken, _T.c.new_contacts, _T.c.steps,
+                    _T.c.target_labels)
+             .where(_T.c.target_id.in_(bindparam("cids", expanding=True)), _T.c.target_labels.is_not(None)))
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -440,6 +447,9 @@ class Task:
     cluster_id: int
     cluster: CoreCluster
     params: Params
+    #: the run's paths that arrived at the cluster and may be retraced from it, as
+    #: :func:`packings.workers.expand.arrivals` takes them: (source id, broken, new contacts, steps, labels)
+    arrivals: tuple[tuple, ...] = ()
 
 
 def load_task(Session_: sessionmaker, expansion_id: int, token: str) -> Task | None:
@@ -454,10 +464,19 @@ def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
     if not tokens:
         return {}
     with Session_() as s:
-        rows = s.execute(_TASKS, {"eids": sorted(tokens)}).all()
+        rows = [row for row in s.execute(_TASKS, {"eids": sorted(tokens)}).all()
+                if row.status == LEASED and row.lease_token == tokens[row.id]]
+        came: dict[tuple[int, int], list[tuple]] = {}
+        wanted = {(row.run_id, row.cluster_id) for row in rows}
+        if wanted:
+            for run_id, target, source, broken, new, steps, labels in s.execute(
+                    _ARRIVALS, {"cids": sorted({cid for _, cid in wanted})}):
+                if (run_id, target) in wanted:
+                    came.setdefault((run_id, target), []).append(
+                        (source, json.loads(broken), json.loads(new), steps, json.loads(labels)))
     return {row.id: Task(row.id, row.run_id, row.cluster_id, core_cluster(row.n, row.coords, row.contact_list),
-                         _params(row.params))
-            for row in rows if row.status == LEASED and row.lease_token == tokens[row.id]}
+                         _params(row.params), tuple(came.get((row.run_id, row.cluster_id), ())))
+            for row in rows}
 
 
 @functools.lru_cache(maxsize=64)
@@ -533,6 +552,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         outcomes = dict(sorted(f.expansion.outcomes().items()))
         outcomes["widened_paths"] = f.expansion.widened_paths
         outcomes["paths_by_symmetry"] = f.expansion.paths_by_symmetry
+        outcomes["paths_retraced"] = f.expansion.paths_retraced
         prepared.append((f, distinct, which, json.dumps(outcomes)))
     engine = Session_.kw["bind"]
     values = unstored_values(engine, [(f.task.params.tol_d, distinct) for f, distinct, _, _ in prepared])
@@ -573,7 +593,8 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                     others.setdefault(task.run_id, []).append(cid)
             targets = {i: ids[j] for i, j in which.items()}
             targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
-            transitions.append(_transition_rows(task, ex, targets))
+            targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
+            transitions.append(_transition_rows(task, ex, targets, _target_labels(ex, targets, stored, task.params.tol_d)))
             summaries[k] = {"expansion": task.expansion_id, "new_clusters": new_clusters,
                             "paths": ex.paths_followed, "seconds": f.seconds}
         for run_id in sorted(inserted.keys() | others.keys()):
@@ -582,11 +603,32 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
     return summaries
 
 
-def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int]) -> Iterator[tuple]:
+def _target_labels(ex: CoreExpansion, targets: dict[int, int], stored: dict[tuple[int, str], list[Stored]],
+                   tol_d: float) -> dict[int, str]:
+    """transitions.target_labels of the attempts of ``ex`` that a path of their target may retrace
+    (:meth:`packings.workers.expand.Expansion.retraceable`): each endpoint relabelled onto its target as
+    stored (``stored``: the rows the write-back matched it with), as JSON; and of the attempts taken
+    from such a path (:attr:`packings.workers.expand.Endpoint.reached`)."""
+    out = {}
+    by_id = {}
+    for i, e in enumerate(ex.endpoints):
+        if e.reached is not None:
+            out[i] = json.dumps(list(e.reached.labels))
+        elif ex.retraceable(i):
+            if not by_id:
+                by_id = {r.id: r.cluster for rows in stored.values() for r in rows}
+            t = alignment(e.cluster, by_id[targets[i]], tol_d, same=True)
+            if t is not None:  # it matched the row: only a tolerance's rounding could make it None
+                out[i] = json.dumps(t.tolist())
+    return out
+
+
+def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int],
+                     labels: dict[int, str]) -> Iterator[tuple]:
     """The transitions of ``ex``, one row (:data:`TRANSITION_COLUMNS`) per attempt, made as they are inserted."""
     for i, e in enumerate(ex.endpoints):
         yield (task.run_id, task.cluster_id, contacts_json(e.broken), e.direction, e.outcome, targets.get(i),
-               e.steps, contacts_json(e.new_contacts))
+               e.steps, contacts_json(e.new_contacts), labels.get(i))
 
 
 def insert_transitions(conn: Connection, rows: Iterable[tuple]) -> None:
@@ -655,10 +697,12 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
     f = frontier(s, run_id)
     widened = total.pop("widened_paths", 0)
     images = total.pop("paths_by_symmetry", 0)
+    retraced = total.pop("paths_retraced", 0)
     return {
         "expansions": f.get(DONE, 0),
         "paths_followed": paths,
         "paths_by_symmetry": images,
+        "paths_retraced": retraced,
         "widened_paths": widened,
         **dict(sorted(total.items())),
         "failed_tasks": f.get(FAILED, 0),

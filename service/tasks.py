@@ -21,12 +21,14 @@ from packings import store
 from packings.owners import process_name
 
 
-def expand(cluster, params):
+def expand(cluster, params, arrivals=()):
     """:func:`packings.workers.expand.expand`, imported when first called: the coordinator imports this module (to
-    submit its tasks) and never expands, so it never loads the path-following code and numba."""
+    submit its tasks) and never expands, so it never loads the path-following code and numba.  ``arrivals``:
+    the rows of :attr:`packings.store.Task.arrivals`, whose paths are taken from the end they arrived at."""
+    from packings.workers.expand import arrivals as by_contact
     from packings.workers.expand import expand as expand_cluster
 
-    return expand_cluster(cluster, params)
+    return expand_cluster(cluster, params, arrivals=by_contact(arrivals))
 
 
 def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Reader=None) -> dict:
@@ -51,7 +53,7 @@ def stale(expansion_id: int) -> dict:
 def run_loaded(task: store.Task, token: str) -> store.Finished:
     """:func:`packings.workers.expand.expand` of a task already read (:func:`packings.store.load_tasks`), timed."""
     t0 = time.perf_counter()
-    ex = expand(task.cluster, task.params)
+    ex = expand(task.cluster, task.params, task.arrivals)
     return store.Finished(task, token, ex, time.perf_counter() - t0)
 
 

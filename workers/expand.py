@@ -5,8 +5,8 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from itertools import combinations
-from typing import Iterator
+from itertools import chain, combinations
+from typing import Iterable, Iterator, Mapping
 
 import numpy as np
 
@@ -34,6 +34,52 @@ from packings.workers.paths import PathEnd, follow_path
 from packings.workers.rigidity import Rigidity, contact_triangle
 
 
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    """A path that came to a regular cluster B from a regular cluster A, breaking one contact of A and
+    forming one, ``contact``, of B: the path B follows breaking ``contact`` is the same curve back, and
+    ends at A forming ``formed`` (docs/method.md, "Paths followed from one end only").  All in B's labels."""
+
+    contact: tuple[int, int]  #: the contact of B the path formed: breaking it retraces the path
+    target: int  #: A, as the caller names clusters (the service: its stored id); opaque here
+    formed: tuple[int, int]  #: the contact the path back forms at A (A's broken contact, relabelled)
+    steps: int  #: steps of the path that came
+    labels: tuple[int, ...]  #: sphere i of the path back's endpoint is sphere labels[i] of A
+
+
+def arrivals(rows: Iterable[tuple]) -> dict[tuple[int, int], Arrival]:
+    """The arrivals at a cluster B, by the contact whose break retraces each, from the paths that ended
+    at B: rows ``(source, broken, new_contacts, steps, labels)`` of paths each from a regular cluster
+    (``source``) with one contact broken and one formed, ``labels[i]`` being the sphere of B that sphere
+    i of the path's endpoint is (:func:`packings.workers.identity.alignment`).  A contact whose
+    arrivals disagree (another cluster, or another contact formed at it) gets none: its path is followed."""
+    found = []
+    for source, broken, new, steps, labels in rows:
+        if len(broken) != 1 or len(new) != 1:
+            continue
+        t = [int(k) for k in labels]
+        back = [0] * len(t)
+        for i, k in enumerate(t):
+            back[k] = i
+        (a, b), (c, d) = new[0], broken[0]
+        found.append(Arrival(pair(t[a], t[b]), source, pair(t[c], t[d]), int(steps), tuple(back)))
+    return _by_contact(found)
+
+
+def _by_contact(found: Iterable[Arrival]) -> dict[tuple[int, int], Arrival]:
+    """``found`` by contact, the first of each; a contact whose arrivals disagree (another cluster, or
+    another contact formed) gets none."""
+    out: dict[tuple[int, int], Arrival] = {}
+    clash = set()
+    for a in found:
+        old = out.setdefault(a.contact, a)
+        if (old.target, old.formed) != (a.target, a.formed):
+            clash.add(a.contact)
+    for c in clash:
+        del out[c]
+    return out
+
+
 @dataclass(frozen=True, slots=True)  # slots: an expansion may hold hundreds of thousands
 class Endpoint:
     """One attempt: the broken contacts, the direction taken, and what came of it.
@@ -56,6 +102,9 @@ class Endpoint:
     #: True when this attempt was not made but is the image of an earlier one under a symmetry of the
     #: source (the subset's image, the endpoint relabelled alike): :func:`expand` with ``symmetric``
     image: bool = False
+    #: the arrival whose path this attempt's retraces, when it was not followed (outcome rigid, ``cluster``
+    #: None, the endpoint the cluster ``reached.target``): :func:`expand` with ``arrivals``
+    reached: Arrival | None = None
 
 
 @dataclass(frozen=True)
@@ -70,6 +119,8 @@ class Expansion:
     source: Cluster
     endpoints: tuple[Endpoint, ...] = field(default_factory=tuple)
     same_as: tuple[int | None, ...] = ()
+    #: the source is regular: 3n - 6 contacts, first-order rigid, no self-stress
+    regular: bool = False
 
     @property
     def subsets_tried(self) -> int:
@@ -77,8 +128,25 @@ class Expansion:
 
     @property
     def paths_followed(self) -> int:
-        """Paths followed: attempts with a direction, less those taken as images of others (:attr:`paths_by_symmetry`)."""
-        return sum(1 for e in self.endpoints if e.direction != 0 and not e.image)
+        """Paths followed: attempts with a direction, less those taken as images of others
+        (:attr:`paths_by_symmetry`) and those taken from the other end (:attr:`paths_retraced`)."""
+        return sum(1 for e in self.endpoints if e.direction != 0 and not e.image and e.reached is None)
+
+    @property
+    def paths_retraced(self) -> int:
+        """Attempts with a direction whose path was not followed, as a path that arrived retraces it
+        (:class:`Arrival`); their images under a symmetry count in :attr:`paths_by_symmetry`."""
+        return sum(1 for e in self.endpoints if e.reached is not None and not e.image)
+
+    def retraceable(self, i: int) -> bool:
+        """Whether endpoint ``i`` is an arrival at a regular cluster (:class:`Arrival`): a path followed
+        (or its image) from this regular cluster, one contact broken and one formed, to a rigid
+        endpoint that is regular too."""
+        e = self.endpoints[i]
+        r = e.rigidity
+        return (self.regular and e.outcome == RIGID and e.cluster is not None and r is not None
+                and len(e.broken) == 1 and len(e.new_contacts) == 1 and r.flexes == 0 and r.stresses == 0
+                and e.cluster.m == 3 * e.cluster.n - 6)
 
     @property
     def paths_by_symmetry(self) -> int:
@@ -181,8 +249,9 @@ class _Orbits:
         return best, inverse
 
 
-def _attempts(cluster: Cluster, params: Params, first_order: bool = True,
-              perms: np.ndarray | None = None) -> Iterator[Endpoint | PathStart | Image]:
+def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms: np.ndarray | None = None,
+              arrivals: Mapping[tuple[int, int], Arrival] | None = None,
+              source: dict | None = None) -> Iterator[Endpoint | PathStart | Image]:
     """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart.
 
     Given the cluster's symmetries ``perms`` (:func:`packings.workers.identity.symmetries`), a subset that
@@ -197,6 +266,10 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True,
     one flex and no stress, the tangent too comes from the cluster's SVD in that frame
     (:func:`packings.workers.dimension.tangent_after_breaking`; every single break of a regular
     cluster is such a subset): the direction the SVD of what is left gives, up to sign and rounding.
+
+    With ``arrivals`` at a regular cluster, a contact with an arrival, whose break leaves one direction
+    that lengthens it, is an Endpoint at the arrival's cluster (:attr:`Endpoint.reached`), not followed.
+    ``source["regular"]`` is set to whether the cluster is regular (with ``first_order`` only).
     """
     n, m = cluster.n, cluster.m
     all_edges, pairs = cluster.edges(), cluster.contacts
@@ -221,8 +294,13 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True,
         # Which subset sizes the cluster's own SVD can decide: with a self-stress, those may_decide allows; and
         # the size whose count can be one flex and no stress (f + |B| - s = 1), which it gives the tangent of.
         stressed, one_flex = own.W.shape[1] > 0, own.W.shape[1] + 1 - own.flexes
+        regular = own.flexes == 0 and not stressed
     else:
         rank, stressed, one_flex = cluster_rank(cluster, params), False, 0
+        regular = False
+    if source is not None:
+        source["regular"] = regular
+    retrace = arrivals if regular and arrivals else None
     # The first triangle of what is left is the cluster's own unless a broken contact is one of its sides:
     # every contact before its first side had no triangle, and deleting contacts makes none.
     own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
@@ -265,6 +343,10 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True,
             if not signs:
                 yield Endpoint(bt, 0, NO_DIRECTION, 1)
                 continue
+            if retrace is not None and k == 1 and len(signs) == 1 and bt[0] in retrace:
+                a = retrace[bt[0]]
+                yield Endpoint(bt, signs[0], RIGID, 1, a.steps, new_contacts=(a.formed,), reached=a)
+                continue
             for s in signs:
                 yield PathStart(bt, s, x, keep, broken, s * v, free)
 
@@ -274,7 +356,8 @@ def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
     return [a for a in _attempts(cluster, params) if isinstance(a, PathStart)]
 
 
-def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric: bool = True) -> Expansion:
+def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric: bool = True,
+           arrivals: Mapping[tuple[int, int], Arrival] | None = None) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
     A pure function of its inputs.  For every subset B whose removal leaves a
@@ -288,6 +371,10 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
     to gets the earlier subset's attempts relabelled (:attr:`Endpoint.image`): the same outcomes and
     the same clusters reached, congruent paths being followed once.  ``symmetric`` False follows
     every path (the reference it is tested against).
+
+    With ``arrivals`` (:func:`arrivals`) at a regular cluster, the path that breaks an arrival's contact
+    is not followed: it retraces the path that arrived, and its attempt ends at the cluster that path
+    came from (:attr:`Endpoint.reached`; docs/method.md, "Paths followed from one end only").
     """
     cert = certificate(cluster)
     out: list[Endpoint] = []
@@ -295,7 +382,10 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
     images: dict[int, int] = {}  # attempt -> the earlier attempt it is the image of
     perms = symmetries(cluster, params.tol_d) if symmetric else None
     symmetric = perms is not None and len(perms) > 1
-    for a in _attempts(cluster, params, first_order, perms):
+    if arrivals and symmetric:
+        arrivals = _closed(arrivals, perms)
+    source: dict = {}
+    for a in _attempts(cluster, params, first_order, perms, arrivals, source):
         if isinstance(a, Image):
             for i in made[a.of]:
                 images[len(out)] = i
@@ -308,10 +398,11 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
         else:
             out.append(_classify(cluster, cert, a.broken_contacts, a.direction, a.follow(params), params))
     first = same_as(out, params.tol_d, images)
-    for i, e in enumerate(out):  # only the distinct rigid endpoints are compared again (the write-back)
-        if e.cluster is not None and first[i] != i:
+    ex = Expansion(cluster, tuple(out), first, source.get("regular", False))
+    for i, e in enumerate(out):  # only the distinct rigid endpoints are compared again (the write-back), and
+        if e.cluster is not None and first[i] != i and not ex.retraceable(i):  # the arrivals relabelled
             forget_canonical(e.cluster)
-    return Expansion(cluster, tuple(out), first)
+    return ex
 
 
 def same_as(endpoints, tol_d: float, images: dict[int, int] | None = None) -> tuple[int | None, ...]:
@@ -322,7 +413,7 @@ def same_as(endpoints, tol_d: float, images: dict[int, int] | None = None) -> tu
     first: list[int] = []  # endpoint index of each cluster of the index
     out: list[int | None] = []
     for i, e in enumerate(endpoints):
-        if e.outcome != RIGID:
+        if e.outcome != RIGID or e.cluster is None:  # not compared: an attempt retraced (Endpoint.reached)
             out.append(None)
             continue
         if images and i in images:
@@ -342,13 +433,33 @@ def _image(e: Endpoint, broken: tuple[tuple[int, int], ...], relabel: np.ndarray
     def moved(pairs):
         return tuple(sorted(pair(t[i], t[j]) for i, j in pairs))
 
-    c = None
+    c = reached = None
     if e.cluster is not None:
         coords = np.empty_like(e.cluster.coords)
         coords[relabel] = e.cluster.coords
         c = Cluster(coords, moved(e.cluster.contacts))
+    if e.reached is not None:
+        reached = _relabelled(e.reached, t)
     return Endpoint(broken, e.direction, e.outcome, e.dim, e.steps, c, e.rigidity, moved(e.new_contacts),
-                    e.first_step_dim, image=True)
+                    e.first_step_dim, image=True, reached=reached)
+
+
+def _relabelled(a: Arrival, t: list[int]) -> Arrival:
+    """Arrival ``a`` with sphere ``i`` relabelled ``t[i]``: sphere ``t[i]`` of the path back's endpoint is
+    sphere ``i`` of ``a``'s."""
+    labels = [0] * len(t)
+    for i, k in enumerate(t):
+        labels[k] = a.labels[i]
+    return Arrival(pair(t[a.contact[0]], t[a.contact[1]]), a.target, pair(t[a.formed[0]], t[a.formed[1]]), a.steps,
+                   tuple(labels))
+
+
+def _closed(found: Mapping[tuple[int, int], Arrival], perms: np.ndarray) -> dict[tuple[int, int], Arrival]:
+    """The arrivals ``found`` with their images under the symmetries ``perms`` of the cluster (a symmetry
+    takes the path back of one to the path back of its image), so that the first subset of each orbit,
+    the one followed, has one whenever a member does; a contact given disagreeing ones has none."""
+    images = (_relabelled(a, t) for t in perms[1:].tolist() for a in found.values())
+    return _by_contact(chain(found.values(), images))
 
 
 def _lengthening(x: np.ndarray, v: np.ndarray, i: int, j: int) -> float:

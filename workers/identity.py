@@ -46,6 +46,7 @@ __all__ = [
     "same_geometry",
     "geometry_distance",
     "find_match",
+    "alignment",
     "embedding_position",
     "ClusterIndex",
 ]
@@ -345,6 +346,31 @@ def find_match(cluster: Cluster, candidates: Iterable[Cluster], tol_d: float) ->
             autos = _group(c)
         if _same_geometry_canonical(c, o, autos, tol_d):
             return idx
+    return None
+
+
+def alignment(a: Cluster, b: Cluster, tol_d: float, same: bool = False) -> np.ndarray | None:
+    """The relabelling that makes ``a`` the cluster ``b``: ``t`` (int64) with sphere ``i`` of ``a`` at
+    sphere ``t[i]`` of ``b`` once aligned, by the rule of :func:`same_geometry`; None if they are not the
+    same cluster.  Where ``b`` has symmetries several relabellings do; this is the first automorphism
+    of the canonical graph (in the group's order) that aligns.  With ``same`` (the caller knows them to be
+    the same cluster, e.g. from :func:`find_match`) and a contact graph with no automorphism but the
+    identity, the canonical labellings alone give it, with no alignment."""
+    ca, cb = _canonical(a), _canonical(b)
+    if ca.n != cb.n or ca.cert != cb.cert:
+        return None
+    autos = _group(ca)
+    if same and len(autos) == 1:
+        t = np.empty(ca.n, dtype=np.int64)
+        t[ca.labelling] = cb.labelling
+        return t
+    relabelled = cb.dist[autos[:, :, None], autos[:, None, :]]
+    near = np.abs(relabelled - ca.dist).max(axis=(1, 2), initial=0.0) <= 4.0 * tol_d
+    for s, ok in zip(autos, near):
+        if ok and kernels.aligned_max_error(ca.x, cb.x[s]) <= tol_d:
+            t = np.empty(ca.n, dtype=np.int64)  # canonical k of a is canonical s[k] of b
+            t[ca.labelling] = cb.labelling[s]
+            return t
     return None
 
 

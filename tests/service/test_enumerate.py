@@ -276,7 +276,7 @@ def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatc
     import packings.tasks
     from packings.coordinator import run_enumeration
 
-    def broken(cluster, params):
+    def broken(cluster, params, arrivals=()):
         raise FloatingPointError("injected failure")
 
     monkeypatch.setattr(packings.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
@@ -312,10 +312,10 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
     batches: list[list[int]] = []
     monkeypatch.setattr(packings.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
 
-    def failing(cluster, p):
+    def failing(cluster, p, arrivals=()):
         if same_geometry(cluster, victim, p.tol_d):
             raise FloatingPointError("injected failure")
-        return real_expand(cluster, p)
+        return real_expand(cluster, p, arrivals)
 
     def recording(expansions, plugin):
         packings.tasks.seen_batches.append([eid for eid, _ in expansions])

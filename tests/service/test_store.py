@@ -90,6 +90,58 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
     assert snapshot(engine) == after_once
 
 
+def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_following_it_gives(engine):
+    """A run of n = 9 (every cluster regular) follows each path between two clusters from one end only:
+    where a path arrived at a cluster before it was expanded, that cluster's attempt on the contact
+    formed is taken from it (transitions.target_labels, store.load_tasks' arrivals).  Every transition
+    stored is what following every path gives: the same outcome, a rigid endpoint the stored target,
+    the same contacts formed, and target_labels relabelling the endpoint onto the target as stored."""
+    import json
+
+    from packings.workers import kernels
+    from packings.workers.expand import expand
+    from packings.workers.identity import same_geometry
+    from tests.service.conftest import fill_database
+
+    params = Params()
+    run_id = fill_database(engine, 9)
+    with sessions(engine)() as s:
+        d = store.run_diagnostics(s, run_id)
+        clusters = {r.id: r.to_core() for r in s.execute(select(ClusterRow).where(ClusterRow.n == 9)).scalars()}
+        rows = s.execute(select(Transition.source_id, Transition.broken, Transition.direction, Transition.outcome,
+                                Transition.target_id, Transition.new_contacts, Transition.target_labels)
+                         .where(Transition.run_id == run_id)).all()
+    assert len(clusters) == 52 and d["paths_retraced"] > 0.2 * d["paths_followed"]
+    stored = {(src, b, dirn): (out, tgt, json.loads(new), None if lab is None else json.loads(lab))
+              for src, b, dirn, out, tgt, new, lab in rows}
+    labelled = 0
+    for cid, c in clusters.items():
+        for e in expand(c, params).endpoints:  # every path followed
+            out, target, new, labels = stored.pop((cid, store.contacts_json(e.broken), e.direction))
+            assert out == e.outcome and new == [list(p) for p in e.new_contacts]
+            if out == "rigid":
+                assert same_geometry(e.cluster, clusters[target], params.tol_d)
+            if labels is not None:
+                y = clusters[target].coords[labels]
+                x = e.cluster.coords
+                assert kernels.aligned_max_error(x - x.mean(axis=0), y - y.mean(axis=0)) <= params.tol_d
+                labelled += 1
+    assert not stored and labelled >= d["paths_retraced"]
+
+
+def test_a_task_reads_the_paths_that_arrived_through_the_index_of_targets(sqlite_url):
+    """store.load_tasks reads a cluster's arrivals by ix_transitions_target: with a condition on run_id
+    SQLite searches the unique index (run_id, ...) instead, every transition of the run (a tenth of a
+    second a task at the end of n = 12, the whole n = 13 run's millions later)."""
+    import packings.db
+
+    engine = packings.db.open_database(sqlite_url, create=True)
+    with engine.connect() as conn:
+        sql = store._ARRIVALS.params(cids=[1, 2, 3]).compile(engine, compile_kwargs={"literal_binds": True})
+        plan = conn.exec_driver_sql(f"EXPLAIN QUERY PLAN {sql}").all()
+    assert any("ix_transitions_target" in str(row) for row in plan), plan
+
+
 def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
     """Workers read their task with read-only sessions: on SQLite those begin DEFERRED, so a task is
     read while another worker holds the write lock (a write session would wait for it)."""
@@ -269,7 +321,8 @@ def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
         # a path not followed, as the image of one followed under a symmetry of its cluster, is a transition too
         with_path = s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == run_id,
                                                                                 Transition.direction != 0)).scalar()
-        assert d["paths_by_symmetry"] > 0 and d["paths_followed"] + d["paths_by_symmetry"] == with_path
+        assert d["paths_by_symmetry"] > 0 and d["paths_retraced"] > 0
+        assert d["paths_followed"] + d["paths_by_symmetry"] + d["paths_retraced"] == with_path
         # every rigid transition points at a stored cluster of the run, and every cluster is reached
         n_rigid = s.execute(select(func.count()).select_from(Transition).where(Transition.outcome == "rigid",
                                                                                   Transition.target_id.is_(None))).scalar()
@@ -373,9 +426,9 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
     S, info = run8
     with S() as s:
         seed = s.execute(select(ClusterRow.id)).scalar_one()
-    rows = [(info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]"),
-            (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]")]
-    more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]") for k in range(5)]
+    rows = [(info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]", "[1, 0, 2, 3, 4, 5, 6, 7]"),
+            (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]", None)]
+    more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]", None) for k in range(5)]
     monkeypatch.setattr(packings.db, "INSERT_CHUNK", 2)
     statements = []
 

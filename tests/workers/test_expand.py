@@ -96,7 +96,8 @@ def test_an_expansion_holds_each_contact_pair_once_and_canonical_forms_of_distin
     """What keeps a worker's memory down when one expansion has hundreds of thousands of attempts: every
     broken subset, endpoint contact and formed contact is made of the one shared tuple of its pair, an
     endpoint has no per-instance dict, and only the distinct rigid endpoints keep their canonical forms
-    (the write-back compares only those again)."""
+    (the write-back compares only those again), with the arrivals of a regular cluster, a few dozen
+    (the write-back relabels them onto their targets: Expansion.retraceable)."""
     from packings.workers.cluster import pair
     from packings.workers.explore import explore
     from packings.workers.identity import _CANONICAL
@@ -111,7 +112,9 @@ def test_an_expansion_holds_each_contact_pair_once_and_canonical_forms_of_distin
     assert not hasattr(ex.endpoints[0], "__dict__")
     rigid = [i for i, e in enumerate(ex.endpoints) if e.outcome == RIGID]
     assert len(rigid) > len(ex.distinct())
-    assert all((ex.endpoints[i].cluster in _CANONICAL) == (ex.same_as[i] == i) for i in rigid)
+    # an image's canonical form is never computed
+    keep = [ex.same_as[i] == i or (ex.retraceable(i) and not ex.endpoints[i].image) for i in rigid]
+    assert all((ex.endpoints[i].cluster in _CANONICAL) == k for i, k in zip(rigid, keep))
 
 
 def _symmetric_clusters():
@@ -322,3 +325,78 @@ def test_a_path_between_regular_clusters_is_retraced_by_the_path_back():
             assert same_geometry(back.cluster, a, P.tol_d)
             retraced += 1
     assert retraced >= 20
+
+
+def _moved(c: Cluster, rng) -> Cluster:
+    """``c`` rotated, reflected and relabelled: as a run may have stored it."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    p = rng.permutation(c.n)  # new sphere k is old sphere p[k]
+    inv = np.argsort(p)
+    return Cluster((c.coords @ q.T + 1.0)[p], tuple(sorted(tuple(sorted((int(inv[i]), int(inv[j]))))
+                                                            for i, j in c.contacts)))
+
+
+def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
+    """expand(B, arrivals=...) with the paths that came from regular clusters A to a regular B (relabelled
+    onto B as stored by identity.alignment) follows none of the paths back, and gives each the attempt
+    that following it gives: the same direction, outcome rigid at A, the same contact formed, and
+    A's spheres where the path back's endpoint puts them; every other attempt is unchanged."""
+    import json
+    from pathlib import Path
+
+    from packings.workers import kernels
+    from packings.workers.expand import arrivals
+    from packings.workers.identity import alignment
+
+    fixtures = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    rng = np.random.default_rng(7)
+    checked = 0
+    for a in (seed_cluster(9), Cluster.from_dict(fixtures["n10_m24_first-order"])):
+        ex = expand(a, P)
+        assert ex.regular
+        came: dict[int, tuple[Cluster, list]] = {}  # B (first endpoint of it) -> B as stored, its arrivals
+        for i, e in enumerate(ex.endpoints):
+            if not ex.retraceable(i):
+                continue
+            j = ex.same_as[i]
+            if j not in came:
+                came[j] = (_moved(ex.endpoints[j].cluster, rng), [])
+            b, rows = came[j]
+            t = alignment(e.cluster, b, P.tol_d)
+            rows.append(("A", [list(p) for p in e.broken], [list(p) for p in e.new_contacts], e.steps, t.tolist()))
+        assert len(came) >= 5
+        for b, rows in came.values():
+            came_by = arrivals(rows)
+            full, short = expand(b, P), expand(b, P, arrivals=came_by)
+            assert short.regular and short.paths_retraced > 0
+            assert {g.broken[0] for g in short.endpoints if g.reached is not None} >= set(came_by)
+            assert short.paths_followed + short.paths_retraced == full.paths_followed
+            assert [(f.broken, f.direction) for f in full.endpoints] == [(f.broken, f.direction) for f in short.endpoints]
+            for f, g in zip(full.endpoints, short.endpoints):
+                if g.reached is None:
+                    assert (f.outcome, f.new_contacts, f.steps) == (g.outcome, g.new_contacts, g.steps)
+                    continue
+                assert g.reached.target == "A" and g.cluster is None and f.outcome == g.outcome == RIGID
+                assert f.new_contacts == g.new_contacts == (g.reached.formed,)
+                back = f.cluster.coords - f.cluster.coords.mean(axis=0)
+                at_a = a.coords[list(g.reached.labels)]
+                assert kernels.aligned_max_error(back, at_a - at_a.mean(axis=0)) <= P.tol_d
+                assert g.steps == g.reached.steps > 0  # the steps of the path that arrived (adaptive: not f's)
+                checked += 1
+            assert short.same_as == tuple(None if g.reached is not None else s for g, s in zip(short.endpoints, full.same_as))
+    assert checked >= 20
+
+
+def test_arrivals_that_disagree_on_a_contact_leave_its_path_to_be_followed():
+    from packings.workers.expand import arrivals
+
+    n = 9
+    ident = list(range(n))
+    swap = [1, 0] + list(range(2, n))
+    rows = [("A", [[0, 1]], [[2, 3]], 10, ident), ("C", [[4, 5]], [[2, 3]], 12, ident),  # two clusters at (2, 3)
+            ("A", [[0, 1]], [[3, 4]], 10, ident), ("A", [[0, 2]], [[3, 4]], 10, ident),  # two contacts formed at (3, 4)
+            ("A", [[0, 1]], [[5, 6]], 10, ident), ("A", [[1, 0]], [[6, 5]], 10, swap),  # agree at (5, 6)
+            ("A", [[0, 1], [1, 2]], [[7, 8]], 10, ident)]  # two broken: not an arrival
+    got = arrivals(rows)
+    assert set(got) == {(5, 6)}
+    assert got[(5, 6)].target == "A" and got[(5, 6)].formed == (0, 1) and got[(5, 6)].steps == 10

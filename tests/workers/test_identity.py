@@ -14,6 +14,7 @@ from packings.workers import identity, kernels
 from packings.workers.cluster import Cluster
 from packings.workers.identity import (
     ClusterIndex,
+    alignment,
     automorphisms,
     canonical_labelling,
     certificate,
@@ -300,6 +301,23 @@ def test_same_geometry_under_rigid_motion_and_relabelling(name, seed, reflect) -
     t = transformed(c, seed, reflect)
     assert same_geometry(c, t, TOL_D)
     assert same_geometry(t, c, TOL_D)
+
+
+@SETTINGS
+@given(names, seeds, st.booleans())
+def test_the_alignment_relabels_a_cluster_onto_its_rotated_relabelled_copy(name, seed, reflect) -> None:
+    """alignment(c, t)[i] is the sphere of t where sphere i of c is: c relabelled by it has t's contacts,
+    and its coordinates are t's after an orthogonal alignment; a moved sphere gives None."""
+    c = CLUSTERS[name]
+    t = transformed(c, seed, reflect, noise=1e-7)
+    a = alignment(c, t, TOL_D)
+    assert a is not None and sorted(a.tolist()) == list(range(c.n))
+    assert {tuple(sorted((int(a[i]), int(a[j])))) for i, j in c.contacts} == set(t.contacts)
+    x, y = c.coords - c.coords.mean(axis=0), t.coords[a] - t.coords[a].mean(axis=0)
+    assert kernels.aligned_max_error(x, y) <= TOL_D
+    moved = t.coords.copy()
+    moved[0] += 1e-3
+    assert alignment(c, Cluster(moved, t.contacts), TOL_D) is None
 
 
 @SETTINGS
