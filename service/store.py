@@ -575,6 +575,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         keys = {(f.task.cluster.n, cert) for _, f, distinct, _ in live for _, _, cert in distinct}
         lock_certificates(s, keys)
         stored = stored_by_key(s, keys)
+        by_id = {r.id: r.cluster for rows in stored.values() for r in rows}  # and those inserted below
         inserted: dict[int, list[int]] = {}  # by run: clusters inserted now, which get their expansion directly
         others: dict[int, list[int]] = {}  # by run: clusters found by another run, which may have none in this one
         transitions = []
@@ -587,6 +588,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                                               found_by=FOUND_PATH, source_id=task.cluster_id, values=values.get((k, j)))
                 ids.append(cid)
                 if is_new:
+                    by_id[cid] = c  # the stored row's core cluster (insert_or_match)
                     inserted.setdefault(task.run_id, []).append(cid)
                     new_clusters += 1
                 elif next(r.found_in_run for r in rows if r.id == cid) != task.run_id:
@@ -594,7 +596,8 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             targets = {i: ids[j] for i, j in which.items()}
             targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
             targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
-            transitions.append(_transition_rows(task, ex, targets, _target_labels(ex, targets, stored, task.params.tol_d)))
+            labels = _target_labels(ex, targets, by_id, task.params.tol_d)
+            transitions.append(_transition_rows(task, ex, targets, labels))
             summaries[k] = {"expansion": task.expansion_id, "new_clusters": new_clusters,
                             "paths": ex.paths_followed, "seconds": f.seconds}
         for run_id in sorted(inserted.keys() | others.keys()):
@@ -603,20 +606,17 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
     return summaries
 
 
-def _target_labels(ex: CoreExpansion, targets: dict[int, int], stored: dict[tuple[int, str], list[Stored]],
+def _target_labels(ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, CoreCluster],
                    tol_d: float) -> dict[int, str]:
     """transitions.target_labels of the attempts of ``ex`` that a path of their target may retrace
     (:meth:`packings.workers.expand.Expansion.retraceable`): each endpoint relabelled onto its target as
-    stored (``stored``: the rows the write-back matched it with), as JSON; and of the attempts taken
-    from such a path (:attr:`packings.workers.expand.Endpoint.reached`)."""
+    stored (``by_id``: the core clusters of the rows the write-back matched or inserted), as JSON; and of
+    the attempts taken from such a path (:attr:`packings.workers.expand.Endpoint.reached`)."""
     out = {}
-    by_id = {}
     for i, e in enumerate(ex.endpoints):
         if e.reached is not None:
             out[i] = json.dumps(list(e.reached.labels))
         elif ex.retraceable(i):
-            if not by_id:
-                by_id = {r.id: r.cluster for rows in stored.values() for r in rows}
             t = alignment(e.cluster, by_id[targets[i]], tol_d, same=True)
             if t is not None:  # it matched the row: only a tolerance's rounding could make it None
                 out[i] = json.dumps(t.tolist())

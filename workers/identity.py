@@ -361,17 +361,27 @@ def alignment(a: Cluster, b: Cluster, tol_d: float, same: bool = False) -> np.nd
         return None
     autos = _group(ca)
     if same and len(autos) == 1:
-        t = np.empty(ca.n, dtype=np.int64)
-        t[ca.labelling] = cb.labelling
-        return t
-    relabelled = cb.dist[autos[:, :, None], autos[:, None, :]]
-    near = np.abs(relabelled - ca.dist).max(axis=(1, 2), initial=0.0) <= 4.0 * tol_d
+        return _relabelling(ca, cb, autos[0])
+    return next(_aligning(ca, cb, autos, tol_d), None)
+
+
+def _relabelling(a: _Canonical, b: _Canonical, s: np.ndarray) -> np.ndarray:
+    """``t``, sphere ``i`` of ``a`` being sphere ``t[i]`` of ``b``, when canonical ``k`` of ``a`` is
+    canonical ``s[k]`` of ``b``."""
+    t = np.empty(a.n, dtype=np.int64)
+    t[a.labelling] = b.labelling[s]
+    return t
+
+
+def _aligning(a: _Canonical, b: _Canonical, autos: np.ndarray, tol_d: float) -> Iterator[np.ndarray]:
+    """The relabellings (:func:`_relabelling`) by the automorphisms ``autos`` of the canonical graph, in
+    their order, under which ``a`` is ``b`` by the rule of :func:`same_geometry`: the cheap rejection
+    (distances within 4 tol_d), then the alignment."""
+    relabelled = b.dist[autos[:, :, None], autos[:, None, :]]
+    near = np.abs(relabelled - a.dist).max(axis=(1, 2), initial=0.0) <= 4.0 * tol_d
     for s, ok in zip(autos, near):
-        if ok and kernels.aligned_max_error(ca.x, cb.x[s]) <= tol_d:
-            t = np.empty(ca.n, dtype=np.int64)  # canonical k of a is canonical s[k] of b
-            t[ca.labelling] = cb.labelling[s]
-            return t
-    return None
+        if ok and kernels.aligned_max_error(a.x, b.x[s]) <= tol_d:
+            yield _relabelling(a, b, s)
 
 
 def symmetries(cluster: Cluster, tol_d: float) -> np.ndarray:
@@ -389,15 +399,7 @@ def symmetries(cluster: Cluster, tol_d: float) -> np.ndarray:
     group = _group(c)
     if len(group) == 1 or c.n == 0:
         return np.arange(c.n, dtype=np.int64)[None, :]
-    # The cheap rejection of same_geometry (distances within 4 tol_d), then the alignment.
-    relabelled = c.dist[group[:, :, None], group[:, None, :]]
-    near = np.abs(relabelled - c.dist).max(axis=(1, 2)) <= 4.0 * tol_d
-    keep = [s for s, ok in zip(group, near) if ok and kernels.aligned_max_error(c.x, c.x[s]) <= tol_d]
-    p = c.labelling
-    out = np.empty((len(keep), c.n), dtype=np.int64)
-    for row, s in zip(out, keep):  # canonical k -> s[k] is the cluster's p[k] -> p[s[k]]
-        row[p] = p[s]
-    return out
+    return np.array(list(_aligning(c, c, group, tol_d)), dtype=np.int64).reshape(-1, c.n)
 
 
 # --------------------------------------------------------------------------- embedding order
