@@ -11,7 +11,18 @@ first-order flexes f (the null space of the pinned rigidity matrix):
 The clusters come from a stored catalogue (``--db URL``: the clusters of ``--n``
 in that database, e.g. the file a ``packings enumerate 12`` left), or, without
 one, from the in-memory enumeration (``packings.workers.explore``, fine up to
-n = 10).  From each class a seeded random sample of about ``--sample`` clusters,
+n = 10).  From a catalogue each cluster is given the paths that arrived at it
+(``expand(..., arrivals)``: docs/method.md, "Paths followed from one end only"): with
+``--arrivals run`` (the default) those its run had stored, about, when its task read the
+cluster (the transitions whose source's expansion was written before then, from
+``expansions.finished_at``, ``seconds`` and ``worker``: :func:`_loaded`), so that it costs about
+what it cost the run (the paths the run took from the other end are printed beside those the
+sample takes); with ``all`` every one stored, what it would cost expanded last; with ``none``
+none, what a run following every path pays.  The run is the newest complete one of n with
+the same ``--max-break`` and ``--min-contacts``; its own time in ``expand`` by class
+(``expansions.seconds``) is printed beside the sample's.
+
+From each class a seeded random sample of about ``--sample`` clusters,
 drawn apart for each number of contacts (at least one of each), is expanded
 three ways in this process, alternating cluster by cluster,
 so that all see the same load: as a run does, with every subset decided by an
@@ -36,6 +47,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import datetime as dt
 import json
 import os
 import sys
@@ -43,6 +55,8 @@ import time
 from collections import Counter
 
 CLASSES = ("regular", "singular", "hypostatic", "hyperstatic")
+#: --arrivals: the paths that arrived at a cluster that its expand call is given
+ARRIVALS = ("run", "all", "none")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,6 +80,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-contacts", type=int, default=None, metavar="M",
                         help="endpoints with fewer than M contacts are not kept, as in a run with "
                              "`--min-contacts M` (default: all kept)")
+    parser.add_argument("--arrivals", choices=ARRIVALS, default="run",
+                        help="with --db, the paths that arrived at each cluster that it is given: those its run had "
+                             "stored when it was expanded (run, the default), every one stored (all), or none")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -78,8 +95,8 @@ def cluster_class(n: int, m: int, flexes: int) -> str:
     return "singular" if flexes > 0 else "regular"
 
 
-def _from_database(url: str, n: int) -> list[tuple[object, str]]:
-    """(core cluster, class) of every stored cluster of n spheres."""
+def _from_database(url: str, n: int) -> list[tuple[object, str, int]]:
+    """(core cluster, class, stored id) of every stored cluster of n spheres."""
     import packings
 
     with packings.connect(url) as cat:
@@ -91,19 +108,108 @@ def _from_database(url: str, n: int) -> list[tuple[object, str]]:
     out = []
     for r in rows:
         c = Cluster(r.coords, tuple(tuple(int(v) for v in p) for p in r.contacts))
-        out.append((c, cluster_class(n, c.m, int(r.flexes))))
+        out.append((c, cluster_class(n, c.m, int(r.flexes)), int(r.id)))
     return out
 
 
-def _from_memory(n: int, params) -> list[tuple[object, str]]:
-    """(core cluster, class) of every cluster the in-memory enumeration of n finds."""
+def _the_run(url: str, n: int, params) -> tuple[int, dict[str, tuple[int, float]]]:
+    """(id, {class: (clusters expanded, seconds in expand)}) of the newest complete run of ``n`` in ``url``
+    with ``params``' ``max_break`` and ``min_contacts``."""
+    from sqlalchemy import select
+
+    import packings
+    from packings.models import COMPLETE, ClusterRow, ExpansionRow, Run
+
+    with packings.connect(url) as cat, cat.session() as s:
+        runs = [rid for rid, text in s.execute(select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE)
+                                                .order_by(Run.id.desc()))
+                if (json.loads(text).get("max_break"), json.loads(text).get("min_contacts"))
+                == (params.max_break, params.min_contacts)]
+        if not runs:
+            raise SystemExit(f"no complete run of n = {n} with --max-break {params.max_break} and --min-contacts "
+                             f"{params.min_contacts} in {url}: --arrivals none times expand without the paths "
+                             "that arrived")
+        times: dict[str, list] = {}
+        for m, flexes, seconds in s.execute(
+                select(ClusterRow.contacts, ClusterRow.flexes, ExpansionRow.seconds)
+                .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id).where(ExpansionRow.run_id == runs[0])):
+            t = times.setdefault(cluster_class(n, m, flexes), [0, 0.0])
+            t[0] += 1
+            t[1] += seconds or 0.0
+    return runs[0], {k: (v[0], v[1]) for k, v in times.items()}
+
+
+def _loaded(rows) -> dict[int, dt.datetime]:
+    """When each expansion's task was read, about, from rows (cluster id, worker, finished_at, seconds) of
+    a run's expansions: a Dask task reads its expansions at once, expands them in turn and writes them back
+    in one transaction (``packings.tasks.expand_task``), so those a worker finished within milliseconds of
+    each other are one task, read about their expand calls' time before the first was written."""
+    out: dict[int, dt.datetime] = {}
+    task: list = []
+
+    def close():
+        if task:
+            start = min(at for _, at, _ in task) - dt.timedelta(seconds=sum(sec for _, _, sec in task))
+            out.update((cid, start) for cid, _, _ in task)
+            task.clear()
+
+    for cid, worker, at, seconds in sorted((r for r in rows if r[2] is not None), key=lambda r: (r[1] or "", r[2])):
+        if task and (worker != last[0] or at - last[1] > _ONE_WRITE):
+            close()
+        task.append((cid, at, seconds or 0.0))
+        last = (worker, at)
+    close()
+    return out
+
+
+#: expansions of one worker written at most this far apart are of one transaction, one task
+_ONE_WRITE = dt.timedelta(milliseconds=3)
+
+
+def arrivals_of(url: str, run_id: int, mode: str, ids) -> dict[int, tuple[tuple[tuple, ...], int]]:
+    """For each stored cluster id of ``ids``: the rows of :attr:`packings.store.Task.arrivals`, those run
+    ``run_id`` had stored, about, when its task read the cluster (``mode`` "run": the transitions to it whose
+    source's expansion was written before then, :func:`_loaded`), or every one stored (``mode`` "all"); and
+    the paths the run took from the other end expanding it (``paths_retraced`` of ``expansions.outcomes``)."""
+    from sqlalchemy import select
+
+    import packings
+    from packings.models import ExpansionRow, Transition
+
+    ids = sorted(set(ids))
+    out: dict[int, list] = {cid: [] for cid in ids}
+    with packings.connect(url) as cat, cat.session() as s:
+        rows = s.execute(select(ExpansionRow.cluster_id, ExpansionRow.worker, ExpansionRow.finished_at,
+                                ExpansionRow.seconds).where(ExpansionRow.run_id == run_id)).all()
+        took = {cid: json.loads(outcomes or "{}").get("paths_retraced", 0) for cid, outcomes in s.execute(
+            select(ExpansionRow.cluster_id, ExpansionRow.outcomes)
+            .where(ExpansionRow.run_id == run_id, ExpansionRow.cluster_id.in_(ids)))}
+        finished = {cid: at for cid, _, at, _ in rows}
+        loaded = _loaded(rows) if mode == "run" else {}
+        for run, target, source, broken, new, steps, labels in s.execute(
+                select(Transition.run_id, Transition.target_id, Transition.source_id, Transition.broken,
+                       Transition.new_contacts, Transition.steps, Transition.target_labels)
+                .where(Transition.target_id.in_(ids), Transition.target_labels.is_not(None))
+                .order_by(Transition.id)):
+            if run != run_id:
+                continue
+            if mode == "run":
+                read, came = loaded.get(target), finished.get(source)
+                if read is None or came is None or came > read:
+                    continue
+            out[target].append((source, json.loads(broken), json.loads(new), steps, json.loads(labels)))
+    return {cid: (tuple(rows), took.get(cid, 0)) for cid, rows in out.items()}
+
+
+def _from_memory(n: int, params) -> list[tuple[object, str, None]]:
+    """(core cluster, class, None) of every cluster the in-memory enumeration of n finds."""
     from packings.workers.expand import cluster_rank
     from packings.workers.explore import explore
 
     out = []
     for c in explore(n, params).clusters:
         flexes = 3 * n - 6 - cluster_rank(c, params)
-        out.append((c, cluster_class(n, c.m, flexes)))
+        out.append((c, cluster_class(n, c.m, flexes), None))
     return out
 
 
@@ -157,17 +263,19 @@ def kernels_from(module):
         kernels._compiled, paths._compiled = saved
 
 
-def _time(cluster, params, variant: str, against=None):
+def _time(cluster, params, variant: str, against=None, came: tuple = ()):
     """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`; :data:`AGAINST` with the
-    kernels module ``against``)."""
+    kernels module ``against``), given the rows ``came`` of the paths that arrived at ``cluster``, as a
+    worker calls it (``packings.tasks.expand``; the ``svd`` variant, deciding no subset by the
+    cluster's own SVD, takes none from the other end)."""
     from packings.workers import kernels
-    from packings.workers.expand import expand
+    from packings.workers.expand import arrivals, expand
 
     backend, first_order, symmetric = VARIANTS[variant]
     swap = kernels_from(against) if variant == AGAINST else contextlib.nullcontext()
     with kernels.backend(backend), swap:
         t0 = time.perf_counter()
-        ex = expand(cluster, params, first_order, symmetric)
+        ex = expand(cluster, params, first_order, symmetric, arrivals=arrivals(came))
         return time.perf_counter() - t0, ex
 
 
@@ -199,11 +307,14 @@ def _stratified(members, sample: int, rng) -> list[int]:
     return sorted(pick)
 
 
-def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, numpy: bool,
-            against=None, every: bool = False) -> list[dict]:
-    """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share; with
-    ``against`` (a kernels module, :func:`load_kernels`) also its time and the attempts that differ; with
-    ``every``, the time of following every path and the paths whose outcome differs."""
+def measure(clusters: list[tuple[object, str, object]], params, sample: int, seed: int, numpy: bool,
+            against=None, every: bool = False, came=None) -> list[dict]:
+    """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share, paths
+    taken from the other end; with ``against`` (a kernels module, :func:`load_kernels`) also its time and the
+    attempts that differ; with ``every``, the time of following every path and the paths whose outcome
+    differs.  ``clusters``: (cluster, class, key); ``came(keys)``: for each of the clusters ``keys``, the rows of
+    the paths that arrived at it and the paths its run took from the other end (:func:`arrivals_of`); every
+    cluster given none without it."""
     import numpy as np
 
     from packings.workers.expand import NOT_1D
@@ -213,16 +324,21 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
     rng = np.random.default_rng(seed)
     rows = []
     for name in CLASSES:
-        members = [c for c, k in clusters if k == name]
+        members = [c for c, k, _ in clusters if k == name]
         if not members:
             continue
         pick = _stratified(members, sample, rng)
+        keys = [key for _, k, key in clusters if k == name]
+        given = came([keys[i] for i in pick]) if came is not None else {}
         weight = Counter(c.m for c in members)  # clusters with as many contacts
         picked = Counter(members[i].m for i in pick)
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
         subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
+        retraced = run_retraced = 0
         for i in pick:
-            results = {b: _time(members[i], params, b, against) for b in backends}
+            came_rows, took = given.get(keys[i], ((), 0))
+            run_retraced += took
+            results = {b: _time(members[i], params, b, against, came_rows) for b in backends}
             m = members[i].m
             for b, (s, _) in results.items():
                 totals[b] += s * weight[m] / picked[m]
@@ -241,6 +357,7 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
             svd_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(svd)).values())
             attempts += len(ex.endpoints)
             images += ex.paths_by_symmetry
+            retraced += ex.paths_retraced
             if every:  # the same subsets; each path's outcome as the path of its image's subset ended
                 everyone = results["every"][1].endpoints
                 assert [e.broken for e in ex.endpoints] == [e.broken for e in everyone]
@@ -256,6 +373,8 @@ def measure(clusters: list[tuple[object, str]], params, sample: int, seed: int, 
             row[f"total_s_{b}"] = totals[b]
         row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
         row["paths_by_symmetry"] = images
+        row["paths_retraced_each"] = retraced / len(pick)
+        row["run_paths_retraced_each"] = run_retraced / len(pick)  # what the run took from the other end, the same clusters
         if every:
             row["every_ratio"] = row["mean_ms_every"] / row["mean_ms_numba"]
             row["every_paths_differing"] = every_differ
@@ -295,9 +414,18 @@ def run(args: argparse.Namespace) -> int:
                 except AttributeError as exc:  # a version older than the code that calls it
                     raise SystemExit(f"--against: {args.against} lacks a kernel the current code calls ({exc})")
         clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
-    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every)
+    mode = args.arrivals if args.db else "none"  # the in-memory enumeration stores no paths
+    run_id, run_times, came = None, {}, None
+    if mode != "none":
+        run_id, run_times = _the_run(args.db, args.n, params)
+        came = lambda keys: arrivals_of(args.db, run_id, mode, keys)  # noqa: E731
+    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every, came)
+    whole = sum(seconds for _, seconds in run_times.values()) or 1.0
+    for r in rows:
+        expanded, seconds = run_times.get(r["class"], (0, 0.0))
+        r["run_expanded"], r["run_s"], r["run_share"] = expanded, seconds, seconds / whole
     result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed, "against": args.against,
-              "max_break": args.max_break, "min_contacts": args.min_contacts,
+              "arrivals": mode, "run": run_id, "max_break": args.max_break, "min_contacts": args.min_contacts,
               "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
               "rows": rows}
     if args.json:
@@ -305,10 +433,15 @@ def run(args: argparse.Namespace) -> int:
         return 0
     limits = "".join(f", {name} {value}" for name, value in (("--max-break", args.max_break),
                                                              ("--min-contacts", args.min_contacts)) if value is not None)
+    given = {"run": f"the paths that arrived at each before run {run_id} expanded it",
+             "all": f"every path of run {run_id} that arrived at each", "none": "no path that arrived"}[mode]
     print(f"n = {args.n}: {len(clusters)} clusters ({result['source']}{limits}); time in expand by class, "
-          f"a sample of up to {args.sample} each")
+          f"a sample of up to {args.sample} each, given {given}")
     head = (f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
-            f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}")
+            f"{'retraced':>9}")
+    if run_id is not None:
+        head += f"{'in run':>7}{'run s':>9}{'run share':>10}"
+    head += f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}"
     if against is not None:
         head += f"{'before ms':>10}{'before/':>8}{'differ':>11}"
     if args.every:
@@ -319,7 +452,10 @@ def run(args: argparse.Namespace) -> int:
     for r in rows:
         line = (f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
                 f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
-                f"{r['not_1d_share']:>9.0%}{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}")
+                f"{r['not_1d_share']:>9.0%}{r['paths_retraced_each']:>9.1f}")
+        if run_id is not None:
+            line += f"{r['run_paths_retraced_each']:>7.1f}{r['run_s']:>9.1f}{r['run_share']:>10.0%}"
+        line += f"{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}"
         if against is not None:
             line += (f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
                      f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}")
@@ -331,8 +467,11 @@ def run(args: argparse.Namespace) -> int:
                      f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}")
         print(line)
     print("(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
-          "times the class's clusters; svd: every subset decided by an SVD of what is left, not by the "
-          "first-order counts; svd/ = svd / ms each; ratio = numpy / compiled"
+          "times the class's clusters; retraced: paths taken from the other end, per cluster"
+          + ("; in run: those the run took expanding the same clusters; run s, run share: the run's own time in "
+             "expand, expansions.seconds" if run_id is not None else "")
+          + "; svd: every subset decided by an SVD of what is left, not by the "
+          "first-order counts, and no path taken from the other end; svd/ = svd / ms each; ratio = numpy / compiled"
           + ("; before: the kernels of --against, before/ = before / ms each, differ: attempts not the same "
              "to the last bit, of all" if against is not None else "")
           + ("; every: every path followed, not one of each set congruent by a symmetry of the cluster, every/ = "

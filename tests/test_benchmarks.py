@@ -8,6 +8,8 @@ import sys
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -182,12 +184,82 @@ def test_the_memory_benchmark_reports_what_one_expansion_holds():
     assert row["max_rss_mib_after"] >= row["max_rss_mib_before"] > 0
 
 
-def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both_ends(tmp_path):
-    url = f"sqlite:///{tmp_path / 'c.db'}"
+@pytest.fixture(scope="module")
+def run_of_9(tmp_path_factory) -> tuple[str, dict]:
+    """(URL, diagnostics) of a complete run of n = 9 on one worker."""
+    url = f"sqlite:///{tmp_path_factory.mktemp('nine') / 'c.db'}"
     r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "9", "--db", url, "--workers", "1", "--json"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    diagnostics = json.loads(r.stdout)["diagnostics"]
+    return url, json.loads(r.stdout)["diagnostics"]
+
+
+def test_the_classes_benchmark_gives_each_cluster_the_paths_that_had_arrived_when_its_run_expanded_it(run_of_9):
+    """On one worker no other task writes while a task runs, so the arrivals read back from the run's
+    timestamps are the ones its tasks read: every cluster then takes as many paths from the other end as
+    it did in the run."""
+    import packings
+    from benchmarks.classes import _from_database, arrivals_of
+    from packings.workers.expand import arrivals, expand
+    from packings.workers.params import Params
+
+    url, diagnostics = run_of_9
+    with packings.connect(url) as cat:
+        [run] = cat.runs()
+    clusters = {cid: c for c, _, cid in _from_database(url, 9)}
+    ids = sorted(clusters)
+    came = arrivals_of(url, run["run"], "run", ids)
+    every = arrivals_of(url, run["run"], "all", ids)
+    took = given = 0
+    for cid in ids:
+        rows, recorded = came[cid]
+        assert all(r in every[cid][0] for r in rows)
+        assert expand(clusters[cid], Params(), arrivals=arrivals(rows)).paths_retraced == recorded
+        took += recorded
+        given += len(rows)
+    assert took == diagnostics["paths_retraced"] > 0
+    # a path that arrived after its cluster was expanded is not given: the cluster followed it itself
+    assert sum(len(every[cid][0]) for cid in ids) > given
+    # n = 9: 51 regular clusters and a singular one, every one sampled
+    report = benchmark("classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every")
+    row, singular = report["rows"]
+    assert report["arrivals"] == "run" and report["run"] == run["run"]
+    assert (row["class"], row["sampled"], row["run_expanded"], singular["class"], singular["run_expanded"]) == (
+        "regular", 51, 51, "singular", 1)
+    assert row["paths_retraced_each"] == row["run_paths_retraced_each"] == took / 51
+    assert singular["paths_retraced_each"] == singular["run_paths_retraced_each"] == 0
+    assert row["run_s"] > 0 and row["run_share"] + singular["run_share"] == pytest.approx(1.0)
+    none = benchmark("classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every",
+                     "--arrivals", "none")["rows"][0]
+    last = benchmark("classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every",
+                     "--arrivals", "all")["rows"][0]
+    assert none["paths_retraced_each"] == 0 < row["paths_retraced_each"] < last["paths_retraced_each"]
+
+
+def test_the_classes_benchmark_reads_when_each_task_read_its_clusters():
+    """A task's expansions are written together: it read them the sum of their expand times before the
+    first was written.  Another worker's, or the same worker's written later, are another task."""
+    import datetime as dt
+
+    from benchmarks.classes import _loaded
+
+    t = dt.datetime(2026, 1, 1)
+    ms = dt.timedelta(milliseconds=1)
+    rows = [(1, "a", t + 1000 * ms, 0.5), (2, "a", t + 1001 * ms, 0.25), (3, "b", t + 1001 * ms, 0.1),
+            (4, "a", t + 1400 * ms, 0.1), (5, "a", None, None)]
+    assert _loaded(rows) == {1: t + 250 * ms, 2: t + 250 * ms, 3: t + 901 * ms, 4: t + 1300 * ms}
+
+
+def test_the_classes_benchmark_refuses_arrivals_without_a_run_of_the_same_parameters(run_of_9):
+    url, _ = run_of_9
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url, "--max-break", "1"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "no complete run of n = 9 with --max-break 1" in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both_ends(run_of_9):
+    url, diagnostics = run_of_9
     report = benchmark("retrace", "--n", "9", "--db", url)
     assert report["paths_followed"] == diagnostics["paths_followed"]
     assert report["paths_retraced"] == diagnostics["paths_retraced"] > 0
