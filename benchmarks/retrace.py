@@ -1,11 +1,12 @@
 """Paths of a complete run that retrace another path of it: how many, from a stored catalogue.
 
-A path from a cluster A that breaks one contact and ends at a regular cluster B by forming one contact
-lies on a curve that B's path breaking the contact formed follows back to A, so a complete run follows
-that curve twice (docs/performance.md, "Paths that retrace another path").  From the transitions of
-the newest complete, unrestricted run of n in ``--db URL``: the attempts with a direction, those from a
-regular cluster with one contact broken to a regular cluster with one formed, and their ordered pairs
-of clusters (A, B).  Counted from each end up to that end's symmetries, the paths A -> B and B -> A of
+A path from a first-order rigid cluster A that breaks contacts and ends at a first-order rigid cluster
+B by forming contacts lies on a curve that B's path breaking the contacts formed follows back to A, so
+a run following every path follows that curve twice (docs/performance.md, "Paths that retrace another
+path").  From the transitions of the newest complete, unrestricted run of n in ``--db URL``: the
+attempts with a direction, those a run may take from the other end (between two first-order rigid
+clusters, one of them regular: docs/method.md, "Paths followed from one end only"), and their ordered
+pairs of clusters (A, B).  Counted from each end up to that end's symmetries, the paths A -> B and B -> A of
 one pair obey k(A -> B) |Sym(B)| = k(B -> A) |Sym(A)| (``identity.symmetries``, reflections
 included); the pairs that do not, or that have no reverse at all, are where a path back ended
 otherwise.  ``retracing`` sums min(k(A -> B), k(B -> A)) over the pairs that obey it: the paths a run
@@ -44,11 +45,13 @@ def count(url: str, n: int) -> dict:
             raise SystemExit(f"no complete run of n = {n} (without --min-contacts) in {url}")
         run_id, params = runs[0]
         tol_d = Params.from_dict(params).tol_d
-        regular = {}
-        for cid, coords, contacts in s.execute(
-                select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
-                .where(ClusterRow.n == n, ClusterRow.contacts == 3 * n - 6, ClusterRow.flexes == 0)):
-            regular[cid] = (coords, contacts)
+        rigid, regular = {}, set()  # the first-order rigid clusters; the regular ones among them
+        for cid, m, coords, contacts in s.execute(
+                select(ClusterRow.id, ClusterRow.contacts, ClusterRow.coords, ClusterRow.contact_list)
+                .where(ClusterRow.n == n, ClusterRow.contacts >= 3 * n - 6, ClusterRow.flexes == 0)):
+            rigid[cid] = (coords, contacts)
+            if m == 3 * n - 6:
+                regular.add(cid)
         followed = s.execute(select(func.sum(ExpansionRow.paths)).where(ExpansionRow.run_id == run_id)).scalar() or 0
         retraced = sum(json.loads(o).get("paths_retraced", 0) for o in s.execute(
             select(ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id, ExpansionRow.outcomes.is_not(None))
@@ -59,9 +62,10 @@ def count(url: str, n: int) -> dict:
         for source, broken, target, new in s.execute(
                 select(Transition.source_id, Transition.broken, Transition.target_id, Transition.new_contacts)
                 .where(Transition.run_id == run_id, Transition.direction != 0, Transition.outcome == RIGID)):
-            if source in regular and target in regular and len(json.loads(broken)) == 1 and len(json.loads(new)) == 1:
+            if (source in rigid and target in rigid and (source in regular or target in regular)
+                    and json.loads(broken) and json.loads(new)):
                 k[(source, target)] += 1
-    order = {cid: len(symmetries(core_cluster(n, *regular[cid]), tol_d)) for cid in {c for pair in k for c in pair}}
+    order = {cid: len(symmetries(core_cluster(n, *rigid[cid]), tol_d)) for cid in {c for pair in k for c in pair}}
     holds = fails = lonely = retracing = 0
     for (a, b), forth in k.items():
         back = k.get((b, a), 0)
@@ -75,7 +79,7 @@ def count(url: str, n: int) -> dict:
             fails += 1
     every = int(followed) + retraced
     return {"n": n, "run": run_id, "attempts_with_direction": with_direction, "paths_followed": int(followed),
-            "paths_retraced": retraced, "regular_one_to_one": sum(k.values()), "ordered_pairs": len(k),
+            "paths_retraced": retraced, "retraceable": sum(k.values()), "ordered_pairs": len(k),
             "rule_holds": holds, "rule_fails": fails, "no_reverse": lonely, "retracing": retracing,
             "retracing_share": round(retracing / every, 4) if every else 0.0}
 
@@ -88,7 +92,7 @@ def run(args) -> int:
     r = report
     print(f"n = {r['n']}, run {r['run']}: {r['attempts_with_direction']} attempts with a direction, "
           f"{r['paths_followed']} paths followed, {r['paths_retraced']} taken from the other end")
-    print(f"  regular -> regular, one contact broken and one formed: {r['regular_one_to_one']} attempts, "
+    print(f"  between first-order rigid clusters, one of them regular: {r['retraceable']} attempts, "
           f"{r['ordered_pairs']} ordered pairs of clusters")
     print(f"  pairs whose paths are each other's reverses (k(A->B)|Sym(B)| = k(B->A)|Sym(A)|): {r['rule_holds']}; "
           f"other counts: {r['rule_fails']}; no reverse: {r['no_reverse']}")

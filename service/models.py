@@ -212,9 +212,9 @@ class Transition(Base):
     steps: Mapped[int] = mapped_column(Integer, default=0)
     new_contacts: Mapped[str] = mapped_column(Text, default="[]")  #: JSON [[i, j], ...] formed at the endpoint
     #: JSON [t_0, ..., t_(n-1)]: sphere i of the endpoint (in the source's labels) is sphere t_i of the target
-    #: as stored.  Set where the target's path breaking the contact formed retraces this one (both clusters
-    #: regular, one contact broken and one formed: docs/method.md, "Paths followed from one end only"),
-    #: NULL elsewhere and on rows stored before revision 0006
+    #: as stored.  Set where the target's path breaking the contacts formed retraces this one (both clusters
+    #: first-order rigid: docs/method.md, "Paths followed from one end only"), NULL elsewhere and on rows
+    #: stored before revision 0006
     target_labels: Mapped[str | None] = mapped_column(Text, nullable=True)
 
     __table_args__ = (

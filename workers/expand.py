@@ -36,45 +36,50 @@ from packings.workers.rigidity import Rigidity, contact_triangle
 
 @dataclass(frozen=True, slots=True)
 class Arrival:
-    """A path that came to a regular cluster B from a regular cluster A, breaking one contact of A and
-    forming one, ``contact``, of B: the path B follows breaking ``contact`` is the same curve back, and
-    ends at A forming ``formed`` (docs/method.md, "Paths followed from one end only").  All in B's labels."""
+    """A path that came to a first-order rigid cluster B from a first-order rigid cluster A, breaking the
+    contacts ``formed`` of A and forming the contacts ``contacts`` of B: the path B follows breaking
+    ``contacts`` is the same curve back, and ends at A forming ``formed`` (docs/method.md, "Paths followed
+    from one end only").  All in B's labels; each set of pairs sorted."""
 
-    contact: tuple[int, int]  #: the contact of B the path formed: breaking it retraces the path
+    contacts: tuple[tuple[int, int], ...]  #: the contacts of B the path formed: breaking them retraces the path
     target: int  #: A, as the caller names clusters (the service: its stored id); opaque here
-    formed: tuple[int, int]  #: the contact the path back forms at A (A's broken contact, relabelled)
+    formed: tuple[tuple[int, int], ...]  #: the contacts the path back forms at A (A's broken ones, relabelled)
     steps: int  #: steps of the path that came
     labels: tuple[int, ...]  #: sphere i of the path back's endpoint is sphere labels[i] of A
 
 
-def arrivals(rows: Iterable[tuple]) -> dict[tuple[int, int], Arrival]:
-    """The arrivals at a cluster B, by the contact whose break retraces each, from the paths that ended
-    at B: rows ``(source, broken, new_contacts, steps, labels)`` of paths each from a regular cluster
-    (``source``) with one contact broken and one formed, ``labels[i]`` being the sphere of B that sphere
-    i of the path's endpoint is (:func:`packings.workers.identity.alignment`).  A contact whose
-    arrivals disagree (another cluster, or another contact formed at it) gets none: its path is followed."""
+def _pairs(t, pairs) -> tuple[tuple[int, int], ...]:
+    """``pairs`` with sphere i relabelled ``t[i]``, sorted."""
+    return tuple(sorted(pair(t[a], t[b]) for a, b in pairs))
+
+
+def arrivals(rows: Iterable[tuple]) -> dict[tuple[tuple[int, int], ...], Arrival]:
+    """The arrivals at a cluster B, by the contacts whose break retraces each, from the paths that ended
+    at B: rows ``(source, broken, new_contacts, steps, labels)`` of paths each from a first-order rigid
+    cluster (``source``) to B, ``labels[i]`` being the sphere of B that sphere i of the path's endpoint
+    is (:func:`packings.workers.identity.alignment`).  A set of contacts whose arrivals disagree (another
+    cluster, or other contacts formed at it) gets none: its path is followed."""
     found = []
     for source, broken, new, steps, labels in rows:
-        if len(broken) != 1 or len(new) != 1:
+        if not broken or not new:
             continue
         t = [int(k) for k in labels]
         back = [0] * len(t)
         for i, k in enumerate(t):
             back[k] = i
-        (a, b), (c, d) = new[0], broken[0]
-        found.append(Arrival(pair(t[a], t[b]), source, pair(t[c], t[d]), int(steps), tuple(back)))
-    return _by_contact(found)
+        found.append(Arrival(_pairs(t, new), source, _pairs(t, broken), int(steps), tuple(back)))
+    return _by_contacts(found)
 
 
-def _by_contact(found: Iterable[Arrival]) -> dict[tuple[int, int], Arrival]:
-    """``found`` by contact, the first of each; a contact whose arrivals disagree (another cluster, or
-    another contact formed) gets none."""
-    out: dict[tuple[int, int], Arrival] = {}
+def _by_contacts(found: Iterable[Arrival]) -> dict[tuple[tuple[int, int], ...], Arrival]:
+    """``found`` by contacts, the first of each; contacts whose arrivals disagree (another cluster, or
+    other contacts formed) get none."""
+    out: dict[tuple[tuple[int, int], ...], Arrival] = {}
     clash = set()
     for a in found:
-        old = out.setdefault(a.contact, a)
+        old = out.setdefault(a.contacts, a)
         if (old.target, old.formed) != (a.target, a.formed):
-            clash.add(a.contact)
+            clash.add(a.contacts)
     for c in clash:
         del out[c]
     return out
@@ -119,8 +124,9 @@ class Expansion:
     source: Cluster
     endpoints: tuple[Endpoint, ...] = field(default_factory=tuple)
     same_as: tuple[int | None, ...] = ()
-    #: the source is regular: 3n - 6 contacts, first-order rigid, no self-stress
-    regular: bool = False
+    #: the source is first-order rigid (no flex of its pinned rigidity matrix; regular clusters and most
+    #: hyperstatic ones): its paths may be taken from their other ends (:class:`Arrival`)
+    first_order_rigid: bool = False
 
     @property
     def subsets_tried(self) -> int:
@@ -139,14 +145,18 @@ class Expansion:
         return sum(1 for e in self.endpoints if e.reached is not None and not e.image)
 
     def retraceable(self, i: int) -> bool:
-        """Whether endpoint ``i`` is an arrival at a regular cluster (:class:`Arrival`): a path followed
-        (or its image) from this regular cluster, one contact broken and one formed, to a rigid
-        endpoint that is regular too."""
+        """Whether endpoint ``i`` is an arrival at a first-order rigid cluster (:class:`Arrival`): a path
+        followed (or its image) from this first-order rigid cluster to a rigid endpoint that is first-order
+        rigid too, with contacts formed, one of the two regular (3n - 6 contacts, no self-stress).  Paths
+        between two hyperstatic clusters are followed from both ends: one taken from the other end there
+        often is not what following it gives (docs/method.md, "Paths followed from one end only")."""
         e = self.endpoints[i]
         r = e.rigidity
-        return (self.regular and e.outcome == RIGID and e.cluster is not None and r is not None
-                and len(e.broken) == 1 and len(e.new_contacts) == 1 and r.flexes == 0 and r.stresses == 0
-                and e.cluster.m == 3 * e.cluster.n - 6)
+        if not (self.first_order_rigid and e.outcome == RIGID and e.cluster is not None and r is not None
+                and r.flexes == 0 and len(e.new_contacts) > 0):
+            return False
+        regular = 3 * self.source.n - 6
+        return self.source.m == regular or (e.cluster.m == regular and r.stresses == 0)
 
     @property
     def paths_by_symmetry(self) -> int:
@@ -250,7 +260,7 @@ class _Orbits:
 
 
 def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms: np.ndarray | None = None,
-              arrivals: Mapping[tuple[int, int], Arrival] | None = None,
+              arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None,
               source: dict | None = None) -> Iterator[Endpoint | PathStart | Image]:
     """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart.
 
@@ -267,9 +277,11 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
     (:func:`packings.workers.dimension.tangent_after_breaking`; every single break of a regular
     cluster is such a subset): the direction the SVD of what is left gives, up to sign and rounding.
 
-    With ``arrivals`` at a regular cluster, a contact with an arrival, whose break leaves one direction
-    that lengthens it, is an Endpoint at the arrival's cluster (:attr:`Endpoint.reached`), not followed.
-    ``source["regular"]`` is set to whether the cluster is regular (with ``first_order`` only).
+    With ``arrivals`` at a first-order rigid cluster, a subset with an arrival, whose break leaves a set
+    that the first-order count (or an SVD) finds smooth and one-dimensional, with one direction that
+    lengthens the subset, is an Endpoint at the arrival's cluster (:attr:`Endpoint.reached`), not followed.
+    ``source["first_order_rigid"]`` is set to whether the cluster is first-order rigid (with
+    ``first_order`` only).
     """
     n, m = cluster.n, cluster.m
     all_edges, pairs = cluster.edges(), cluster.contacts
@@ -294,13 +306,13 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
         # Which subset sizes the cluster's own SVD can decide: with a self-stress, those may_decide allows; and
         # the size whose count can be one flex and no stress (f + |B| - s = 1), which it gives the tangent of.
         stressed, one_flex = own.W.shape[1] > 0, own.W.shape[1] + 1 - own.flexes
-        regular = own.flexes == 0 and not stressed
+        rigid = own.flexes == 0
     else:
         rank, stressed, one_flex = cluster_rank(cluster, params), False, 0
-        regular = False
+        rigid = False
     if source is not None:
-        source["regular"] = regular
-    retrace = arrivals if regular and arrivals else None
+        source["first_order_rigid"] = rigid
+    retrace = arrivals if rigid and arrivals else None
     # The first triangle of what is left is the cluster's own unless a broken contact is one of its sides:
     # every contact before its first side had no triangle, and deleting contacts makes none.
     own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
@@ -343,9 +355,10 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
             if not signs:
                 yield Endpoint(bt, 0, NO_DIRECTION, 1)
                 continue
-            if retrace is not None and k == 1 and len(signs) == 1 and bt[0] in retrace:
-                a = retrace[bt[0]]
-                yield Endpoint(bt, signs[0], RIGID, 1, a.steps, new_contacts=(a.formed,), reached=a)
+            # a smooth curve (R less the subset has full row rank) with one way out: the way the arrival came
+            if retrace is not None and len(signs) == 1 and dim.method == "regular" and bt in retrace:
+                a = retrace[bt]
+                yield Endpoint(bt, signs[0], RIGID, 1, a.steps, new_contacts=a.formed, reached=a)
                 continue
             for s in signs:
                 yield PathStart(bt, s, x, keep, broken, s * v, free)
@@ -357,7 +370,7 @@ def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
 
 
 def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric: bool = True,
-           arrivals: Mapping[tuple[int, int], Arrival] | None = None) -> Expansion:
+           arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
     A pure function of its inputs.  For every subset B whose removal leaves a
@@ -372,8 +385,8 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
     the same clusters reached, congruent paths being followed once.  ``symmetric`` False follows
     every path (the reference it is tested against).
 
-    With ``arrivals`` (:func:`arrivals`) at a regular cluster, the path that breaks an arrival's contact
-    is not followed: it retraces the path that arrived, and its attempt ends at the cluster that path
+    With ``arrivals`` (:func:`arrivals`) at a first-order rigid cluster, the path that breaks an arrival's
+    contacts is not followed: it retraces the path that arrived, and its attempt ends at the cluster that path
     came from (:attr:`Endpoint.reached`; docs/method.md, "Paths followed from one end only").
     """
     cert = certificate(cluster)
@@ -398,7 +411,7 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
         else:
             out.append(_classify(cluster, cert, a.broken_contacts, a.direction, a.follow(params), params))
     first = same_as(out, params.tol_d, images)
-    ex = Expansion(cluster, tuple(out), first, source.get("regular", False))
+    ex = Expansion(cluster, tuple(out), first, source.get("first_order_rigid", False))
     for i, e in enumerate(out):  # only the distinct rigid endpoints are compared again (the write-back), and
         if e.cluster is not None and first[i] != i and not ex.retraceable(i):  # the arrivals relabelled
             forget_canonical(e.cluster)
@@ -450,16 +463,16 @@ def _relabelled(a: Arrival, t: list[int]) -> Arrival:
     labels = [0] * len(t)
     for i, k in enumerate(t):
         labels[k] = a.labels[i]
-    return Arrival(pair(t[a.contact[0]], t[a.contact[1]]), a.target, pair(t[a.formed[0]], t[a.formed[1]]), a.steps,
-                   tuple(labels))
+    return Arrival(_pairs(t, a.contacts), a.target, _pairs(t, a.formed), a.steps, tuple(labels))
 
 
-def _closed(found: Mapping[tuple[int, int], Arrival], perms: np.ndarray) -> dict[tuple[int, int], Arrival]:
+def _closed(found: Mapping[tuple[tuple[int, int], ...], Arrival],
+            perms: np.ndarray) -> dict[tuple[tuple[int, int], ...], Arrival]:
     """The arrivals ``found`` with their images under the symmetries ``perms`` of the cluster (a symmetry
     takes the path back of one to the path back of its image), so that the first subset of each orbit,
-    the one followed, has one whenever a member does; a contact given disagreeing ones has none."""
+    the one followed, has one whenever a member does; contacts given disagreeing ones have none."""
     images = (_relabelled(a, t) for t in perms[1:].tolist() for a in found.values())
-    return _by_contact(chain(found.values(), images))
+    return _by_contacts(chain(found.values(), images))
 
 
 def _lengthening(x: np.ndarray, v: np.ndarray, i: int, j: int) -> float:

@@ -6,6 +6,7 @@ import multiprocessing as mp
 import os
 import socket
 import time
+from collections import Counter
 
 import numpy as np
 import pytest
@@ -90,12 +91,15 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
     assert snapshot(engine) == after_once
 
 
-def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_following_it_gives(engine):
-    """A run of n = 9 (every cluster regular) follows each path between two clusters from one end only:
-    where a path arrived at a cluster before it was expanded, that cluster's attempt on the contact
-    formed is taken from it (transitions.target_labels, store.load_tasks' arrivals).  Every transition
-    stored is what following every path gives: the same outcome, a rigid endpoint the stored target,
-    the same contacts formed, and target_labels relabelling the endpoint onto the target as stored."""
+@pytest.mark.parametrize("n, count, hyperstatic", [(9, 52, 0), (10, 263, 3)])
+def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_following_it_gives(engine, n, count,
+                                                                                           hyperstatic):
+    """A run of n = 9 (every cluster but one regular) or n = 10 (three hyperstatic clusters too) follows
+    each path between two first-order rigid clusters from one end only: where a path arrived at a cluster
+    before it was expanded, that cluster's attempt on the contacts formed is taken from it
+    (transitions.target_labels, store.load_tasks' arrivals).  Every transition stored is what following
+    every path gives: the same outcome, a rigid endpoint the stored target, the same contacts formed, and
+    target_labels relabelling the endpoint onto the target as stored."""
     import json
 
     from packings.workers import kernels
@@ -104,17 +108,24 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     from tests.service.conftest import fill_database
 
     params = Params()
-    run_id = fill_database(engine, 9)
+    run_id = fill_database(engine, n)
     with sessions(engine)() as s:
         d = store.run_diagnostics(s, run_id)
-        clusters = {r.id: r.to_core() for r in s.execute(select(ClusterRow).where(ClusterRow.n == 9)).scalars()}
+        stored_clusters = {r.id: r for r in s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars()}
         rows = s.execute(select(Transition.source_id, Transition.broken, Transition.direction, Transition.outcome,
                                 Transition.target_id, Transition.new_contacts, Transition.target_labels)
                          .where(Transition.run_id == run_id)).all()
-    assert len(clusters) == 52 and d["paths_retraced"] > 0.2 * d["paths_followed"]
+        took = {cid: json.loads(o).get("paths_retraced", 0) for cid, o in s.execute(
+            select(ExpansionRow.cluster_id, ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id))}
+    assert len(stored_clusters) == count and d["paths_retraced"] > 0.2 * d["paths_followed"]
+    many = {cid for cid, r in stored_clusters.items() if r.contacts > 3 * n - 6}
+    assert len(many) == hyperstatic
+    if hyperstatic:  # hyperstatic clusters took paths from the other end too
+        assert sum(took[cid] for cid in many) > 0
+    clusters = {cid: r.to_core() for cid, r in stored_clusters.items()}
     stored = {(src, b, dirn): (out, tgt, json.loads(new), None if lab is None else json.loads(lab))
               for src, b, dirn, out, tgt, new, lab in rows}
-    labelled = 0
+    labelled = Counter()
     for cid, c in clusters.items():
         for e in expand(c, params).endpoints:  # every path followed
             out, target, new, labels = stored.pop((cid, store.contacts_json(e.broken), e.direction))
@@ -125,8 +136,11 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
                 y = clusters[target].coords[labels]
                 x = e.cluster.coords
                 assert kernels.aligned_max_error(x - x.mean(axis=0), y - y.mean(axis=0)) <= params.tol_d
-                labelled += 1
-    assert not stored and labelled >= d["paths_retraced"]
+                labelled[(cid in many, target in many)] += 1
+    assert not stored and sum(labelled.values()) >= d["paths_retraced"]
+    if hyperstatic:  # paths between a hyperstatic cluster and a regular one, both ways, are retraceable too
+        assert labelled[(True, False)] > 0 and labelled[(False, True)] > 0, labelled
+    assert labelled[(True, True)] == 0  # and paths between two hyperstatic ones are not
 
 
 def test_a_task_reads_the_paths_that_arrived_through_the_index_of_targets(sqlite_url):

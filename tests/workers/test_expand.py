@@ -337,10 +337,14 @@ def _moved(c: Cluster, rng) -> Cluster:
 
 
 def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
-    """expand(B, arrivals=...) with the paths that came from regular clusters A to a regular B (relabelled
-    onto B as stored by identity.alignment) follows none of the paths back, and gives each the attempt
-    that following it gives: the same direction, outcome rigid at A, the same contact formed, and
-    A's spheres where the path back's endpoint puts them; every other attempt is unchanged."""
+    """expand(B, arrivals=...) with the paths that came from first-order rigid clusters A to a first-order
+    rigid B (relabelled onto B as stored by identity.alignment) follows none of the paths back where B's
+    break of the contacts formed leaves a smooth curve, and gives each the attempt that following it gives:
+    the same direction, outcome rigid at A, the same contacts formed, and A's spheres where the path back's
+    endpoint puts them; every other attempt is unchanged.  The clusters A: regular ones of n = 9 and 10, a
+    hyperstatic one of n = 10 (its paths break two or more contacts and form one at regular clusters B), and
+    a regular one that it reaches (whose paths to it form two contacts at the hyperstatic B).  Paths between
+    two hyperstatic clusters are not taken from the other end."""
     import json
     from pathlib import Path
 
@@ -349,11 +353,17 @@ def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
     from packings.workers.identity import alignment
 
     fixtures = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
+    hyper = Cluster.from_dict(fixtures["n10_m25_first-order"])
+    from_hyper = expand(hyper, P)
+    back = next(e.cluster for i, e in enumerate(from_hyper.endpoints) if from_hyper.retraceable(i))
+    # a path between two hyperstatic clusters is followed from both ends: its endpoint gets no labels
+    between = [i for i, e in enumerate(from_hyper.endpoints) if e.outcome == RIGID and e.cluster.m > 3 * e.cluster.n - 6]
+    assert between and not any(from_hyper.retraceable(i) for i in between)
     rng = np.random.default_rng(7)
-    checked = 0
-    for a in (seed_cluster(9), Cluster.from_dict(fixtures["n10_m24_first-order"])):
+    checked = Counter()
+    for a in (seed_cluster(9), Cluster.from_dict(fixtures["n10_m24_first-order"]), hyper, back):
         ex = expand(a, P)
-        assert ex.regular
+        assert ex.first_order_rigid
         came: dict[int, tuple[Cluster, list]] = {}  # B (first endpoint of it) -> B as stored, its arrivals
         for i, e in enumerate(ex.endpoints):
             if not ex.retraceable(i):
@@ -364,12 +374,14 @@ def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
             b, rows = came[j]
             t = alignment(e.cluster, b, P.tol_d)
             rows.append(("A", [list(p) for p in e.broken], [list(p) for p in e.new_contacts], e.steps, t.tolist()))
-        assert len(came) >= 5
+        assert len(came) >= 2
         for b, rows in came.values():
             came_by = arrivals(rows)
             full, short = expand(b, P), expand(b, P, arrivals=came_by)
-            assert short.regular and short.paths_retraced > 0
-            assert {g.broken[0] for g in short.endpoints if g.reached is not None} >= set(came_by)
+            assert short.first_order_rigid and short.paths_retraced > 0
+            taken = {g.broken for g in short.endpoints if g.reached is not None}
+            if b.m == 3 * b.n - 6:  # a regular B: every single break leaves a smooth curve
+                assert taken >= set(came_by)
             assert short.paths_followed + short.paths_retraced == full.paths_followed
             assert [(f.broken, f.direction) for f in full.endpoints] == [(f.broken, f.direction) for f in short.endpoints]
             for f, g in zip(full.endpoints, short.endpoints):
@@ -377,14 +389,16 @@ def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
                     assert (f.outcome, f.new_contacts, f.steps) == (g.outcome, g.new_contacts, g.steps)
                     continue
                 assert g.reached.target == "A" and g.cluster is None and f.outcome == g.outcome == RIGID
-                assert f.new_contacts == g.new_contacts == (g.reached.formed,)
-                back = f.cluster.coords - f.cluster.coords.mean(axis=0)
+                assert f.new_contacts == g.new_contacts == g.reached.formed
+                back_at = f.cluster.coords - f.cluster.coords.mean(axis=0)
                 at_a = a.coords[list(g.reached.labels)]
-                assert kernels.aligned_max_error(back, at_a - at_a.mean(axis=0)) <= P.tol_d
+                assert kernels.aligned_max_error(back_at, at_a - at_a.mean(axis=0)) <= P.tol_d
                 assert g.steps == g.reached.steps > 0  # the steps of the path that arrived (adaptive: not f's)
-                checked += 1
+                checked[("regular" if b.m == 3 * b.n - 6 else "hyperstatic", len(g.broken), len(g.new_contacts))] += 1
             assert short.same_as == tuple(None if g.reached is not None else s for g, s in zip(short.endpoints, full.same_as))
-    assert checked >= 20
+    assert sum(checked.values()) >= 20
+    # paths back that form two contacts at once, and paths back from a hyperstatic B
+    assert any(formed >= 2 for (_, _, formed) in checked) and any(k[0] == "hyperstatic" for k in checked), checked
 
 
 def test_arrivals_that_disagree_on_a_contact_leave_its_path_to_be_followed():
@@ -396,7 +410,11 @@ def test_arrivals_that_disagree_on_a_contact_leave_its_path_to_be_followed():
     rows = [("A", [[0, 1]], [[2, 3]], 10, ident), ("C", [[4, 5]], [[2, 3]], 12, ident),  # two clusters at (2, 3)
             ("A", [[0, 1]], [[3, 4]], 10, ident), ("A", [[0, 2]], [[3, 4]], 10, ident),  # two contacts formed at (3, 4)
             ("A", [[0, 1]], [[5, 6]], 10, ident), ("A", [[1, 0]], [[6, 5]], 10, swap),  # agree at (5, 6)
-            ("A", [[0, 1], [1, 2]], [[7, 8]], 10, ident)]  # two broken: not an arrival
+            ("A", [[1, 2], [0, 1]], [[7, 8]], 10, ident),  # two broken, formed again on the way back
+            ("A", [[0, 1]], [[8, 7], [6, 8]], 11, swap),  # two formed: broken together on the way back
+            ("A", [[0, 1]], [], 10, ident)]  # none formed: not an arrival
     got = arrivals(rows)
-    assert set(got) == {(5, 6)}
-    assert got[(5, 6)].target == "A" and got[(5, 6)].formed == (0, 1) and got[(5, 6)].steps == 10
+    assert set(got) == {((5, 6),), ((7, 8),), ((6, 8), (7, 8))}
+    assert got[((5, 6),)].target == "A" and got[((5, 6),)].formed == ((0, 1),) and got[((5, 6),)].steps == 10
+    assert got[((7, 8),)].formed == ((0, 1), (1, 2))
+    assert got[((6, 8), (7, 8))].formed == ((0, 1),) and got[((6, 8), (7, 8))].steps == 11
