@@ -374,7 +374,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
         row["paths_by_symmetry"] = images
         row["paths_retraced_each"] = retraced / len(pick)
-        row["run_paths_retraced_each"] = run_retraced / len(pick)  # what the run took from the other end, the same clusters
+        row["run_paths_retraced_each"] = run_retraced / len(pick)  # what the run took on the same clusters
         if every:
             row["every_ratio"] = row["mean_ms_every"] / row["mean_ms_numba"]
             row["every_paths_differing"] = every_differ
