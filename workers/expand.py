@@ -442,18 +442,14 @@ def same_as(endpoints, tol_d: float, images: dict[int, int] | None = None) -> tu
 def _image(e: Endpoint, broken: tuple[tuple[int, int], ...], relabel: np.ndarray) -> Endpoint:
     """Attempt ``e`` with sphere ``i`` relabelled ``relabel[i]``: the attempt on ``broken``, its image."""
     t = relabel.tolist()
-
-    def moved(pairs):
-        return tuple(sorted(pair(t[i], t[j]) for i, j in pairs))
-
     c = reached = None
     if e.cluster is not None:
         coords = np.empty_like(e.cluster.coords)
         coords[relabel] = e.cluster.coords
-        c = Cluster(coords, moved(e.cluster.contacts))
+        c = Cluster(coords, _pairs(t, e.cluster.contacts))
     if e.reached is not None:
         reached = _relabelled(e.reached, t)
-    return Endpoint(broken, e.direction, e.outcome, e.dim, e.steps, c, e.rigidity, moved(e.new_contacts),
+    return Endpoint(broken, e.direction, e.outcome, e.dim, e.steps, c, e.rigidity, _pairs(t, e.new_contacts),
                     e.first_step_dim, image=True, reached=reached)
 
 
