@@ -332,3 +332,119 @@ def test_without_a_self_stress_the_counts_are_read_off_at_once():
     assert np.array_equal(t, col / np.linalg.norm(col)) or np.array_equal(t, -col / np.linalg.norm(col))
     unsure = StressBasis(basis.W, basis.flexes, basis.smallest, basis.largest, noise=P.tol_n)  # noise too near tol_n
     assert counts_after_breaking(unsure, [0], P.tol_n) is None
+
+
+# ----------------------------------------------------------------- self-stresses held by a rigid part
+
+from packings.workers.dimension import SUPPORT_NONZERO, SUPPORT_ZERO, rigid_part  # noqa: E402
+
+
+def _hinged(c: Cluster) -> Cluster:
+    """``c`` with one more sphere touching the two spheres of one contact and nothing else: a hinge,
+    free to swing about that contact's axis while ``c`` stays as it is (one flex), ``c``'s self-stresses
+    untouched."""
+    p = c.coords
+    centre = p.mean(axis=0)
+    for a, b in c.contacts:
+        u = (p[b] - p[a]) / np.linalg.norm(p[b] - p[a])
+        mid = (p[a] + p[b]) / 2
+        out = (mid - centre) - ((mid - centre) @ u) * u
+        if np.linalg.norm(out) < 1e-3:
+            continue
+        q = mid + np.sqrt(0.75) * out / np.linalg.norm(out)
+        others = np.delete(np.linalg.norm(p - q, axis=1), [a, b])
+        if others.min() > 1.05:
+            return Cluster(np.vstack([p, q]), tuple(sorted(c.contacts + ((a, c.n), (b, c.n)))))
+    raise AssertionError("no contact to hinge a sphere on")
+
+
+def _set_left(c: Cluster, idx=()):
+    keep = np.delete(c.edges(), list(idx), axis=0)
+    tri = contact_triangle(keep)
+    x = kernels.to_frame(c.coords, tri).ravel()
+    free = kernels.free_coordinates(c.n, tri)
+    return x, keep, free, kernels.null_spaces(x, keep, free, P.tol_n)
+
+
+def test_a_stress_in_a_rigid_part_gives_the_dimension_without_probes(monkeypatch):
+    """A hyperstatic cluster (a self-stress) with a sphere hinged on one of its contacts: the set is the
+    hinge's circle, one-dimensional and smooth.  The stress lies in the hyperstatic cluster, an
+    infinitesimally rigid part, so the dimension is |V| = 1 with V's tangent ("rigid-part"), which moves the
+    hinged sphere alone, about its two contacts; the probes, asked instead, find one dimension too along
+    the same direction.  With one of the hinge's contacts broken too it rolls: two dimensions."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, ns = _set_left(c)
+    assert ns.W.shape[1] == 1 and ns.V.shape[1] == 1
+    part = rigid_part(x, keep, ns, P.tol_n)
+    assert part is not None and c.n - 1 not in part and len(part) == c.n - 1
+    d = solution_dimension(x, keep, free, P, limit=1)
+    assert (d.dim, d.method) == (1, "rigid-part")
+    t = d.tangents[:, 0].reshape(-1, 3)
+    assert np.abs(t[:-1]).max() < 1e-10  # only the hinged sphere moves
+    hinge = [i for i, j in c.contacts if j == c.n - 1]
+    p = x.reshape(-1, 3)
+    assert all(abs((p[-1] - p[i]) @ t[-1]) < 1e-10 for i in hinge)
+    monkeypatch.setattr(dimension, "rigid_part", lambda *a, **k: None)
+    probed = solution_dimension(x, keep, free, P, limit=1)
+    assert (probed.dim, probed.method) == (1, "numerical")
+    assert abs(probed.tangents[:, 0] @ d.tangents[:, 0]) > 0.99
+    monkeypatch.undo()
+    rolling = [k for k, (i, j) in enumerate(c.contacts) if j == c.n - 1][:1]
+    x, keep, free, ns = _set_left(c, rolling)
+    d = solution_dimension(x, keep, free, P, limit=1)
+    assert (d.dim, d.method) == (2, "rigid-part") and not d.at_least
+
+
+def test_a_stress_in_a_rigid_part_is_followed_along_a_smooth_curve():
+    """Where the certificate holds, the set is a curve tangent to V: points projected from x + h v lie
+    h v away to second order in h."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, ns = _set_left(c)
+    v = solution_dimension(x, keep, free, P).tangents[:, 0]
+    for h in (1e-2, 1e-3):
+        pr = kernels.project(x + h * v, keep, free, **P.newton())
+        assert pr.ok
+        off = (pr.x - x) - ((pr.x - x) @ v) * v
+        assert np.linalg.norm(off) < 5 * h * h
+
+
+def test_no_rigid_part_where_a_count_or_the_support_is_in_doubt():
+    """A singular value of R within the guard factor of tol_n, or a row of W between SUPPORT_ZERO and
+    SUPPORT_NONZERO: no rigid part (the probes decide)."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, ns = _set_left(c)
+    assert rigid_part(x, keep, ns, P.tol_n) is not None
+    sigma = ns.sigma.copy()
+    sigma[np.argmin(np.where(sigma >= P.tol_n, sigma, np.inf))] = 5 * P.tol_n
+    assert rigid_part(x, keep, kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n) is None
+    W = ns.W.copy()
+    outside = int(np.argmin(np.abs(W[:, 0])))
+    assert abs(W[outside, 0]) <= SUPPORT_ZERO
+    W[outside, 0] = np.sqrt(SUPPORT_ZERO * SUPPORT_NONZERO)
+    assert rigid_part(x, keep, kernels.NullSpaces(ns.sigma, ns.V, W), P.tol_n) is None
+
+
+def test_a_pre_stress_spread_over_the_cluster_is_held_by_no_rigid_part():
+    """The singular n = 10 cluster's stress is its own pre-stress: with two contacts broken, where it
+    persists it is held by no rigid part, and the probes decide (one and two dimensions)."""
+    c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
+    dims = set()
+    for idx, x, keep, free in _numerical_cases(c, 2, P):
+        assert rigid_part(x, keep, kernels.null_spaces(x, keep, free, P.tol_n), P.tol_n) is None, idx
+        dims.add(solution_dimension(x, keep, free, P, limit=1).dim)
+    assert {1, 2} <= dims
+
+
+@settings(max_examples=15, deadline=None, derandomize=True)
+@given(st.randoms(use_true_random=False))
+def test_a_rigid_part_does_not_depend_on_labels_or_orientation(rnd):
+    """Relabel, rotate and reflect the hinged cluster: the same rigid part (relabelled) and dimension."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    moved, _, perm = _moved(c, [], rnd)
+    parts = []
+    for cl in (c, moved):
+        x, keep, free, ns = _set_left(cl)
+        parts.append(rigid_part(x, keep, ns, P.tol_n))
+        assert solution_dimension(x, keep, free, P, limit=1).dim == 1
+    assert parts[0] is not None and parts[1] is not None
+    assert sorted(perm[i] for i in parts[0]) == sorted(parts[1].tolist())
