@@ -15,7 +15,8 @@ from packings.workers.rigidity import Rigidity, rigidity_from_null_spaces
 class Dimension:
     """D, an orthonormal basis of the tangent directions found (3n x D), and how D was decided.
 
-    ``method`` is ``regular`` (R has full row rank: D = |V|), ``rigid`` (the
+    ``method`` is ``regular`` (R has full row rank: D = |V|), ``rigid-part`` (every
+    self-stress lies in a rigid part: D = |V| too, :func:`rigid_part`), ``rigid`` (the
     rigidity test says the point is isolated) or ``numerical`` (tangent-space
     estimate).  A numerical estimate asked to stop above a ``limit`` reports
     ``dim = limit + 1`` when it found more than ``limit`` directions: then D is
