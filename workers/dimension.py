@@ -88,74 +88,6 @@ def solution_dimension(
     return Dimension(len(basis), t, "numerical", rig)
 
 
-#: a row of R is in the support of the self-stresses where its row of W has at least this norm, and outside
-#: it where at most SUPPORT_ZERO; a row in between leaves the support undecided (:func:`rigid_part`)
-SUPPORT_NONZERO = 1e-3
-SUPPORT_ZERO = 1e-6
-
-
-def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float,
-               guard: float | None = None) -> np.ndarray | None:
-    """The spheres of an infinitesimally rigid part of the framework that holds every self-stress of R, or
-    None where none is found (or rounding could make the counts other).
-
-    Let B be a set of spheres whose contacts among themselves (R_B, in B's own 3|B| coordinates) have
-    rank 3|B| - 6, B not collinear: B is infinitesimally rigid, hence rigid, and near x its spheres move
-    as one body.  If moreover rank(R) = rank(R_B) + (contacts not inside B), the contacts not inside B
-    are independent of B's, i.e. the framework with B made one body has no self-stress: by the implicit
-    function theorem the solution set near x is then a manifold, of dimension 3n - 6 - rank(R) = |V|,
-    tangent to V.  With rank(R) = m - s (s self-stresses) the condition reads: the contacts inside B
-    number 3|B| - 6 + s.  B is sought among the spheres of the rows where W is not zero (every stress
-    lives there), then those with the spheres that touch at least three of B added, until none does.
-
-    Every rank is read off singular values that lie at least ``guard`` times above ``tol_n`` or below it
-    (:data:`COUNT_GUARD`), and W's rows must have norms either at least :data:`SUPPORT_NONZERO` or at
-    most :data:`SUPPORT_ZERO`; otherwise None, and the caller probes as before.
-    """
-    guard = COUNT_GUARD if guard is None else guard
-    W = ns.W
-    s = W.shape[1]
-    if s == 0:
-        return None
-    sigma = np.asarray(ns.sigma)
-    if sigma[sigma >= tol_n].min(initial=np.inf) < guard * tol_n or sigma[sigma < tol_n].max(initial=0.0) > tol_n / guard:
-        return None
-    w = np.sqrt(np.einsum("ij,ij->i", W, W))
-    if np.any((w > SUPPORT_ZERO) & (w < SUPPORT_NONZERO)):
-        return None
-    n = x.size // 3
-    inside = np.zeros(n, dtype=bool)
-    inside[edges[w >= SUPPORT_NONZERO].ravel()] = True
-    while True:
-        both = inside[edges[:, 0]] & inside[edges[:, 1]]
-        if np.count_nonzero(both) == 3 * np.count_nonzero(inside) - 6 + s:
-            return _rigid_body(x, edges[both], inside, tol_n, guard)
-        one = edges[inside[edges[:, 0]] != inside[edges[:, 1]]]
-        touches = np.bincount(np.where(inside[one[:, 0]], one[:, 1], one[:, 0]), minlength=n)
-        if not np.any(touches >= 3):
-            return None
-        inside |= touches >= 3
-
-
-def _rigid_body(x: np.ndarray, edges: np.ndarray, inside: np.ndarray, tol_n: float, guard: float) -> np.ndarray | None:
-    """The spheres ``inside`` if their contacts ``edges`` make them infinitesimally rigid (rank 3|B| - 6 of
-    R_B in their own coordinates, every singular value ``guard`` times above or below ``tol_n``, and the
-    spheres not collinear), else None."""
-    spheres = np.nonzero(inside)[0]
-    k = spheres.size
-    if k < 3:
-        return None
-    p = x.reshape(-1, 3)[spheres]
-    if np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[1] < 0.1:  # collinear: 5 trivial motions, not 6
-        return None
-    cols = (3 * spheres[:, None] + np.arange(3)).ravel()
-    sv = np.linalg.svd(kernels.rigidity_matrix_numpy(x, edges)[:, cols], compute_uv=False)
-    rank = 3 * k - 6
-    if sv.size < rank or sv[rank - 1] < guard * tol_n or sv[rank:].max(initial=0.0) > tol_n / guard:
-        return None
-    return spheres
-
-
 #: how far from ``tol_n`` a singular value must be, by this factor either way, for the first-order count
 #: after deleting rows to be read off the self-stresses (:func:`counts_after_breaking`) rather than an SVD
 COUNT_GUARD = 10.0
@@ -177,13 +109,90 @@ class StressBasis:
     @classmethod
     def of(cls, ns: kernels.NullSpaces, tol_n: float) -> StressBasis:
         sigma = np.asarray(ns.sigma)
-        nonzero, zero = sigma[sigma >= tol_n], sigma[sigma < tol_n]
-        return cls(ns.W, ns.V.shape[1], float(nonzero.min()) if nonzero.size else np.inf,
-                   float(sigma.max(initial=0.0)), float(zero.max(initial=0.0)), ns.V, ns.pinv)
+        smallest, noise = _extremes(sigma, tol_n)
+        return cls(ns.W, ns.V.shape[1], smallest, float(sigma.max(initial=0.0)), noise, ns.V, ns.pinv)
 
     def certain(self, guard: float, tol_n: float) -> bool:
         """Whether R's own singular values are far enough from ``tol_n`` for any count to be read off."""
-        return self.smallest - self.noise >= guard * tol_n and self.noise <= tol_n / guard
+        return _separated(self.smallest, self.noise, guard, tol_n)
+
+
+def _extremes(sigma: np.ndarray, tol_n: float) -> tuple[float, float]:
+    """(the smallest singular value counted nonzero, inf if none; the largest counted zero, 0 if none)."""
+    nonzero, zero = sigma[sigma >= tol_n], sigma[sigma < tol_n]
+    return float(nonzero.min()) if nonzero.size else np.inf, float(zero.max(initial=0.0))
+
+
+def _separated(smallest: float, noise: float, guard: float, tol_n: float) -> bool:
+    """Whether singular values counted nonzero (the least ``smallest``) and zero (the largest ``noise``) lie
+    far enough from ``tol_n``, by the factor ``guard``, for rounding not to change a rank read off them."""
+    return smallest - noise >= guard * tol_n and noise <= tol_n / guard
+
+
+#: a row of R is in the support of the self-stresses where its row of W has at least this norm, and outside
+#: it where at most SUPPORT_ZERO; a row in between leaves the support undecided (:func:`rigid_part`)
+SUPPORT_NONZERO = 1e-3
+SUPPORT_ZERO = 1e-6
+
+
+def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float,
+               guard: float = COUNT_GUARD) -> np.ndarray | None:
+    """The spheres of an infinitesimally rigid part of the framework that holds every self-stress of R, or
+    None where none is found (or rounding could make the counts other).
+
+    Let B be a set of spheres whose contacts among themselves (R_B, in B's own 3|B| coordinates) have
+    rank 3|B| - 6, B not collinear: B is infinitesimally rigid, hence rigid, and near x its spheres move
+    as one body.  If moreover rank(R) = rank(R_B) + (contacts not inside B), the contacts not inside B
+    are independent of B's, i.e. the framework with B made one body has no self-stress: by the implicit
+    function theorem the solution set near x is then a manifold, of dimension 3n - 6 - rank(R) = |V|,
+    tangent to V.  With rank(R) = m - s (s self-stresses) the condition reads: the contacts inside B
+    number 3|B| - 6 + s.  B is sought among the spheres of the rows where W is not zero (every stress
+    lives there), then those with the spheres that touch at least three of B added, until none does.
+
+    Every rank is read off singular values separated from ``tol_n`` as the first-order counts need them
+    (:func:`_separated`), and W's rows must have norms either at least :data:`SUPPORT_NONZERO` or at
+    most :data:`SUPPORT_ZERO`; otherwise None, and the caller probes as before.
+    """
+    W = ns.W
+    s = W.shape[1]
+    if s == 0:
+        return None
+    if not _separated(*_extremes(np.asarray(ns.sigma), tol_n), guard, tol_n):
+        return None
+    w = np.sqrt(np.einsum("ij,ij->i", W, W))
+    if np.any((w > SUPPORT_ZERO) & (w < SUPPORT_NONZERO)):
+        return None
+    n = x.size // 3
+    inside = np.zeros(n, dtype=bool)
+    inside[edges[w >= SUPPORT_NONZERO].ravel()] = True
+    while True:
+        both = inside[edges[:, 0]] & inside[edges[:, 1]]
+        if np.count_nonzero(both) == 3 * np.count_nonzero(inside) - 6 + s:
+            return _rigid_body(x, edges[both], inside, tol_n, guard)
+        one = edges[inside[edges[:, 0]] != inside[edges[:, 1]]]
+        touches = np.bincount(np.where(inside[one[:, 0]], one[:, 1], one[:, 0]), minlength=n)
+        if not np.any(touches >= 3):
+            return None
+        inside |= touches >= 3
+
+
+def _rigid_body(x: np.ndarray, edges: np.ndarray, inside: np.ndarray, tol_n: float, guard: float) -> np.ndarray | None:
+    """The spheres ``inside`` if their contacts ``edges`` make them infinitesimally rigid (rank 3|B| - 6 of
+    R_B in their own coordinates, its singular values separated there as :func:`_separated` asks, and the
+    spheres not collinear), else None."""
+    spheres = np.nonzero(inside)[0]
+    k = spheres.size
+    if k < 3:
+        return None
+    p = x.reshape(-1, 3)[spheres]
+    if np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[1] < 0.1:  # collinear: 5 trivial motions, not 6
+        return None
+    cols = (3 * spheres[:, None] + np.arange(3)).ravel()
+    sv = np.linalg.svd(kernels.rigidity_matrix_numpy(x, edges)[:, cols], compute_uv=False)
+    rank = 3 * k - 6
+    if sv.size < rank or not _separated(float(sv[rank - 1]), float(sv[rank:].max(initial=0.0)), guard, tol_n):
+        return None
+    return spheres
 
 
 def counts_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> tuple[int, int] | None:
