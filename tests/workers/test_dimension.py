@@ -18,12 +18,19 @@ P = Params()
 FIXTURES = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
 
 
-def dim_after_breaking(c: Cluster, idx):
-    e = c.edges()
-    keep = np.delete(e, list(idx), axis=0)
+def _set_left(c: Cluster, idx=()):
+    """(x, contacts kept, free coordinates, null spaces) of ``c`` with the contacts ``idx`` deleted, in the
+    frame of the first triangle left."""
+    keep = np.delete(c.edges(), list(idx), axis=0)
     tri = contact_triangle(keep)
     x = kernels.to_frame(c.coords, tri).ravel()
-    return solution_dimension(x, keep, kernels.free_coordinates(c.n, tri), P), x, keep
+    free = kernels.free_coordinates(c.n, tri)
+    return x, keep, free, kernels.null_spaces(x, keep, free, P.tol_n)
+
+
+def dim_after_breaking(c: Cluster, idx):
+    x, keep, free, ns = _set_left(c, idx)
+    return solution_dimension(x, keep, free, P, ns), x, keep
 
 
 def test_regular_branch_counts_flexes():
@@ -58,15 +65,10 @@ def test_numerical_branch_on_a_singular_cluster():
     assert np.linalg.norm(V.T @ t) > 0.99
 
 
-def _numerical_cases(c: Cluster, size: int, params: Params):
+def _numerical_cases(c: Cluster, size: int):
     """(idx, x, keep, free) for every ``size``-subset of contacts of ``c`` whose dimension needs the numerical estimate."""
-    e = c.edges()
     for idx in combinations(range(c.m), size):
-        keep = np.delete(e, list(idx), axis=0)
-        tri = contact_triangle(keep)
-        x = kernels.to_frame(c.coords, tri).ravel()
-        free = kernels.free_coordinates(c.n, tri)
-        ns = kernels.null_spaces(x, keep, free, params.tol_n)
+        x, keep, free, ns = _set_left(c, idx)
         if ns.W.shape[1] and ns.V.shape[1]:
             yield idx, x, keep, free
 
@@ -81,7 +83,7 @@ def test_giving_up_stalled_probe_projections_changes_no_dimension(monkeypatch):
     full = P.with_(probe_stall=0)
     assert P.probe_stall > 0
     dims = set()
-    for idx, x, keep, free in _numerical_cases(c, 2, P):
+    for idx, x, keep, free in _numerical_cases(c, 2):
         a = solution_dimension(x, keep, free, P)
         b = solution_dimension(x, keep, free, full)
         assert (a.dim, a.method) == (b.dim, b.method), idx
@@ -93,7 +95,7 @@ def test_giving_up_stalled_probe_projections_changes_no_dimension(monkeypatch):
 def test_a_limit_stops_probing_above_it_and_keeps_the_first_directions():
     c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     seen = set()
-    for idx, x, keep, free in _numerical_cases(c, 2, P):
+    for idx, x, keep, free in _numerical_cases(c, 2):
         full = solution_dimension(x, keep, free, P)
         lim = solution_dimension(x, keep, free, P, limit=1)
         assert lim.dim == min(full.dim, 2), idx
@@ -111,7 +113,7 @@ def test_orthogonal_projections_are_skipped_only_where_they_could_not_be_accepte
     c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     kw = dict(tol=P.tol, dx_max=P.dx_max, max_iter=P.newton_max_iter, tol_n=P.tol_n)
     skipped = converged = 0
-    for idx, x, keep, free in _numerical_cases(c, 2, P):
+    for idx, x, keep, free in _numerical_cases(c, 2):
         V = kernels.null_spaces(x, keep, free, P.tol_n).V
         for j in range(V.shape[1]):
             for step in (P.ds0, -P.ds0):
@@ -127,7 +129,7 @@ def test_orthogonal_projections_are_skipped_only_where_they_could_not_be_accepte
     assert skipped > 50 and converged > 20
     # a looser x_tol_max leaves room for an orthogonal correction: then it is always run
     loose = P.with_(x_tol_max=2 * P.ds0)
-    idx, x, keep, free = next(_numerical_cases(c, 2, P))
+    idx, x, keep, free = next(_numerical_cases(c, 2))
     v = kernels.null_spaces(x, keep, free, P.tol_n).V[:, 0]
     assert dimension.orthogonal_may_be_accepted(x + P.ds0 * v, keep, P.ds0, 1.0, loose)
     # and a stricter one than the probe step never accepts it
@@ -358,14 +360,6 @@ def _hinged(c: Cluster) -> Cluster:
     raise AssertionError("no contact to hinge a sphere on")
 
 
-def _set_left(c: Cluster, idx=()):
-    keep = np.delete(c.edges(), list(idx), axis=0)
-    tri = contact_triangle(keep)
-    x = kernels.to_frame(c.coords, tri).ravel()
-    free = kernels.free_coordinates(c.n, tri)
-    return x, keep, free, kernels.null_spaces(x, keep, free, P.tol_n)
-
-
 def test_a_stress_in_a_rigid_part_gives_the_dimension_without_probes(monkeypatch):
     """A hyperstatic cluster (a self-stress) with a sphere hinged on one of its contacts: the set is the
     hinge's circle, one-dimensional and smooth.  The stress lies in the hyperstatic cluster, an
@@ -429,7 +423,7 @@ def test_a_pre_stress_spread_over_the_cluster_is_held_by_no_rigid_part():
     persists it is held by no rigid part, and the probes decide (one and two dimensions)."""
     c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     dims = set()
-    for idx, x, keep, free in _numerical_cases(c, 2, P):
+    for idx, x, keep, free in _numerical_cases(c, 2):
         assert rigid_part(x, keep, kernels.null_spaces(x, keep, free, P.tol_n), P.tol_n) is None, idx
         dims.add(solution_dimension(x, keep, free, P, limit=1).dim)
     assert {1, 2} <= dims
