@@ -11,7 +11,7 @@ import numpy as np
 
 from packings.workers import kernels
 from packings.workers.cluster import contacts_from_distances, upper_pairs
-from packings.workers.dimension import solution_dimension
+from packings.workers.dimension import rigid_part, solution_dimension
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
     FLOPPY,
@@ -27,6 +27,7 @@ from packings.workers.exact import SVD_ROUNDING, root_exists
 from packings.workers.params import Params
 from packings.workers.rigidity import (
     FIRST_ORDER,
+    FLOPPY as FLOPPY_KIND,
     UNDECIDED,
     Rigidity,
     rigidity_from_null_spaces,
@@ -505,6 +506,14 @@ def _contacts(x: np.ndarray, tol_a: float) -> tuple[tuple[int, int], ...]:
 
 
 UNPROVED_METHOD = "unproved"  #: Rigidity.method of a first-order verdict Kantorovich's theorem did not bear out
+RIGID_PART_METHOD = "rigid-part"  #: Rigidity.method of an endpoint whose every self-stress lies in a rigid part
+
+
+def _held_by_a_rigid_part(rig: Rigidity, x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float) -> bool:
+    """Whether the pre-stress test found no definite combination (not merely one whose margin the
+    coordinates leave in doubt, method ``unresolved``) and every self-stress lies in a rigid part."""
+    return (rig.kind == UNDECIDED and rig.method != "unresolved" and rig.flexes > 0 and rig.stresses > 0
+            and rigid_part(x, edges, ns, tol_n) is not None)
 
 
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
@@ -515,7 +524,10 @@ def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params)
     A first-order verdict stands only where Kantorovich's theorem proves a root of the contact
     equations near x (:func:`packings.workers.exact.kantorovich`); otherwise x only satisfied Newton's
     tolerance, near no cluster, and the verdict is undecided, method ``unproved``
-    (docs/method.md, "Exact clusters")."""
+    (docs/method.md, "Exact clusters").  An undecided pre-stress verdict is floppy, method ``rigid-part``,
+    where every self-stress lies in an infinitesimally rigid part (:func:`packings.workers.dimension.rigid_part`):
+    the contacts near x then form a manifold of dimension |V| > 0 (the pre-stress forms vanish on its
+    flexes, so the test could only leave it undecided)."""
     edges = np.array(contacts, dtype=np.int64)
     flexes = kernels.regular_flexes(x, edges, free, params.tol_n)
     if flexes is not None:  # certified full row rank: what the SVD would find, without it
@@ -524,6 +536,8 @@ def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params)
     else:
         ns = kernels.null_spaces(x, edges, free, params.tol_n)
         rig = rigidity_from_null_spaces(ns, edges, params, x, free)
+        if _held_by_a_rigid_part(rig, x, edges, ns, params.tol_n):
+            return Rigidity(False, FLOPPY_KIND, rig.flexes, rig.stresses, RIGID_PART_METHOD, rig.margin)
         sigma_min = float(ns.sigma[-1] - SVD_ROUNDING * ns.sigma[0]) if ns.sigma.size else None
     if rig.kind == FIRST_ORDER and not root_exists(x, edges, free, params.tol_n, sigma_min):
         return Rigidity(False, UNDECIDED, 0, rig.stresses, UNPROVED_METHOD)

@@ -13,7 +13,7 @@ from packings.workers.params import Params
 
 FIRST_ORDER = "first-order"  #: V empty
 PRESTRESS = "prestress"  #: V non-empty, some stress combination makes Q definite
-FLOPPY = "floppy"  #: V non-empty and W empty: dimension |V| > 0
+FLOPPY = "floppy"  #: V non-empty and W empty (or held by a rigid part): dimension |V| > 0
 UNDECIDED = "undecided"  #: V and W non-empty, no definite combination found
 
 

@@ -389,6 +389,29 @@ def test_a_stress_in_a_rigid_part_gives_the_dimension_without_probes(monkeypatch
     assert (d.dim, d.method) == (2, "rigid-part") and not d.at_least
 
 
+def test_an_endpoint_whose_stress_lies_in_a_rigid_part_is_floppy(monkeypatch):
+    """The hinged cluster as an endpoint (every contact kept): one flex, one self-stress, the stress in
+    the hyperstatic part.  Its pre-stress form vanishes on the hinge, so the pre-stress test alone leaves
+    it undecided; the certificate proves it floppy (a circle of solutions)."""
+    from packings.workers import paths
+
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, ns = _set_left(c)
+    assert (ns.V.shape[1], ns.W.shape[1]) == (1, 1)
+    rig = paths.endpoint_rigidity(x, c.contacts, free, P)
+    assert (rig.rigid, rig.kind, rig.method, rig.flexes, rig.stresses) == (False, "floppy", "rigid-part", 1, 1)
+    monkeypatch.setattr(paths, "rigid_part", lambda *a, **k: None)
+    before = paths.endpoint_rigidity(x, c.contacts, free, P)
+    assert (before.rigid, before.kind) == (False, "undecided")
+    monkeypatch.undo()
+    from packings.workers.rigidity import Rigidity
+
+    found = Rigidity(False, "undecided", 1, 1, before.method, before.margin)
+    assert paths._held_by_a_rigid_part(found, x, keep, ns, P.tol_n)
+    in_doubt = Rigidity(False, "undecided", 1, 1, "unresolved", 2 * P.tol_psd)  # a margin the coordinates leave in doubt
+    assert not paths._held_by_a_rigid_part(in_doubt, x, keep, ns, P.tol_n)
+
+
 def test_a_stress_in_a_rigid_part_is_followed_along_a_smooth_curve():
     """Where the certificate holds, the set is a curve tangent to V: points projected from x + h v lie
     h v away to second order in h."""
@@ -432,7 +455,10 @@ def test_a_pre_stress_spread_over_the_cluster_is_held_by_no_rigid_part():
 @settings(max_examples=15, deadline=None, derandomize=True)
 @given(st.randoms(use_true_random=False))
 def test_a_rigid_part_does_not_depend_on_labels_or_orientation(rnd):
-    """Relabel, rotate and reflect the hinged cluster: the same rigid part (relabelled) and dimension."""
+    """Relabel, rotate and reflect the hinged cluster: the same rigid part (relabelled) and dimension, and
+    as an endpoint the same verdict."""
+    from packings.workers.paths import endpoint_rigidity
+
     c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
     moved, _, perm = _moved(c, [], rnd)
     parts = []
@@ -440,5 +466,6 @@ def test_a_rigid_part_does_not_depend_on_labels_or_orientation(rnd):
         x, keep, free, ns = _set_left(cl)
         parts.append(rigid_part(x, keep, ns, P.tol_n))
         assert solution_dimension(x, keep, free, P, limit=1).dim == 1
+        assert endpoint_rigidity(x, cl.contacts, free, P).method == "rigid-part"
     assert parts[0] is not None and parts[1] is not None
     assert sorted(perm[i] for i in parts[0]) == sorted(parts[1].tolist())
