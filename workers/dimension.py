@@ -11,6 +11,9 @@ from packings.workers.params import Params
 from packings.workers.rigidity import Rigidity, rigidity_from_null_spaces
 
 
+RIGID_PART = "rigid-part"  #: the method of a dimension, or an endpoint's verdict, decided by :func:`rigid_part`
+
+
 @dataclass(frozen=True)
 class Dimension:
     """D, an orthonormal basis of the tangent directions found (3n x D), and how D was decided.
@@ -67,7 +70,7 @@ def solution_dimension(
     if W.shape[1] == 0:
         return Dimension(V.shape[1], V, "regular")
     if V.shape[1] and rigid_part(x, edges, ns, params.tol_n) is not None:
-        return Dimension(V.shape[1], V, "rigid-part")
+        return Dimension(V.shape[1], V, RIGID_PART)
     rig = rigidity_from_null_spaces(ns, edges, params)
     if rig.rigid:
         return Dimension(0, V[:, :0], "rigid", rig)

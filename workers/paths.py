@@ -11,7 +11,7 @@ import numpy as np
 
 from packings.workers import kernels
 from packings.workers.cluster import contacts_from_distances, upper_pairs
-from packings.workers.dimension import rigid_part, solution_dimension
+from packings.workers.dimension import RIGID_PART, rigid_part, solution_dimension
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
     FLOPPY,
@@ -29,6 +29,7 @@ from packings.workers.rigidity import (
     FIRST_ORDER,
     FLOPPY as FLOPPY_KIND,
     UNDECIDED,
+    UNRESOLVED_METHOD,
     Rigidity,
     rigidity_from_null_spaces,
     rigidity_without_stress,
@@ -506,14 +507,13 @@ def _contacts(x: np.ndarray, tol_a: float) -> tuple[tuple[int, int], ...]:
 
 
 UNPROVED_METHOD = "unproved"  #: Rigidity.method of a first-order verdict Kantorovich's theorem did not bear out
-RIGID_PART_METHOD = "rigid-part"  #: Rigidity.method of an endpoint whose every self-stress lies in a rigid part
 
 
 def _held_by_a_rigid_part(rig: Rigidity, x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float) -> bool:
     """Whether the pre-stress test found no definite combination (not merely one whose margin the
-    coordinates leave in doubt, method ``unresolved``) and every self-stress lies in a rigid part."""
-    return (rig.kind == UNDECIDED and rig.method != "unresolved" and rig.flexes > 0 and rig.stresses > 0
-            and rigid_part(x, edges, ns, tol_n) is not None)
+    coordinates leave in doubt, method ``unresolved``) and every self-stress lies in a rigid part.  An
+    undecided verdict of that test has flexes and stresses both."""
+    return rig.kind == UNDECIDED and rig.method != UNRESOLVED_METHOD and rigid_part(x, edges, ns, tol_n) is not None
 
 
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:
@@ -537,7 +537,7 @@ def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params)
         ns = kernels.null_spaces(x, edges, free, params.tol_n)
         rig = rigidity_from_null_spaces(ns, edges, params, x, free)
         if _held_by_a_rigid_part(rig, x, edges, ns, params.tol_n):
-            return Rigidity(False, FLOPPY_KIND, rig.flexes, rig.stresses, RIGID_PART_METHOD, rig.margin)
+            return Rigidity(False, FLOPPY_KIND, rig.flexes, rig.stresses, RIGID_PART, rig.margin)
         sigma_min = float(ns.sigma[-1] - SVD_ROUNDING * ns.sigma[0]) if ns.sigma.size else None
     if rig.kind == FIRST_ORDER and not root_exists(x, edges, free, params.tol_n, sigma_min):
         return Rigidity(False, UNDECIDED, 0, rig.stresses, UNPROVED_METHOD)

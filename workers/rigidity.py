@@ -15,6 +15,7 @@ FIRST_ORDER = "first-order"  #: V empty
 PRESTRESS = "prestress"  #: V non-empty, some stress combination makes Q definite
 FLOPPY = "floppy"  #: V non-empty and W empty (or held by a rigid part): dimension |V| > 0
 UNDECIDED = "undecided"  #: V and W non-empty, no definite combination found
+UNRESOLVED_METHOD = "unresolved"  #: Rigidity.method of a pre-stress margin the coordinates leave in doubt
 
 
 @dataclass(frozen=True)
@@ -161,7 +162,7 @@ def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params:
     rigid, method, margin = prestress_test(Q, params.tol_psd)
     if rigid and x is not None:
         if margin <= params.tol_psd + margin_uncertainty(x, edges, margin):
-            return Rigidity(False, UNDECIDED, a, b, "unresolved", margin)
+            return Rigidity(False, UNDECIDED, a, b, UNRESOLVED_METHOD, margin)
         if on_a_curve(x, edges, free, ns.V, params):
             return Rigidity(False, FLOPPY, a, b, "probe", margin)
     return Rigidity(rigid, PRESTRESS if rigid else UNDECIDED, a, b, method, margin)

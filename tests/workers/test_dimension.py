@@ -394,6 +394,7 @@ def test_an_endpoint_whose_stress_lies_in_a_rigid_part_is_floppy(monkeypatch):
     the hyperstatic part.  Its pre-stress form vanishes on the hinge, so the pre-stress test alone leaves
     it undecided; the certificate proves it floppy (a circle of solutions)."""
     from packings.workers import paths
+    from packings.workers.rigidity import Rigidity
 
     c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
     x, keep, free, ns = _set_left(c)
@@ -404,8 +405,6 @@ def test_an_endpoint_whose_stress_lies_in_a_rigid_part_is_floppy(monkeypatch):
     before = paths.endpoint_rigidity(x, c.contacts, free, P)
     assert (before.rigid, before.kind) == (False, "undecided")
     monkeypatch.undo()
-    from packings.workers.rigidity import Rigidity
-
     found = Rigidity(False, "undecided", 1, 1, before.method, before.margin)
     assert paths._held_by_a_rigid_part(found, x, keep, ns, P.tol_n)
     in_doubt = Rigidity(False, "undecided", 1, 1, "unresolved", 2 * P.tol_psd)  # a margin the coordinates leave in doubt
