@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -182,20 +183,31 @@ def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: 
 def _rigid_body(x: np.ndarray, edges: np.ndarray, inside: np.ndarray, tol_n: float, guard: float) -> np.ndarray | None:
     """The spheres ``inside`` if their contacts ``edges`` make them infinitesimally rigid (rank 3|B| - 6 of
     R_B in their own coordinates, its singular values separated there as :func:`_separated` asks, and the
-    spheres not collinear), else None."""
+    spheres not collinear), else None.
+
+    The test depends on the spheres' coordinates and the contacts among them alone, and one expansion asks
+    it of the same part for many subsets (those whose broken contacts lie outside it), so it is asked of
+    :func:`_rigid_in_own_coordinates`, which remembers its recent answers: the same bytes in, the same
+    answer out."""
     spheres = np.nonzero(inside)[0]
-    k = spheres.size
-    if k < 3:
+    if spheres.size < 3:
         return None
-    p = x.reshape(-1, 3)[spheres]
+    p = np.ascontiguousarray(x.reshape(-1, 3)[spheres], dtype=np.float64)
+    local = np.ascontiguousarray(np.searchsorted(spheres, edges), dtype=np.int64)  # sphere spheres[i] is i
+    return spheres if _rigid_in_own_coordinates(p.tobytes(), local.tobytes(), tol_n, guard) else None
+
+
+@functools.lru_cache(maxsize=4096)
+def _rigid_in_own_coordinates(coords: bytes, edges: bytes, tol_n: float, guard: float) -> bool:
+    """Whether the spheres at ``coords`` (k x 3 float64) with the contacts ``edges`` among them (pairs of
+    int64 in 0..k-1) are infinitesimally rigid and not collinear, as :func:`_rigid_body` asks."""
+    p = np.frombuffer(coords, dtype=np.float64).reshape(-1, 3)
+    e = np.frombuffer(edges, dtype=np.int64).reshape(-1, 2)
     if np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[1] < 0.1:  # collinear: 5 trivial motions, not 6
-        return None
-    cols = (3 * spheres[:, None] + np.arange(3)).ravel()
-    sv = np.linalg.svd(kernels.rigidity_matrix_numpy(x, edges)[:, cols], compute_uv=False)
-    rank = 3 * k - 6
-    if sv.size < rank or not _separated(float(sv[rank - 1]), float(sv[rank:].max(initial=0.0)), guard, tol_n):
-        return None
-    return spheres
+        return False
+    sv = np.linalg.svd(kernels.rigidity_matrix_numpy(p.ravel(), e), compute_uv=False)
+    rank = 3 * p.shape[0] - 6
+    return sv.size >= rank and _separated(float(sv[rank - 1]), float(sv[rank:].max(initial=0.0)), guard, tol_n)
 
 
 def counts_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> tuple[int, int] | None:

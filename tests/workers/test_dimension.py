@@ -468,3 +468,53 @@ def test_a_rigid_part_does_not_depend_on_labels_or_orientation(rnd):
         assert endpoint_rigidity(x, cl.contacts, free, P).method == "rigid-part"
     assert parts[0] is not None and parts[1] is not None
     assert sorted(perm[i] for i in parts[0]) == sorted(parts[1].tolist())
+
+
+def _rigid_body_afresh(x, edges, inside, tol_n, guard):
+    """The rigid-body test computed on the whole cluster's rigidity matrix, its columns of the part taken,
+    as it was before :func:`dimension._rigid_body` remembered its answers."""
+    spheres = np.nonzero(inside)[0]
+    p = x.reshape(-1, 3)[spheres]
+    if spheres.size < 3 or np.linalg.svd(p - p.mean(axis=0), compute_uv=False)[1] < 0.1:
+        return None
+    cols = (3 * spheres[:, None] + np.arange(3)).ravel()
+    sv = np.linalg.svd(kernels.rigidity_matrix_numpy(x, edges)[:, cols], compute_uv=False)
+    rank = 3 * spheres.size - 6
+    ok = sv.size >= rank and dimension._separated(float(sv[rank - 1]), float(sv[rank:].max(initial=0.0)), guard, tol_n)
+    return spheres if ok else None
+
+
+def test_the_rigid_body_test_remembers_answers_without_changing_them():
+    """The rigid-body test of a part asked again (the same coordinates and contacts) is answered from memory,
+    and every answer, first or remembered, is the one computed afresh on the whole rigidity matrix: for the
+    hyperstatic part of the hinged cluster (rigid), the part with the hinged sphere (not: it swings), a
+    part in another frame, and three spheres in a row (collinear)."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, ns = _set_left(c)
+    core = np.ones(c.n, dtype=bool)
+    core[-1] = False
+    every = np.ones(c.n, dtype=bool)
+    cases = []
+    for inside in (core, every):
+        both = inside[keep[:, 0]] & inside[keep[:, 1]]
+        cases.append((x, keep[both], inside))
+    y = x.reshape(-1, 3).copy() @ np.linalg.qr(np.arange(9.0).reshape(3, 3) + np.eye(3))[0].T  # another frame
+    both = core[keep[:, 0]] & core[keep[:, 1]]
+    cases.append((y.ravel(), keep[both], core))
+    line = np.zeros((c.n, 3))
+    line[:3, 0] = [0.0, 1.0, 2.0]
+    three = np.zeros(c.n, dtype=bool)
+    three[:3] = True
+    cases.append((line.ravel(), np.array([[0, 1], [1, 2]]), three))
+    dimension._rigid_in_own_coordinates.cache_clear()
+    for _ in range(2):
+        for xx, ee, inside in cases:
+            got = dimension._rigid_body(xx, ee, inside, P.tol_n, dimension.COUNT_GUARD)
+            want = _rigid_body_afresh(xx, ee, inside, P.tol_n, dimension.COUNT_GUARD)
+            assert (got is None) == (want is None)
+            if got is not None:
+                assert np.array_equal(got, want)
+    assert [dimension._rigid_body(xx, ee, i, P.tol_n, dimension.COUNT_GUARD) is not None for xx, ee, i in cases] == [
+        True, False, True, False]
+    info = dimension._rigid_in_own_coordinates.cache_info()
+    assert (info.misses, info.hits) == (len(cases), 2 * len(cases))  # each computed once, then remembered
