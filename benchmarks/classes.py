@@ -37,7 +37,9 @@ same process and alternating with the others: a change to the kernels measured a
 run, with the attempts of the two compared one by one (outcome, steps and endpoint coordinates to
 the last bit).  Unless ``--no-every``, expand is also timed following every path (``every``: the
 code before it followed one path of each set that a symmetry of the cluster makes congruent), with
-the paths whose outcome then differs counted.  Also printed per class: the subsets of contacts tried per cluster (least
+the paths whose outcome then differs counted.  Unless ``--no-unheld``, expand is timed following the paths
+of subsets with a contact the rest holds at its length too (``unheld``: the code before the outcome
+``held``), with the clusters whose other attempts or distinct clusters reached then differ counted.  Also printed per class: the subsets of contacts tried per cluster (least
 and most), the share of them whose set is not one-dimensional, and how many
 sampled clusters gave the same endpoints with both backends.  Ratios measured in one run are what compare; absolute times
 depend on the machine's load.
@@ -74,6 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--every", action=argparse.BooleanOptionalAction, default=True,
                         help="also time expand following every path, not one of each set a symmetry of the cluster "
                              "makes congruent, and count the paths whose outcome differs (default: yes)")
+    parser.add_argument("--unheld", action=argparse.BooleanOptionalAction, default=True,
+                        help="also time expand following the paths of subsets with a contact the rest holds at "
+                             "its length (outcome held: docs/method.md), and count the attempts of other subsets "
+                             "and the clusters reached that differ (default: yes)")
     parser.add_argument("--max-break", type=int, default=None, metavar="K",
                         help="break at most K contacts at once, as the run of a restricted catalogue did "
                              "(`packings enumerate N --max-break K`; default: no cap)")
@@ -215,12 +221,13 @@ def _from_memory(n: int, params) -> list[tuple[object, str, None]]:
 
 #: what is timed: name -> (kernel backend, decide subsets by the first-order counts, follow one path of
 #: each set of paths a symmetry of the cluster makes congruent)
-VARIANTS = {
-    "numba": ("numba", True, True),  # the code a run uses
-    "svd": ("numba", False, True),  # every subset decided by an SVD of what is left, as before the counts
-    "numpy": ("numpy", True, True),  # the numpy reference kernels
-    "against": ("numba", True, True),  # as "numba", with the kernels of --against FILE (kernels_from)
-    "every": ("numba", True, False),  # as "numba", every path followed, as before the symmetries
+VARIANTS = {  # (backend, first_order, symmetric, held): expand's arguments
+    "numba": ("numba", True, True, True),  # the code a run uses
+    "svd": ("numba", False, True, True),  # every subset decided by an SVD of what is left, as before the counts
+    "numpy": ("numpy", True, True, True),  # the numpy reference kernels
+    "against": ("numba", True, True, True),  # as "numba", with the kernels of --against FILE (kernels_from)
+    "every": ("numba", True, False, True),  # as "numba", every path followed, as before the symmetries
+    "unheld": ("numba", True, True, False),  # as "numba", the paths of subsets with a held contact followed too
 }
 
 
@@ -271,11 +278,11 @@ def _time(cluster, params, variant: str, against=None, came: tuple = ()):
     from packings.workers import kernels
     from packings.workers.expand import arrivals, expand
 
-    backend, first_order, symmetric = VARIANTS[variant]
+    backend, first_order, symmetric, held = VARIANTS[variant]
     swap = kernels_from(against) if variant == AGAINST else contextlib.nullcontext()
     with kernels.backend(backend), swap:
         t0 = time.perf_counter()
-        ex = expand(cluster, params, first_order, symmetric, arrivals=arrivals(came))
+        ex = expand(cluster, params, first_order, symmetric, arrivals=arrivals(came), held=held)
         return time.perf_counter() - t0, ex
 
 
@@ -308,19 +315,21 @@ def _stratified(members, sample: int, rng) -> list[int]:
 
 
 def measure(clusters: list[tuple[object, str, object]], params, sample: int, seed: int, numpy: bool,
-            against=None, every: bool = False, came=None) -> list[dict]:
+            against=None, every: bool = False, came=None, unheld: bool = False) -> list[dict]:
     """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share, paths
     taken from the other end; with ``against`` (a kernels module, :func:`load_kernels`) also its time and the
     attempts that differ; with ``every``, the time of following every path and the paths whose outcome
-    differs.  ``clusters``: (cluster, class, key); ``came(keys)``: for each of the clusters ``keys``, the rows of
+    differs; with ``unheld``, the time of following the paths of held subsets too, and the clusters whose other
+    attempts or distinct clusters reached differ.  ``clusters``: (cluster, class, key); ``came(keys)``: for each of the clusters ``keys``, the rows of
     the paths that arrived at it and the paths its run took from the other end (:func:`arrivals_of`); every
     cluster given none without it."""
     import numpy as np
 
-    from packings.workers.expand import NOT_1D
+    from packings.workers.expand import HELD, NOT_1D
+    from packings.workers.identity import certificate_hex
 
     backends = (["numba", "svd"] + ([AGAINST] if against is not None else []) + (["numpy"] if numpy else [])
-                + (["every"] if every else []))
+                + (["every"] if every else []) + (["unheld"] if unheld else []))
     rng = np.random.default_rng(seed)
     rows = []
     for name in CLASSES:
@@ -334,7 +343,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         picked = Counter(members[i].m for i in pick)
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
         subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
-        retraced = run_retraced = 0
+        retraced = run_retraced = held = unheld_differ = 0
         for i in pick:
             came_rows, took = given.get(keys[i], ((), 0))
             run_retraced += took
@@ -362,6 +371,13 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
                 everyone = results["every"][1].endpoints
                 assert [e.broken for e in ex.endpoints] == [e.broken for e in everyone]
                 every_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(everyone)).values())
+            if unheld:  # every attempt of a subset not held the same to the bit, and the same clusters reached
+                other = results["unheld"][1]
+                kept = {e.broken for e in ex.endpoints if e.outcome == HELD}
+                held += len(kept)
+                reached = [Counter(certificate_hex(x.endpoints[j].cluster) for j in x.distinct()) for x in (ex, other)]
+                unheld_differ += (reached[0] != reached[1] or [k for k in _attempt_keys(ex) if k[0] not in kept]
+                                  != [k for k in _attempt_keys(other) if k[0] not in kept])
             if against is not None:
                 mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
                 against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
@@ -378,6 +394,10 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         if every:
             row["every_ratio"] = row["mean_ms_every"] / row["mean_ms_numba"]
             row["every_paths_differing"] = every_differ
+        if unheld:
+            row["unheld_ratio"] = row["mean_ms_unheld"] / row["mean_ms_numba"]
+            row["held"] = held
+            row["unheld_clusters_differing"] = unheld_differ
         if against is not None:
             row["against_ratio"] = row[f"mean_ms_{AGAINST}"] / row["mean_ms_numba"]
             row["against_attempts_differing"] = against_differ
@@ -419,7 +439,7 @@ def run(args: argparse.Namespace) -> int:
     if mode != "none":
         run_id, run_times = _the_run(args.db, args.n, params)
         came = lambda keys: arrivals_of(args.db, run_id, mode, keys)  # noqa: E731
-    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every, came)
+    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every, came, args.unheld)
     whole = sum(seconds for _, seconds in run_times.values()) or 1.0
     for r in rows:
         expanded, seconds = run_times.get(r["class"], (0, 0.0))
@@ -446,6 +466,8 @@ def run(args: argparse.Namespace) -> int:
         head += f"{'before ms':>10}{'before/':>8}{'differ':>11}"
     if args.every:
         head += f"{'every ms':>10}{'every/':>7}{'images':>8}{'differ':>7}"
+    if args.unheld:
+        head += f"{'unheld ms':>10}{'unheld/':>8}{'held':>8}{'differ':>7}"
     if args.numpy:
         head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}"
     print(head)
@@ -462,6 +484,9 @@ def run(args: argparse.Namespace) -> int:
         if args.every:
             line += (f"{r['mean_ms_every']:>10.1f}{r['every_ratio']:>7.2f}{r['paths_by_symmetry']:>8}"
                      f"{r['every_paths_differing']:>7}")
+        if args.unheld:
+            line += (f"{r['mean_ms_unheld']:>10.1f}{r['unheld_ratio']:>8.2f}{r['held']:>8}"
+                     f"{r['unheld_clusters_differing']:>7}")
         if args.numpy:
             line += (f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
                      f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}")
@@ -476,7 +501,10 @@ def run(args: argparse.Namespace) -> int:
              "to the last bit, of all" if against is not None else "")
           + ("; every: every path followed, not one of each set congruent by a symmetry of the cluster, every/ = "
              "every / ms each, images: paths taken as images, differ: paths whose outcome is not the one following "
-             "every path gave" if args.every else "") + ")")
+             "every path gave" if args.every else "")
+          + ("; unheld: the paths of subsets with a contact the rest holds followed too, unheld/ = unheld / ms each, "
+             "held: subsets held, differ: clusters whose other attempts or clusters reached differ" if args.unheld
+             else "") + ")")
     differ = sum(r["svd_paths_differing"] for r in rows)
     if differ:
         print(f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "

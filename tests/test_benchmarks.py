@@ -89,8 +89,17 @@ def test_the_classes_benchmark_times_following_every_path_against_one_of_each_co
     [row] = benchmark("classes", "--n", "8", "--sample", "20", "--no-numpy")["rows"]
     assert row["sampled"] == 13 and row["paths_by_symmetry"] > 0
     assert row["mean_ms_every"] > 0 and row["every_ratio"] > 0 and row["every_paths_differing"] == 0
-    [row] = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--no-every")["rows"]
-    assert "mean_ms_every" not in row and "every_paths_differing" not in row
+    [row] = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--no-every", "--no-unheld")["rows"]
+    assert "mean_ms_every" not in row and "every_paths_differing" not in row and "mean_ms_unheld" not in row
+
+
+def test_the_classes_benchmark_times_following_the_paths_of_held_subsets_too():
+    """The unheld variant (the paths of subsets with a contact the rest holds followed as well) is timed beside
+    the run's code on the same clusters, and no cluster's other attempts or clusters reached differ."""
+    rows = benchmark("classes", "--n", "9", "--sample", "3", "--no-numpy", "--no-every")["rows"]
+    for row in rows:
+        assert row["mean_ms_unheld"] > 0 and row["unheld_ratio"] > 0
+        assert row["held"] >= 0 and row["unheld_clusters_differing"] == 0
 
 
 SHIM = """

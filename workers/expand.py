@@ -24,6 +24,7 @@ from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attem
     BELOW_MIN_CONTACTS,
     CIRCULAR,
     DIMENSION_CHANGED,
+    HELD,
     NO_DIRECTION,
     NO_TRIANGLE,
     NOT_1D,
@@ -261,7 +262,7 @@ class _Orbits:
 
 def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms: np.ndarray | None = None,
               arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None,
-              source: dict | None = None) -> Iterator[Endpoint | PathStart | Image]:
+              source: dict | None = None, held: bool = True) -> Iterator[Endpoint | PathStart | Image]:
     """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart.
 
     Given the cluster's symmetries ``perms`` (:func:`packings.workers.identity.symmetries`), a subset that
@@ -282,6 +283,13 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
     lengthens the subset, is an Endpoint at the arrival's cluster (:attr:`Endpoint.reached`), not followed.
     ``source["first_order_rigid"]`` is set to whether the cluster is first-order rigid (with
     ``first_order`` only).
+
+    With ``held``, a subset B that leaves one flex to first order, and has a contact q such that B less q
+    was tried and leaves a one-dimensional set, is an Endpoint ``held``, not followed: q's row lies in the
+    span of what is left, so B's set lies on the smooth curve of any rank(R∖B) of its independent rows,
+    and so does the curve B less q leaves, which is therefore B's whole set near x.  Along it q keeps its
+    length exactly: B's path is the path of B less q, which is followed, and following it again only
+    asks rounding whether q opens (docs/method.md, "Contacts the rest holds").
     """
     n, m = cluster.n, cluster.m
     all_edges, pairs = cluster.edges(), cluster.contacts
@@ -317,11 +325,14 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
     # every contact before its first side had no triangle, and deleting contacts makes none.
     own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
     orbits = _Orbits(cluster, perms) if perms is not None and len(perms) > 1 else None
+    one_d: set[tuple[int, ...]] = set()  # the subsets tried whose set is one-dimensional (an image's too)
     for k in break_sizes(m, rank, params):
         for idx in combinations(range(m), k):
             if orbits is not None:
                 first = orbits.first(idx)
                 if first is not None:
+                    if first[0] in one_d:
+                        one_d.add(idx)
                     yield Image(tuple(pairs[q] for q in idx), tuple(pairs[q] for q in first[0]), first[1])
                     continue
             broken = all_edges[list(idx)]
@@ -334,7 +345,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
                 continue
             x, free = frame(tri)
-            dim = None
+            dim = ns = flexes = None
             if k == one_flex or (stressed and may_decide(basis(tri), k)):
                 counts, t = after_breaking(basis(tri), idx, params.tol_n)
                 if counts is not None:
@@ -344,11 +355,19 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                         continue
                     if t is not None:
                         dim = Dimension(1, t[:, None], "regular")
+            if flexes is None:
+                ns = kernels.null_spaces(x, keep, free, params.tol_n)
+                flexes = ns.V.shape[1]
+            if held and flexes == 1 and k > 1 and any(sub in one_d for sub in combinations(idx, k - 1)):
+                one_d.add(idx)
+                yield Endpoint(bt, 0, HELD, 1)
+                continue
             if dim is None:
-                dim = solution_dimension(x, keep, free, params, limit=1)
+                dim = solution_dimension(x, keep, free, params, ns=ns, limit=1)
             if dim.dim != 1:
                 yield Endpoint(bt, 0, NOT_1D, dim.dim)
                 continue
+            one_d.add(idx)
             v = dim.tangents[:, 0]
             g = np.array([_lengthening(x, v, i, j) for i, j in broken])
             signs = [s for s in (1, -1) if np.all(s * g > -params.tol_n)]
@@ -370,7 +389,7 @@ def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
 
 
 def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric: bool = True,
-           arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None) -> Expansion:
+           arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None, held: bool = True) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
     A pure function of its inputs.  For every subset B whose removal leaves a
@@ -388,6 +407,10 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
     With ``arrivals`` (:func:`arrivals`) at a first-order rigid cluster, the path that breaks an arrival's
     contacts is not followed: it retraces the path that arrived, and its attempt ends at the cluster that path
     came from (:attr:`Endpoint.reached`; docs/method.md, "Paths followed from one end only").
+
+    With ``held`` (the default), a subset with a broken contact that the rest holds at its length is not
+    followed (outcome ``held``, :func:`_attempts`): its path is that of a smaller subset.  ``held`` False
+    follows it (the reference it is tested against): the same clusters are reached.
     """
     cert = certificate(cluster)
     out: list[Endpoint] = []
@@ -398,7 +421,7 @@ def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric
     if arrivals and symmetric:
         arrivals = _closed(arrivals, perms)
     source: dict = {}
-    for a in _attempts(cluster, params, first_order, perms, arrivals, source):
+    for a in _attempts(cluster, params, first_order, perms, arrivals, source, held):
         if isinstance(a, Image):
             for i in made[a.of]:
                 images[len(out)] = i

@@ -19,6 +19,7 @@ TOO_LONG = "too-long"  #: max_path_steps reached without a new contact
 # Outcomes of one (broken subset, direction) beyond those of a path (packings.workers.expand).
 CIRCULAR = "circular"  #: the path came back to the cluster it left
 NOT_1D = "not-1d"  #: removing the subset leaves a solution set of dimension != 1 (no path)
+HELD = "held"  #: a broken contact the rest holds at its length: the set is a smaller subset's, whose path is followed
 NO_DIRECTION = "no-direction"  #: no tangent direction lengthens every broken contact
 NO_TRIANGLE = "no-triangle"  #: the remaining contacts hold no triangle to pin
 BELOW_MIN_CONTACTS = "below-min-contacts"  #: rigid endpoint with fewer contacts than min_contacts
