@@ -220,8 +220,8 @@ def _from_memory(n: int, params) -> list[tuple[object, str, None]]:
 
 
 #: what is timed: name -> (kernel backend, decide subsets by the first-order counts, follow one path of
-#: each set of paths a symmetry of the cluster makes congruent)
-VARIANTS = {  # (backend, first_order, symmetric, held): expand's arguments
+#: each set of paths a symmetry of the cluster makes congruent, leave held subsets unfollowed)
+VARIANTS = {
     "numba": ("numba", True, True, True),  # the code a run uses
     "svd": ("numba", False, True, True),  # every subset decided by an SVD of what is left, as before the counts
     "numpy": ("numpy", True, True, True),  # the numpy reference kernels

@@ -441,7 +441,7 @@ def test_a_subset_with_a_contact_the_rest_holds_is_not_followed_and_nothing_reac
     tangent, projected back onto what B leaves, finds every such q still touching to Newton's tolerance
     (a contact that merely keeps its length to first order would move by about the step squared).  Every
     other attempt is the same as when every path is followed, and so is every cluster reached."""
-    from packings.workers.expand import HELD
+    from packings.workers.expand import HELD, NO_TRIANGLE
     from packings.workers.rigidity import contact_triangle
     from packings.workers import kernels
 
@@ -460,7 +460,7 @@ def test_a_subset_with_a_contact_the_rest_holds_is_not_followed_and_nothing_reac
     # following them is rounding's call: mostly shortens, some floppy, the odd one at a cluster reached anyway
     assert Counter(e.outcome for e in every.endpoints if e.broken in held)[RIGID] < len(held) / 10
 
-    one_d = {e.broken for e in every.endpoints if e.outcome not in (NOT_1D, "no-triangle")}
+    one_d = {e.broken for e in every.endpoints if e.outcome not in (NOT_1D, NO_TRIANGLE)}
     kw = p.newton()
     for b in sorted(held)[::7]:
         keep = np.array([e for e in c.contacts if e not in b])
