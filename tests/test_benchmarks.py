@@ -20,6 +20,14 @@ def benchmark(*args: str) -> dict:
     return json.loads(r.stdout)
 
 
+def enumerate_into(url: str, n: int, *args: str) -> subprocess.CompletedProcess:
+    """``packings enumerate n`` into the database ``url`` on one worker, which must succeed."""
+    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", str(n), *args, "--db", url, "--workers", "1"],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    return r
+
+
 def test_the_enumerate_benchmark_reports_the_shares_outside_expand(paper_counts):
     report = benchmark("enumerate", "--sizes", "7", "--workers", "1")
     [row] = report["runs"]
@@ -99,9 +107,7 @@ def test_the_classes_benchmark_times_following_the_paths_of_held_subsets_too(tmp
     cluster with 29 contacts, broken up to three at a time, has hundreds of held subsets."""
     url = f"sqlite:///{tmp_path / 'c.db'}"
     restricted = ("--min-contacts", "29", "--max-break", "3")
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "11", *restricted, "--db", url, "--workers",
-                        "1", "--quiet"], cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
+    enumerate_into(url, 11, *restricted, "--quiet")
     [row] = benchmark("classes", "--n", "11", "--db", url, *restricted, "--sample", "1", "--no-numpy", "--no-every")["rows"]
     assert row["class"] == "hyperstatic" and row["held"] > 100
     assert row["mean_ms_unheld"] > 0 and row["unheld_ratio"] > 0 and row["unheld_clusters_differing"] == 0
@@ -175,9 +181,7 @@ def test_the_classes_benchmark_samples_every_number_of_contacts_in_proportion():
 
 def test_the_classes_benchmark_reads_a_stored_catalogue(tmp_path):
     url = f"sqlite:///{tmp_path / 'c.db'}"
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "8", "--db", url, "--workers", "1", "--quiet"],
-                       capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
+    enumerate_into(url, 8, "--quiet")
     report = benchmark("classes", "--n", "8", "--db", url, "--sample", "2", "--no-numpy")
     assert report["source"] == url and [(r["class"], r["clusters"], r["sampled"]) for r in report["rows"]] == [
         ("regular", 13, 2)]
@@ -202,10 +206,7 @@ def test_the_memory_benchmark_reports_what_one_expansion_holds():
 def run_of_9(tmp_path_factory) -> tuple[str, dict]:
     """(URL, diagnostics) of a complete run of n = 9 on one worker."""
     url = f"sqlite:///{tmp_path_factory.mktemp('nine') / 'c.db'}"
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "9", "--db", url, "--workers", "1", "--json"],
-                       capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    return url, json.loads(r.stdout)["diagnostics"]
+    return url, json.loads(enumerate_into(url, 9, "--json").stdout)["diagnostics"]
 
 
 def test_the_classes_benchmark_gives_each_cluster_the_paths_that_had_arrived_when_its_run_expanded_it(run_of_9):
