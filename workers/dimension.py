@@ -6,6 +6,7 @@ import functools
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from packings.workers import kernels
 from packings.workers.params import Params
@@ -32,6 +33,9 @@ class Dimension:
     method: str
     rigidity: Rigidity | None = None
     at_least: bool = False
+    #: with method ``rigid-part`` and D = 1, rows of the contacts whose deletion leaves R with full row rank and
+    #: the same solution set (:func:`held_rows`), or None where no such rows are certified
+    held_rows: np.ndarray | None = None
 
 
 def solution_dimension(
@@ -71,7 +75,8 @@ def solution_dimension(
     if W.shape[1] == 0:
         return Dimension(V.shape[1], V, "regular")
     if V.shape[1] and rigid_part(x, edges, ns, params.tol_n) is not None:
-        return Dimension(V.shape[1], V, RIGID_PART)
+        held = held_rows(ns, params.tol_n) if V.shape[1] == 1 else None  # a path is followed only on a curve
+        return Dimension(V.shape[1], V, RIGID_PART, held_rows=held)
     rig = rigidity_from_null_spaces(ns, edges, params)
     if rig.rigid:
         return Dimension(0, V[:, :0], "rigid", rig)
@@ -178,6 +183,32 @@ def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: 
         if not np.any(touches >= 3):
             return None
         inside |= touches >= 3
+
+
+def held_rows(ns: kernels.NullSpaces, tol_n: float, guard: float = COUNT_GUARD) -> np.ndarray | None:
+    """Where every self-stress lies in a rigid part (:func:`rigid_part`): s rows of the contacts (s = the
+    number of self-stresses) whose deletion leaves R with full row rank, sorted; None where the first-order
+    count after deleting them (:func:`counts_after_breaking`) is not certain to say so.
+
+    The rows are chosen by a pivoted QR of W^T (greedily, for a well-conditioned s x s block W_S), and must
+    lie in the stresses' support, hence inside the rigid part B.  rank(R without S) = rank(R) - s + rank(W_S) =
+    rank(R), so the rows of S are combinations of the others, of B's alone (every stress lives in B); B stays
+    infinitesimally rigid without them.  The contacts without S then define a manifold of dimension |V| near
+    x that holds the set of all of them, itself a manifold of that dimension (:func:`rigid_part`): the same
+    set.  Along a path on it B moves as one body, so S keeps its lengths, and the path can be stepped on the
+    contacts without S, whose Jacobian has full row rank, at a regular path's cost (docs/method.md,
+    "Self-stresses held by a rigid part")."""
+    s = ns.W.shape[1]
+    if s == 0:
+        return None
+    _, _, piv = scipy.linalg.qr(ns.W.T, mode="economic", pivoting=True)
+    rows = np.sort(piv[:s])
+    if np.any(np.linalg.norm(ns.W[rows], axis=1) < SUPPORT_NONZERO):  # outside the support, hence maybe outside B
+        return None
+    counts = counts_after_breaking(StressBasis.of(ns, tol_n), rows, tol_n, guard)
+    if counts is None or counts[1] != 0:
+        return None
+    return rows
 
 
 def _rigid_body(x: np.ndarray, edges: np.ndarray, inside: np.ndarray, tol_n: float, guard: float) -> np.ndarray | None:

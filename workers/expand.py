@@ -216,9 +216,11 @@ class PathStart:
     broken: np.ndarray  #: contacts broken (|B| x 2)
     tangent: np.ndarray  #: the signed tangent direction
     free: np.ndarray  #: free coordinates
+    #: rows of ``keep`` that a rigid part holds at their length along the path (:attr:`Dimension.held_rows`), or None
+    held_rows: np.ndarray | None = None
 
     def follow(self, params: Params) -> PathEnd:
-        return follow_path(self.x, self.keep, self.broken, self.tangent, self.free, params)
+        return follow_path(self.x, self.keep, self.broken, self.tangent, self.free, params, self.held_rows)
 
 
 @dataclass(frozen=True)
@@ -380,7 +382,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                 yield Endpoint(bt, signs[0], RIGID, 1, a.steps, new_contacts=a.formed, reached=a)
                 continue
             for s in signs:
-                yield PathStart(bt, s, x, keep, broken, s * v, free)
+                yield PathStart(bt, s, x, keep, broken, s * v, free, dim.held_rows)
 
 
 def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:

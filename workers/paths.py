@@ -70,6 +70,7 @@ def follow_path(
     tangent: np.ndarray,
     free: np.ndarray,
     params: Params,
+    held_rows: np.ndarray | None = None,
 ) -> PathEnd:
     """Follow the path of {f_keep = 0} from x along ``tangent`` until a new contact forms.
 
@@ -93,10 +94,19 @@ def follow_path(
     if it passes the rigidity test; it reaches the rigid clusters that lie at the
     end of a singular path which a finite first step leaves (a thin set of
     dimension 2 surrounds such a path).
+
+    ``held_rows``: rows of ``keep`` that a rigid part holds at their length near x
+    (:func:`packings.workers.dimension.held_rows`).  The steps then project onto the
+    other contacts, whose Jacobian has full row rank, rather than onto a set whose
+    self-stresses persist along the whole path (each step's tangent an SVD, Newton's
+    step the reduced one): the same curve.  The held rows stay contacts for all else
+    (they are not watched as pairs that approach, and the endpoint is projected onto
+    every contact kept).
     """
+    steps_on = keep if held_rows is None else np.delete(np.asarray(keep).reshape(-1, 2), held_rows, axis=0)
     if kernels.compiled():
-        return _follow_compiled(x, keep, broken, tangent, free, params)
-    return _follow_numpy(x, keep, broken, tangent, free, params)
+        return _follow_compiled(x, keep, broken, tangent, free, params, steps_on)
+    return _follow_numpy(x, keep, broken, tangent, free, params, steps_on)
 
 
 def _broken_pairs(n: int, keep: np.ndarray, broken: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,8 +145,10 @@ def _svd_tangent(xn, keep, free, t, params: Params, first: bool) -> tuple[np.nda
     return tn / norm, first_dim
 
 
-def _follow_numpy(x, keep, broken, tangent, free, params: Params) -> PathEnd:
-    """The reference loop of :func:`follow_path`: one Python iteration per step, an SVD at every step."""
+def _follow_numpy(x, keep, broken, tangent, free, params: Params, steps_on=None) -> PathEnd:
+    """The reference loop of :func:`follow_path`: one Python iteration per step, an SVD at every step.
+    ``steps_on``: the contacts the steps project onto (default ``keep``)."""
+    steps_on = keep if steps_on is None else steps_on
     n = x.size // 3
     kw = params.newton()
     pairs, broken_idx = _broken_pairs(n, keep, broken)
@@ -152,7 +164,7 @@ def _follow_numpy(x, keep, broken, tangent, free, params: Params) -> PathEnd:
         return PathEnd(outcome, n_steps, first_step_dim=first_dim)
 
     while steps < params.max_path_steps:
-        pr = kernels.project(x + h * t, keep, free, **kw)
+        pr = kernels.project(x + h * t, steps_on, free, **kw)
         if not pr.ok or (pr.x - x) @ t <= 0.0:
             h /= 2
             if h < h_min:
@@ -174,7 +186,7 @@ def _follow_numpy(x, keep, broken, tangent, free, params: Params) -> PathEnd:
                     return end(PROJECTION_FAILED, steps)
                 continue
             return replace(_endpoint(x, xn, keep, pairs, hit, free, params, steps + 1), first_step_dim=first_dim)
-        tn, dim = _svd_tangent(xn, keep, free, t, params, first_dim is None)
+        tn, dim = _svd_tangent(xn, steps_on, free, t, params, first_dim is None)
         if first_dim is None:
             first_dim = dim
         if tn is None:
@@ -195,7 +207,7 @@ _COMPILED_OUTCOMES = {
 } if _compiled is not None else {}
 
 
-def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
+def _follow_compiled(x, keep, broken, tangent, free, params: Params, steps_on=None) -> PathEnd:
     """:func:`follow_path` with the stepping loop compiled (packings.workers._compiled.follow_steps).
 
     The compiled loop runs the same steps as :func:`_follow_numpy` and returns
@@ -205,11 +217,13 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
     |V|).  That step takes its dimension and tangent from :func:`_svd_tangent`
     exactly as the reference does, and the compiled loop then resumes.  Later
     steps where the guard fails (a self-stress persists along the path) take
-    the SVD's tangent inside the loop (``_compiled._svd_tangent``).
+    the SVD's tangent inside the loop (``_compiled._svd_tangent``).  The steps
+    project onto ``steps_on`` (default ``keep``).
     """
     n = x.size // 3
     x = kernels.as_kernel_array(x, np.float64, (-1,))
     keep = kernels.as_kernel_array(keep, np.int64, (-1, 2))
+    steps_on = keep if steps_on is None else kernels.as_kernel_array(steps_on, np.int64, (-1, 2))
     free = kernels.as_kernel_array(free, np.int64, (-1,))
     pairs, broken_idx = _broken_pairs(n, keep, broken)
     mask = kernels.free_mask(x.size, free)
@@ -223,7 +237,7 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
     steps = 0
     while True:
         status, x, t, d_prev, h, h_max, steps, dim, xn, d, hit, _ = _compiled.follow_steps(
-            x, t, d_prev, h, h_max, steps, first_dim is None, keep, free, mask, pairs, broken_idx,
+            x, t, d_prev, h, h_max, steps, first_dim is None, steps_on, free, mask, pairs, broken_idx,
             params.ds, h_min, params.tol, params.dx_max, params.newton_max_iter, params.tol_a0,
             params.max_path_steps, guard, params.stop_on_dimension_change, params.tol_n,
         )  # fmt: skip
@@ -233,7 +247,7 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params) -> PathEnd:
             return replace(_endpoint(x, xn, keep, pairs, hit, free, params, steps + 1), first_step_dim=first_dim)
         if status != _compiled.ST_NEED_SVD:
             return PathEnd(_COMPILED_OUTCOMES[status], steps, first_step_dim=first_dim)
-        tn, dim = _svd_tangent(xn, keep, free, t, params, first_dim is None)
+        tn, dim = _svd_tangent(xn, steps_on, free, t, params, first_dim is None)
         if first_dim is None:
             first_dim = dim
         if tn is None:

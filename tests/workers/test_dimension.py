@@ -470,6 +470,77 @@ def test_a_rigid_part_does_not_depend_on_labels_or_orientation(rnd):
     assert sorted(perm[i] for i in parts[0]) == sorted(parts[1].tolist())
 
 
+def _held_path(c: Cluster):
+    """(x, keep, free, the rigid-part dimension) of the hinged cluster with nothing broken: one flex, the
+    hinge's circle, one self-stress in the hyperstatic part."""
+    x, keep, free, ns = _set_left(c)
+    return x, keep, free, solution_dimension(x, keep, free, P, ns, limit=1)
+
+
+@settings(max_examples=10, deadline=None, derandomize=True)
+@given(st.randoms(use_true_random=False))
+def test_held_rows_leave_full_row_rank_and_the_same_curve(rnd):
+    """The rows a rigid part holds (:func:`dimension.held_rows`): one per self-stress, each in the stress's
+    support; without them R has full row rank (its smallest singular value far above tol_n) and the same
+    null space, the curve's tangent, whatever the labels and orientation."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    for cl in (c, _moved(c, [], rnd)[0]):
+        x, keep, free, d = _held_path(cl)
+        ns = kernels.null_spaces(x, keep, free, P.tol_n)
+        assert (d.dim, d.method) == (1, "rigid-part") and d.held_rows is not None
+        assert len(d.held_rows) == ns.W.shape[1] == 1
+        assert np.all(np.linalg.norm(ns.W[d.held_rows], axis=1) >= SUPPORT_NONZERO)
+        rest = kernels.null_spaces(x, np.delete(keep, d.held_rows, axis=0), free, P.tol_n)
+        assert rest.W.shape[1] == 0 and rest.sigma.min() > 100 * P.tol_n
+        assert rest.V.shape[1] == 1 and abs(rest.V[:, 0] @ d.tangents[:, 0]) > 1 - 1e-12
+
+
+def test_no_held_rows_where_the_count_without_them_is_in_doubt():
+    """A singular value of R near tol_n: the count after deleting the rows is not certain, so no rows are
+    held and the path steps on every contact."""
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, ns = _set_left(c)
+    assert dimension.held_rows(ns, P.tol_n) is not None
+    sigma = ns.sigma.copy()
+    sigma[np.argmin(np.where(sigma >= P.tol_n, sigma, np.inf))] = 5 * P.tol_n
+    assert dimension.held_rows(kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n) is None
+    assert dimension.held_rows(kernels.null_spaces(*_set_left(seed_cluster(9))[:3], P.tol_n), P.tol_n) is None
+
+
+@pytest.mark.parametrize("backend", ["compiled", "numpy"])
+def test_a_path_on_a_rigid_part_steps_on_the_rest_to_the_same_end(backend, monkeypatch):
+    """The hinge swings until it touches a sphere: with the held row left out of the steps the path needs
+    no SVD (the rank guard certifies every step), takes the same steps and ends at the same cluster, the
+    held contact still a contact; with every contact it needs the SVD's tangent."""
+    from packings.workers import paths
+
+    if backend == "numpy":
+        monkeypatch.setattr(kernels, "compiled", lambda: False)
+    c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
+    x, keep, free, d = _held_path(c)
+    svds = []
+    real = paths._svd_tangent
+    monkeypatch.setattr(paths, "_svd_tangent", lambda xn, edges, *a: svds.append(len(edges)) or real(xn, edges, *a))
+    ends = {}
+    for held in (None, d.held_rows):
+        svds.clear()
+        for sign in (1.0, -1.0):
+            ends[held is None, sign] = paths.follow_path(x, keep, keep[:0], sign * d.tangents[:, 0], free, P, held)
+        ends[held is None] = list(svds)
+    # with every contact: each step of the reference, the first step of the compiled loop
+    assert ends[True] and all(m == len(keep) for m in ends[True])
+    if backend == "compiled":
+        assert ends[False] == []
+    else:
+        assert ends[False] and all(m == len(keep) - 1 for m in ends[False])
+    held_pair = tuple(int(v) for v in keep[d.held_rows[0]])
+    for sign in (1.0, -1.0):
+        a, b = ends[False, sign], ends[True, sign]
+        assert (a.outcome, a.steps, a.contacts, a.new_contacts) == (b.outcome, b.steps, b.contacts, b.new_contacts)
+        assert a.outcome in ("rigid", "floppy", "undecided") and held_pair in a.contacts
+        assert np.abs(a.coords - b.coords).max() < 1e-8
+
+
 def _rigid_body_afresh(x, edges, inside, tol_n, guard):
     """The rigid-body test computed on the whole cluster's rigidity matrix, its columns of the part taken,
     as it was before :func:`dimension._rigid_body` remembered its answers."""
