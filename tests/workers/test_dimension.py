@@ -509,9 +509,10 @@ def test_no_held_rows_where_the_count_without_them_is_in_doubt():
 
 @pytest.mark.parametrize("backend", ["compiled", "numpy"])
 def test_a_path_on_a_rigid_part_steps_on_the_rest_to_the_same_end(backend, monkeypatch):
-    """The hinge swings until it touches a sphere: with the held row left out of the steps the path needs
-    no SVD (the rank guard certifies every step), takes the same steps and ends at the same cluster, the
-    held contact still a contact; with every contact it needs the SVD's tangent."""
+    """The hinge swings until it touches a sphere: with the held row left out of the steps, the compiled
+    loop hands no step to the SVD in Python (the rank guard certifies its first step) and the reference
+    steps on the rest, and the path takes the same steps and ends at the same cluster, the held contact
+    still a contact; with every contact the first step needs the SVD's tangent."""
     from packings.workers import paths
 
     if backend == "numpy":
