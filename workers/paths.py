@@ -145,10 +145,9 @@ def _svd_tangent(xn, keep, free, t, params: Params, first: bool) -> tuple[np.nda
     return tn / norm, first_dim
 
 
-def _follow_numpy(x, keep, broken, tangent, free, params: Params, steps_on=None) -> PathEnd:
+def _follow_numpy(x, keep, broken, tangent, free, params: Params, steps_on) -> PathEnd:
     """The reference loop of :func:`follow_path`: one Python iteration per step, an SVD at every step.
-    ``steps_on``: the contacts the steps project onto (default ``keep``)."""
-    steps_on = keep if steps_on is None else steps_on
+    ``steps_on``: the contacts the steps project onto."""
     n = x.size // 3
     kw = params.newton()
     pairs, broken_idx = _broken_pairs(n, keep, broken)
@@ -207,7 +206,7 @@ _COMPILED_OUTCOMES = {
 } if _compiled is not None else {}
 
 
-def _follow_compiled(x, keep, broken, tangent, free, params: Params, steps_on=None) -> PathEnd:
+def _follow_compiled(x, keep, broken, tangent, free, params: Params, steps_on) -> PathEnd:
     """:func:`follow_path` with the stepping loop compiled (packings.workers._compiled.follow_steps).
 
     The compiled loop runs the same steps as :func:`_follow_numpy` and returns
@@ -218,12 +217,12 @@ def _follow_compiled(x, keep, broken, tangent, free, params: Params, steps_on=No
     exactly as the reference does, and the compiled loop then resumes.  Later
     steps where the guard fails (a self-stress persists along the path) take
     the SVD's tangent inside the loop (``_compiled._svd_tangent``).  The steps
-    project onto ``steps_on`` (default ``keep``).
+    project onto ``steps_on``.
     """
     n = x.size // 3
     x = kernels.as_kernel_array(x, np.float64, (-1,))
     keep = kernels.as_kernel_array(keep, np.int64, (-1, 2))
-    steps_on = keep if steps_on is None else kernels.as_kernel_array(steps_on, np.int64, (-1, 2))
+    steps_on = kernels.as_kernel_array(steps_on, np.int64, (-1, 2))
     free = kernels.as_kernel_array(free, np.int64, (-1,))
     pairs, broken_idx = _broken_pairs(n, keep, broken)
     mask = kernels.free_mask(x.size, free)
