@@ -10,7 +10,7 @@ import scipy.linalg
 
 from packings.workers import kernels
 from packings.workers.params import Params
-from packings.workers.rigidity import Rigidity, rigidity_from_null_spaces
+from packings.workers.rigidity import PRESTRESS, Rigidity, prestress_test, rigidity_from_null_spaces, stress_forms
 
 
 RIGID_PART = "rigid-part"  #: the method of a dimension, or an endpoint's verdict, decided by :func:`rigid_part`
@@ -45,6 +45,7 @@ def solution_dimension(
     params: Params,
     ns: kernels.NullSpaces | None = None,
     limit: int | None = None,
+    left: StressBasis | None = None,
 ) -> Dimension:
     """Dimension of {f = 0} near x, with the pinned coordinates fixed.
 
@@ -68,15 +69,26 @@ def solution_dimension(
     directions found first, hence D up to the limit and the tangent basis, are
     the same as without it.  Probes that do not converge are the dearest part of
     an expansion, and a set of dimension 2 or more needs none of the rest.
+
+    ``left``, without ``ns``: V and W of the set read off the whole cluster's SVD
+    (:func:`left_after_breaking`).  Where they show a rigid part, or a cheap case of
+    the pre-stress test finds the set rigid by a margin that an SVD's basis must
+    find too (:func:`_rigid_by_left`), the dimension is decided from them, without
+    an SVD of the set; otherwise the SVD decides, as without them.
     """
+    if ns is None and left is not None:
+        found = _held_dimension(x, edges, left, params.tol_n) or _rigid_by_left(edges, left, params)
+        if found is not None:
+            return found
     if ns is None:
         ns = kernels.null_spaces(x, edges, free, params.tol_n)
     V, W = ns.V, ns.W
     if W.shape[1] == 0:
         return Dimension(V.shape[1], V, "regular")
-    if V.shape[1] and rigid_part(x, edges, ns, params.tol_n) is not None:
-        held = held_rows(ns, params.tol_n) if V.shape[1] == 1 else None  # a path is followed only on a curve
-        return Dimension(V.shape[1], V, RIGID_PART, held_rows=held)
+    if V.shape[1]:
+        held = _held_dimension(x, edges, StressBasis.of(ns, params.tol_n, pinv=False), params.tol_n)
+        if held is not None:
+            return held
     rig = rigidity_from_null_spaces(ns, edges, params)
     if rig.rigid:
         return Dimension(0, V[:, :0], "rigid", rig)
@@ -95,6 +107,41 @@ def solution_dimension(
                     return Dimension(len(basis), np.stack(basis, axis=1), "numerical", rig, at_least=True)
     t = np.stack(basis, axis=1) if basis else V[:, :0]
     return Dimension(len(basis), t, "numerical", rig)
+
+
+def _held_dimension(x: np.ndarray, edges: np.ndarray, basis: StressBasis, tol_n: float) -> Dimension | None:
+    """D = |V| with V's tangents where every self-stress of ``basis`` (the set's V and W) lies in a rigid part
+    (:func:`rigid_part`), with the rows it holds where D = 1 (a path is followed only on a curve); else None."""
+    if not basis.flexes or rigid_part(x, edges, basis, tol_n) is None:
+        return None
+    held = held_rows(basis, tol_n) if basis.flexes == 1 else None
+    return Dimension(basis.flexes, basis.V, RIGID_PART, held_rows=held)
+
+
+#: how far above ``sqrt(stresses) tol_psd`` the margin of a cheap case of the pre-stress test on V and W read
+#: off the cluster's SVD must lie for an SVD of the set to find it rigid too (:func:`_rigid_by_left`)
+PRESTRESS_GUARD = 2.0
+
+
+def _rigid_by_left(edges: np.ndarray, left: StressBasis, params: Params) -> Dimension | None:
+    """D = 0 where a cheap case of the pre-stress test (no SDP) on the set's V and W read off the cluster's
+    SVD (:func:`left_after_breaking`) finds a definite combination with margin above
+    :data:`PRESTRESS_GUARD` sqrt(b) tol_psd (b stresses); else None, and the SVD of the set decides.
+
+    The verdict "rigid" is the one the test on an SVD's V and W gives, whose stresses are another
+    orthonormal basis of the same space (their flexes too, which leaves the forms' eigenvalues as they
+    are).  With one flex, a margin M = max_k |q_k| means |q| >= M, and some coordinate of q in any other
+    orthonormal basis is at least |q| / sqrt(b), which ``single-flex`` there finds.  With more, the
+    combination found is a unit vector, within the SDP's box |c_k| <= 1 in any orthonormal basis, so that
+    test's cheap cases or its SDP find a margin of at least M.  The guard leaves room for rounding."""
+    a, b = left.flexes, left.W.shape[1]
+    if not a or not b:
+        return None
+    bound = PRESTRESS_GUARD * np.sqrt(b) * params.tol_psd
+    rigid, method, margin = prestress_test(stress_forms(left.V, left.W, edges), bound, sdp=False)
+    if not rigid:
+        return None
+    return Dimension(0, left.V[:, :0], "rigid", Rigidity(True, PRESTRESS, a, b, method, margin))
 
 
 #: how far from ``tol_n`` a singular value must be, by this factor either way, for the first-order count
@@ -116,10 +163,11 @@ class StressBasis:
     pinv: np.ndarray | None = None  #: 3n x m, R's pseudo-inverse (full coordinates), likewise
 
     @classmethod
-    def of(cls, ns: kernels.NullSpaces, tol_n: float) -> StressBasis:
+    def of(cls, ns: kernels.NullSpaces, tol_n: float, pinv: bool = True) -> StressBasis:
+        """From an SVD of R; without ``pinv``, no pseudo-inverse (not made where only W and V are asked)."""
         sigma = np.asarray(ns.sigma)
         smallest, noise = _extremes(sigma, tol_n)
-        return cls(ns.W, ns.V.shape[1], smallest, float(sigma.max(initial=0.0)), noise, ns.V, ns.pinv)
+        return cls(ns.W, ns.V.shape[1], smallest, float(sigma.max(initial=0.0)), noise, ns.V, ns.pinv if pinv else None)
 
     def certain(self, guard: float, tol_n: float) -> bool:
         """Whether R's own singular values are far enough from ``tol_n`` for any count to be read off."""
@@ -144,10 +192,12 @@ SUPPORT_NONZERO = 1e-3
 SUPPORT_ZERO = 1e-6
 
 
-def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float,
+def rigid_part(x: np.ndarray, edges: np.ndarray, basis: StressBasis, tol_n: float,
                guard: float = COUNT_GUARD) -> np.ndarray | None:
-    """The spheres of an infinitesimally rigid part of the framework that holds every self-stress of R, or
-    None where none is found (or rounding could make the counts other).
+    """The spheres of an infinitesimally rigid part of the framework that holds every self-stress of R
+    (``basis``: its self-stresses and the bounds on its singular values, from an SVD of R,
+    :meth:`StressBasis.of`, or read off a larger matrix's, :func:`left_after_breaking`), or None where none
+    is found (or rounding could make the counts other).
 
     Let B be a set of spheres whose contacts among themselves (R_B, in B's own 3|B| coordinates) have
     rank 3|B| - 6, B not collinear: B is infinitesimally rigid, hence rigid, and near x its spheres move
@@ -159,14 +209,15 @@ def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: 
     lives there), then those with the spheres that touch at least three of B added, until none does.
 
     Every rank is read off singular values separated from ``tol_n`` as the first-order counts need them
-    (:func:`_separated`), and W's rows must have norms either at least :data:`SUPPORT_NONZERO` or at
-    most :data:`SUPPORT_ZERO`; otherwise None, and the caller probes as before.
+    (:meth:`StressBasis.certain`), and W's rows must have norms either at least :data:`SUPPORT_NONZERO` or
+    at most :data:`SUPPORT_ZERO`; otherwise None, and the caller probes as before.  Neither depends on
+    which orthonormal basis of the stresses W is (a row's norm is that of the row's projection).
     """
-    W = ns.W
+    W = basis.W
     s = W.shape[1]
     if s == 0:
         return None
-    if not _separated(*_extremes(np.asarray(ns.sigma), tol_n), guard, tol_n):
+    if not basis.certain(guard, tol_n):
         return None
     w = np.sqrt(np.einsum("ij,ij->i", W, W))
     if np.any((w > SUPPORT_ZERO) & (w < SUPPORT_NONZERO)):
@@ -185,7 +236,7 @@ def rigid_part(x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: 
         inside |= touches >= 3
 
 
-def held_rows(ns: kernels.NullSpaces, tol_n: float, guard: float = COUNT_GUARD) -> np.ndarray | None:
+def held_rows(basis: StressBasis, tol_n: float, guard: float = COUNT_GUARD) -> np.ndarray | None:
     """Where every self-stress lies in a rigid part (:func:`rigid_part`): s rows of the contacts (s = the
     number of self-stresses) whose deletion leaves R with full row rank, sorted; None where the first-order
     count after deleting them (:func:`counts_after_breaking`) is not certain to say so.
@@ -198,14 +249,14 @@ def held_rows(ns: kernels.NullSpaces, tol_n: float, guard: float = COUNT_GUARD) 
     set.  Along a path on it B moves as one body, so S keeps its lengths, and the path can be stepped on the
     contacts without S, whose Jacobian has full row rank, at a regular path's cost (docs/method.md,
     "Self-stresses held by a rigid part")."""
-    s = ns.W.shape[1]
+    s = basis.W.shape[1]
     if s == 0:
         return None
-    _, _, piv = scipy.linalg.qr(ns.W.T, mode="economic", pivoting=True)
+    _, _, piv = scipy.linalg.qr(basis.W.T, mode="economic", pivoting=True)
     rows = np.sort(piv[:s])
-    if np.any(np.linalg.norm(ns.W[rows], axis=1) < SUPPORT_NONZERO):  # outside the support, hence maybe outside B
+    if np.any(np.linalg.norm(basis.W[rows], axis=1) < SUPPORT_NONZERO):  # outside the support, hence maybe outside B
         return None
-    counts = counts_after_breaking(StressBasis.of(ns, tol_n), rows, tol_n, guard)
+    counts = counts_after_breaking(basis, rows, tol_n, guard)
     if counts is None or counts[1] != 0:
         return None
     return rows
@@ -279,12 +330,21 @@ def _split(basis: StressBasis, rows, tol_n: float, guard: float, vectors: bool) 
     else:
         sv = np.sqrt(wb @ wb[0]) if k == 1 else np.linalg.svd(wb, compute_uv=False)
     w[: sv.size] = sv
+    rank_wb = _rank_of_wb(basis, w, tol_n, guard)
+    if rank_wb is None:
+        return None
+    return rank_wb, (p[:, rank_wb:] if vectors else None)
+
+
+def _rank_of_wb(basis: StressBasis, w: np.ndarray, tol_n: float, guard: float) -> int | None:
+    """The rank of W_B from its singular values ``w`` (descending, zero padded to |B|), each of which must
+    leave a singular value of what is left either surely counted nonzero or surely zero
+    (:func:`counts_after_breaking`); else None."""
     nonzero = basis.smallest * w - basis.noise >= guard * tol_n
     zero = basis.largest * w + basis.noise <= tol_n / guard
     if not np.all(nonzero | zero):
         return None
-    rank_wb = int(np.count_nonzero(nonzero))
-    return rank_wb, (p[:, rank_wb:] if vectors else None)
+    return int(np.count_nonzero(nonzero))
 
 
 def tangent_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> np.ndarray | None:
@@ -318,6 +378,44 @@ def after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_
         return counts, basis.V[:, 0].copy()
     t = basis.pinv[:, list(rows)] @ y[:, 0]
     return counts, t / np.linalg.norm(t)
+
+
+def left_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> StressBasis | None:
+    """The :class:`StressBasis` of R with ``rows`` deleted (the same frame), read off R's own SVD: its
+    self-stresses, flexes and bounds on its singular values; None where rounding could make an SVD of what
+    is left count otherwise (:func:`counts_after_breaking`), or without R's flexes and pseudo-inverse.
+
+    With W_B = P S Q^T (the SVD of the deleted rows of W, rank r as counted there), the stresses left are
+    the combinations of R's that vanish on B, W Q[:, r:] less its rows of B (orthonormal, to the size of
+    the singular values counted zero); the flexes are R's own and R^+ y for the y_B that W_B^T leaves,
+    P[:, r:] (:func:`tangent_after_breaking`), orthonormalised.  The bounds are those of Weyl's inequality
+    that :func:`counts_after_breaking` certifies the counts with: at least the least of ``smallest`` -
+    ``noise`` and ``smallest`` w - ``noise`` (w each singular value of W_B counted nonzero) for the values
+    counted nonzero, at most the greatest of ``noise`` and ``largest`` w + ``noise`` (w those counted zero)
+    for the others; ``largest`` stays a bound, deleting rows making no singular value larger.  They are
+    no closer to ``tol_n`` than the SVD's own values (to rounding, about eps ``largest``), so a test of
+    separation (:meth:`StressBasis.certain`) passes only where the SVD's values would pass it too."""
+    if basis.V is None or basis.pinv is None or not basis.W.shape[1] or not basis.certain(guard, tol_n):
+        return None
+    rows = list(rows)
+    k = len(rows)
+    p, sv, qt = np.linalg.svd(basis.W[rows], full_matrices=True)
+    w = np.zeros(k)
+    w[: sv.size] = sv
+    r = _rank_of_wb(basis, w, tol_n, guard)
+    if r is None:
+        return None
+    kept = np.ones(basis.W.shape[0], dtype=bool)
+    kept[rows] = False
+    W = (basis.W @ qt[r:].T)[kept]
+    t = basis.pinv[:, rows] @ p[:, r:]
+    if t.shape[1] == 1:
+        t = t / np.linalg.norm(t)
+    elif t.shape[1]:
+        t = np.linalg.qr(t)[0]
+    smallest = min([basis.smallest - basis.noise] + [basis.smallest * v - basis.noise for v in w[:r]])
+    noise = max([basis.noise] + [basis.largest * v + basis.noise for v in w[r:]])
+    return StressBasis(W, basis.flexes + k - r, smallest, basis.largest, noise, np.hstack([basis.V, t]))
 
 
 def may_decide(basis: StressBasis, k: int) -> bool:

@@ -16,6 +16,7 @@ from packings.workers.dimension import (
     Dimension,
     StressBasis,
     after_breaking,
+    left_after_breaking,
     may_decide,
     solution_dimension,
 )
@@ -347,7 +348,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                 yield Endpoint(bt, 0, NO_TRIANGLE)
                 continue
             x, free = frame(tri)
-            dim = ns = flexes = None
+            dim = ns = flexes = stresses = None
             if k == one_flex or (stressed and may_decide(basis(tri), k)):
                 counts, t = after_breaking(basis(tri), idx, params.tol_n)
                 if counts is not None:
@@ -365,7 +366,12 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                 yield Endpoint(bt, 0, HELD, 1)
                 continue
             if dim is None:
-                dim = solution_dimension(x, keep, free, params, ns=ns, limit=1)
+                # A flex and a stress left, counted from the cluster's SVD: V and W of what is left from it too, where
+                # they may decide the set without its SVD.  A cluster with a flex (singular, hypostatic) has its
+                # stress spread over all of it, and its sets seldom fall to a rigid part or to the cheap cases of
+                # the pre-stress test (docs/performance.md): they take the SVD at once.
+                left = left_after_breaking(basis(tri), idx, params.tol_n) if stresses and rigid else None
+                dim = solution_dimension(x, keep, free, params, ns=ns, limit=1, left=left)
             if dim.dim != 1:
                 yield Endpoint(bt, 0, NOT_1D, dim.dim)
                 continue

@@ -11,7 +11,7 @@ import numpy as np
 
 from packings.workers import kernels
 from packings.workers.cluster import contacts_from_distances, upper_pairs
-from packings.workers.dimension import RIGID_PART, rigid_part, solution_dimension
+from packings.workers.dimension import RIGID_PART, StressBasis, rigid_part, solution_dimension
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
     FLOPPY,
@@ -526,7 +526,8 @@ def _held_by_a_rigid_part(rig: Rigidity, x: np.ndarray, edges: np.ndarray, ns: k
     """Whether the pre-stress test found no definite combination (not merely one whose margin the
     coordinates leave in doubt, method ``unresolved``) and every self-stress lies in a rigid part.  An
     undecided verdict of that test has flexes and stresses both."""
-    return rig.kind == UNDECIDED and rig.method != UNRESOLVED_METHOD and rigid_part(x, edges, ns, tol_n) is not None
+    return (rig.kind == UNDECIDED and rig.method != UNRESOLVED_METHOD
+            and rigid_part(x, edges, StressBasis.of(ns, tol_n, pinv=False), tol_n) is not None)
 
 
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:

@@ -112,10 +112,11 @@ def sdp_margin(Q: np.ndarray) -> float | None:
     return float(sol.x[b])
 
 
-def prestress_test(Q: np.ndarray, tol_psd: float) -> tuple[bool, str, float | None]:
+def prestress_test(Q: np.ndarray, tol_psd: float, sdp: bool = True) -> tuple[bool, str, float | None]:
     """Is some combination sum_k c_k Q^(k) definite?  Cheap cases first, the SDP last.
 
-    Returns (rigid, method, margin).
+    Returns (rigid, method, margin).  Without ``sdp``, the cheap cases alone: where they find no
+    definite combination, (False, ``e_k``, the best margin they found).
     """
     b, a, _ = Q.shape
     if a == 1:
@@ -129,6 +130,8 @@ def prestress_test(Q: np.ndarray, tol_psd: float) -> tuple[bool, str, float | No
             return True, "single-stress" if b == 1 else "e_k", float(best)
     if b == 1:
         return False, "single-stress", float(best)
+    if not sdp:
+        return False, "e_k", float(best)
     t = sdp_margin(Q)
     if t is None:
         return False, "sdp-failed", float(best)

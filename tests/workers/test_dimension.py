@@ -1,6 +1,8 @@
 """Dimension of the solution set: the regular (rank) branch and the numerical estimate."""
 
+import functools
 import json
+from collections import Counter
 from itertools import combinations
 from pathlib import Path
 
@@ -369,7 +371,7 @@ def test_a_stress_in_a_rigid_part_gives_the_dimension_without_probes(monkeypatch
     c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
     x, keep, free, ns = _set_left(c)
     assert ns.W.shape[1] == 1 and ns.V.shape[1] == 1
-    part = rigid_part(x, keep, ns, P.tol_n)
+    part = rigid_part(x, keep, StressBasis.of(ns, P.tol_n), P.tol_n)
     assert part is not None and c.n - 1 not in part and len(part) == c.n - 1
     d = solution_dimension(x, keep, free, P, limit=1)
     assert (d.dim, d.method) == (1, "rigid-part")
@@ -429,15 +431,15 @@ def test_no_rigid_part_where_a_count_or_the_support_is_in_doubt():
     SUPPORT_NONZERO: no rigid part (the probes decide)."""
     c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
     x, keep, free, ns = _set_left(c)
-    assert rigid_part(x, keep, ns, P.tol_n) is not None
+    assert rigid_part(x, keep, StressBasis.of(ns, P.tol_n), P.tol_n) is not None
     sigma = ns.sigma.copy()
     sigma[np.argmin(np.where(sigma >= P.tol_n, sigma, np.inf))] = 5 * P.tol_n
-    assert rigid_part(x, keep, kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n) is None
+    assert rigid_part(x, keep, StressBasis.of(kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n), P.tol_n) is None
     W = ns.W.copy()
     outside = int(np.argmin(np.abs(W[:, 0])))
     assert abs(W[outside, 0]) <= SUPPORT_ZERO
     W[outside, 0] = np.sqrt(SUPPORT_ZERO * SUPPORT_NONZERO)
-    assert rigid_part(x, keep, kernels.NullSpaces(ns.sigma, ns.V, W), P.tol_n) is None
+    assert rigid_part(x, keep, StressBasis.of(kernels.NullSpaces(ns.sigma, ns.V, W), P.tol_n), P.tol_n) is None
 
 
 def test_a_pre_stress_spread_over_the_cluster_is_held_by_no_rigid_part():
@@ -446,7 +448,7 @@ def test_a_pre_stress_spread_over_the_cluster_is_held_by_no_rigid_part():
     c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     dims = set()
     for idx, x, keep, free in _numerical_cases(c, 2):
-        assert rigid_part(x, keep, kernels.null_spaces(x, keep, free, P.tol_n), P.tol_n) is None, idx
+        assert rigid_part(x, keep, StressBasis.of(kernels.null_spaces(x, keep, free, P.tol_n), P.tol_n), P.tol_n) is None, idx
         dims.add(solution_dimension(x, keep, free, P, limit=1).dim)
     assert {1, 2} <= dims
 
@@ -463,7 +465,7 @@ def test_a_rigid_part_does_not_depend_on_labels_or_orientation(rnd):
     parts = []
     for cl in (c, moved):
         x, keep, free, ns = _set_left(cl)
-        parts.append(rigid_part(x, keep, ns, P.tol_n))
+        parts.append(rigid_part(x, keep, StressBasis.of(ns, P.tol_n), P.tol_n))
         assert solution_dimension(x, keep, free, P, limit=1).dim == 1
         assert endpoint_rigidity(x, cl.contacts, free, P).method == "rigid-part"
     assert parts[0] is not None and parts[1] is not None
@@ -500,11 +502,11 @@ def test_no_held_rows_where_the_count_without_them_is_in_doubt():
     held and the path steps on every contact."""
     c = _hinged(Cluster.from_dict(FIXTURES["n10_m25_first-order"]))
     x, keep, free, ns = _set_left(c)
-    assert dimension.held_rows(ns, P.tol_n) is not None
+    assert dimension.held_rows(StressBasis.of(ns, P.tol_n), P.tol_n) is not None
     sigma = ns.sigma.copy()
     sigma[np.argmin(np.where(sigma >= P.tol_n, sigma, np.inf))] = 5 * P.tol_n
-    assert dimension.held_rows(kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n) is None
-    assert dimension.held_rows(kernels.null_spaces(*_set_left(seed_cluster(9))[:3], P.tol_n), P.tol_n) is None
+    assert dimension.held_rows(StressBasis.of(kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n), P.tol_n) is None
+    assert dimension.held_rows(StressBasis.of(kernels.null_spaces(*_set_left(seed_cluster(9))[:3], P.tol_n), P.tol_n), P.tol_n) is None
 
 
 @pytest.mark.parametrize("backend", ["compiled", "numpy"])
@@ -590,3 +592,123 @@ def test_the_rigid_body_test_remembers_answers_without_changing_them():
         True, False, True, False]
     info = dimension._rigid_in_own_coordinates.cache_info()
     assert (info.misses, info.hits) == (len(cases), 2 * len(cases))  # each computed once, then remembered
+
+
+# ----------------------------------------------------------------- what is left, read off the cluster's SVD
+
+from packings.workers.rigidity import prestress_test, rigidity_from_null_spaces, stress_forms  # noqa: E402
+from packings.workers.seeds import close_packed_seed  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def close_packed_12() -> Cluster:
+    """The close-packed n = 12 seed: 32 contacts, two self-stresses; its broken subsets leave sets held by a
+    rigid part, sets the pre-stress test finds rigid with one flex (``single-flex``) and with one stress
+    (``single-stress``), and sets the probes decide."""
+    return close_packed_seed(12)
+
+
+def _projector(a: np.ndarray) -> np.ndarray:
+    return a @ a.T
+
+
+def _left(c: Cluster, idx):
+    """(x, contacts kept, free coordinates, the cluster's StressBasis in that frame, what is left read off it,
+    an SVD of what is left) for the contacts ``idx`` deleted, in the frame of the first triangle left."""
+    x, keep, free, ns = _set_left(c, idx)
+    tri = contact_triangle(keep)
+    basis = _basis(c, tri)
+    return x, keep, free, basis, dimension.left_after_breaking(basis, idx, P.tol_n), ns
+
+
+def test_what_is_left_read_off_the_clusters_svd_is_what_its_own_svd_finds(close_packed_12):
+    """For every subset of up to three contacts of the close-packed n = 12 cluster, and of up to two of the
+    two singular fixtures: where the cluster's SVD gives V and W of what is left, they have the SVD's counts,
+    span its spaces (projectors within 1e-8), are orthonormal, and bound its singular values (the nonzero
+    ones from below, the zero ones from above, to rounding); and where a set is decided from them (a rigid part, or the
+    pre-stress test's cheap cases), the SVD of the set decides it alike: the same dimension and method, the
+    same tangent up to sign."""
+    decided = Counter()
+    cases = [(close_packed_12, 3)] + [(Cluster.from_dict(FIXTURES[nm]), 2) for nm in ("n10_m24_prestress", "n10_m23_prestress")]
+    for c, top in cases:
+        for k in range(1, top + 1):
+            for idx in combinations(range(c.m), k):
+                x, keep, free, basis, left, ns = _left(c, idx)
+                if left is None:
+                    continue
+                assert (left.flexes, left.W.shape[1]) == (ns.V.shape[1], ns.W.shape[1]), idx
+                assert left.V.shape[1] == left.flexes
+                assert np.abs(_projector(left.W) - _projector(ns.W)).max() < 1e-8
+                assert np.abs(_projector(left.V) - _projector(ns.V)).max() < 1e-8
+                assert np.abs(left.V.T @ left.V - np.eye(left.flexes)).max(initial=0.0) < 1e-10
+                assert np.abs(left.W.T @ left.W - np.eye(left.W.shape[1])).max(initial=0.0) < 1e-10
+                nonzero, zero = ns.sigma[ns.sigma >= P.tol_n], ns.sigma[ns.sigma < P.tol_n]
+                rounding = 1e-13  # the SVDs' own, about eps |R|
+                assert left.smallest <= nonzero.min() + rounding and left.noise >= zero.max(initial=0.0) - rounding
+                assert left.largest >= ns.sigma.max() - rounding
+                if not left.flexes or not left.W.shape[1]:
+                    continue
+                found = (dimension._held_dimension(x, keep, left, P.tol_n)
+                         or dimension._rigid_by_left(keep, left, P))
+                if found is None:
+                    continue
+                svd = solution_dimension(x, keep, free, P, ns, limit=1)
+                assert (found.dim, found.method) == (svd.dim, svd.method), idx
+                if found.dim == 1:
+                    assert abs(abs(found.tangents[:, 0] @ svd.tangents[:, 0]) - 1.0) < 1e-10
+                decided[found.rigidity.method if found.rigidity else found.method] += 1
+    assert decided["rigid-part"] > 0 and decided["single-flex"] > 0 and decided["single-stress"] > 0, decided
+
+
+def test_a_set_decided_from_what_is_left_takes_no_svd_of_it(close_packed_12, monkeypatch):
+    """A set held by a rigid part, and one the pre-stress test finds rigid with one flex: with V and W read
+    off the cluster's SVD, solution_dimension decides them without an SVD (it would fail here), as the SVD
+    does; a set they leave to the probes takes the SVD as before."""
+    cases = {idx: _left(close_packed_12, idx) for idx in ((1,), (0, 4), (2, 18))}
+    svd = {idx: solution_dimension(x, keep, free, P, ns, limit=1) for idx, (x, keep, free, _, _, ns) in cases.items()}
+    monkeypatch.setattr(kernels, "null_spaces", lambda *a, **k: pytest.fail("an SVD of the set was taken"))
+    for idx, want in (((1,), (1, "rigid-part")), ((0, 4), (0, "rigid"))):
+        x, keep, free, _, left, _ = cases[idx]
+        d = solution_dimension(x, keep, free, P, limit=1, left=left)
+        assert (d.dim, d.method) == (svd[idx].dim, svd[idx].method) == want
+    monkeypatch.undo()
+    x, keep, free, _, left, _ = cases[(2, 18)]
+    assert dimension._held_dimension(x, keep, left, P.tol_n) is None and dimension._rigid_by_left(keep, left, P) is None
+    d = solution_dimension(x, keep, free, P, limit=1, left=left)
+    assert (d.dim, d.method) == (svd[(2, 18)].dim, svd[(2, 18)].method)
+
+
+@functools.lru_cache(maxsize=1)
+def _rigid_with_stresses():
+    """(contacts kept, what is left) of the first 12 subsets of two contacts of the close-packed n = 14 seed
+    (40 contacts) whose set the cheap cases find rigid from what is left with two or more stresses."""
+    c = close_packed_seed(14)
+    found = []
+    for idx in combinations(range(c.m), 2):
+        x, keep, free, basis, left, ns = _left(c, idx)
+        if left is not None and left.flexes and left.W.shape[1] >= 2 and dimension._rigid_by_left(keep, left, P):
+            found.append((keep, left))
+            if len(found) == 12:
+                return found
+    raise AssertionError(f"only {len(found)} such subsets")
+
+
+@settings(max_examples=25, deadline=None, derandomize=True)
+@given(st.randoms(use_true_random=False))
+def test_a_rigid_verdict_from_what_is_left_holds_in_every_basis_of_its_stresses(rnd):
+    """The pre-stress test's verdict "rigid" on V and W read off the cluster's SVD is the test's verdict on
+    any other orthonormal basis of the same stresses and flexes (an SVD's is one): rotate both at random
+    (subsets of the close-packed n = 14 seed that leave one flex and two to four stresses),
+    and the test, with its SDP, still finds the set rigid.  A margin below the guard's bound, sqrt(b) times
+    tol_psd and more, is left to the SVD."""
+    keep, left = rnd.choice(_rigid_with_stresses())
+    rs = np.random.default_rng(rnd.randint(0, 2**31))
+    b, a = left.W.shape[1], left.flexes
+    cw = np.linalg.qr(rs.standard_normal((b, b)))[0]
+    cv = np.linalg.qr(rs.standard_normal((a, a)))[0]
+    rotated = kernels.NullSpaces(np.ones(1), left.V @ cv, left.W @ cw)
+    assert rigidity_from_null_spaces(rotated, keep, P).rigid
+    margin = prestress_test(stress_forms(left.V, left.W, keep), P.tol_psd)[2]
+    near = Params(tol_psd=margin / (dimension.PRESTRESS_GUARD * np.sqrt(b)) * 1.01)  # margin < the bound
+    assert prestress_test(stress_forms(left.V, left.W, keep), near.tol_psd)[0]  # rigid, but not by the guard
+    assert dimension._rigid_by_left(keep, left, near) is None

@@ -101,6 +101,19 @@ def test_sdp_finds_a_combination_no_single_stress_gives():
     assert margin == pytest.approx(0.5, abs=1e-6)  # c = (1, 1): diag(0.5, 0.5)
 
 
+def test_without_the_sdp_the_cheap_cases_alone_decide(monkeypatch):
+    """``sdp=False``: the pencil only a combination makes definite is left undecided, with the cheap cases'
+    best margin, and no SDP is solved; a definite single stress is still found."""
+    from packings.workers import rigidity as rg
+
+    monkeypatch.setattr(rg, "sdp_margin", lambda Q: pytest.fail("an SDP was solved"))
+    Q = np.array([np.diag([1.0, -0.5]), np.diag([-0.5, 1.0])])
+    rigid, method, margin = prestress_test(Q, P.tol_psd, sdp=False)
+    assert (rigid, method) == (False, "e_k") and margin == pytest.approx(-0.5)
+    rigid, method, margin = prestress_test(np.array([np.diag([1.0, -0.5]), np.diag([2.0, 1.0])]), P.tol_psd, sdp=False)
+    assert (rigid, method) == (True, "e_k") and margin == pytest.approx(1.0)
+
+
 def test_sdp_says_no_when_no_combination_is_definite():
     Q = np.array([np.diag([1.0, -1.0]), np.array([[0.0, 1.0], [1.0, 0.0]])])
     rigid, method, margin = prestress_test(Q, P.tol_psd)
