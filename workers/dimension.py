@@ -347,6 +347,26 @@ def _rank_of_wb(basis: StressBasis, w: np.ndarray, tol_n: float, guard: float) -
     return int(np.count_nonzero(nonzero))
 
 
+def ranks_after_breaking(basis: StressBasis, subsets: list[tuple[int, ...]], tol_n: float,
+                         guard: float = COUNT_GUARD) -> np.ndarray | None:
+    """rank(W_B) for each B in ``subsets`` (all of one size k > 1), as :func:`counts_after_breaking` counts it
+    without vectors, or -1 where it gives None; None where R's own count is in doubt (it gives None for all).
+
+    The same numbers: the singular values of each k x s matrix W_B from one stacked call, which LAPACK takes
+    matrix by matrix as it takes the single one, then the same rule (:func:`_rank_of_wb`)."""
+    if not basis.certain(guard, tol_n):
+        return None
+    if not subsets:
+        return np.zeros(0, dtype=np.int64)
+    k = len(subsets[0])
+    sv = np.linalg.svd(basis.W[np.array(subsets, dtype=np.intp)], compute_uv=False)  # (N, min(k, s)), descending
+    w = np.zeros((len(subsets), k))
+    w[:, : sv.shape[1]] = sv
+    nonzero = basis.smallest * w - basis.noise >= guard * tol_n
+    zero = basis.largest * w + basis.noise <= tol_n / guard
+    return np.where(np.all(nonzero | zero, axis=1), np.count_nonzero(nonzero, axis=1), -1)
+
+
 def tangent_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> np.ndarray | None:
     """The unit tangent (3n, full coordinates) of the set left by deleting ``rows`` where the first-order
     count after it is one flex and no self-stress (:func:`counts_after_breaking`), read off R's SVD in

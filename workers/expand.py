@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from itertools import chain, combinations
+from itertools import chain, combinations, islice
 from typing import Iterable, Iterator, Mapping
 
 import numpy as np
@@ -18,6 +18,7 @@ from packings.workers.dimension import (
     after_breaking,
     left_after_breaking,
     may_decide,
+    ranks_after_breaking,
     solution_dimension,
 )
 from packings.workers.identity import ClusterIndex, certificate, forget_canonical, same_geometry, symmetries
@@ -263,6 +264,10 @@ class _Orbits:
         return best, inverse
 
 
+#: subsets of one size taken at a time: their symmetries are sought, and their first-order counts read, together
+_BATCH = 1024
+
+
 def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms: np.ndarray | None = None,
               arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None,
               source: dict | None = None, held: bool = True) -> Iterator[Endpoint | PathStart | Image]:
@@ -330,27 +335,43 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
     orbits = _Orbits(cluster, perms) if perms is not None and len(perms) > 1 else None
     one_d: set[tuple[int, ...]] = set()  # the subsets tried whose set is one-dimensional (an image's too)
     for k in break_sizes(m, rank, params):
-        for idx in combinations(range(m), k):
-            if orbits is not None:
-                first = orbits.first(idx)
+        # Where the counts of this size come from the cluster's own SVD without vectors (not the size whose count
+        # can be one flex and no stress), they are read off in batches (ranks_after_breaking): the same numbers.
+        batched = first_order and stressed and own_tri is not None and k > 1 and k != one_flex and may_decide(own, k)
+        combos = combinations(range(m), k)
+        while chunk := list(islice(combos, _BATCH)):
+            firsts = [orbits.first(idx) for idx in chunk] if orbits is not None else [None] * len(chunk)
+            ranks: dict[tuple[int, ...], int] = {}
+            if batched:
+                tried = [idx for idx, first in zip(chunk, firsts) if first is None and not own_sides.intersection(
+                    pairs[q] for q in idx)]
+                got = ranks_after_breaking(own, tried, params.tol_n)
+                if got is not None:
+                    ranks = dict(zip(tried, got.tolist()))
+            for idx, first in zip(chunk, firsts):
                 if first is not None:
                     if first[0] in one_d:
                         one_d.add(idx)
                     yield Image(tuple(pairs[q] for q in idx), tuple(pairs[q] for q in first[0]), first[1])
                     continue
-            broken = all_edges[list(idx)]
-            kept = np.ones(m, dtype=bool)
-            kept[list(idx)] = False
-            keep = all_edges[kept]
-            bt = tuple(pairs[q] for q in idx)  # the cluster's own contact tuples, shared
-            tri = contact_triangle(keep) if own_sides.intersection(bt) or own_tri is None else own_tri
-            if tri is None:
-                yield Endpoint(bt, 0, NO_TRIANGLE)
-                continue
-            x, free = frame(tri)
-            dim = ns = flexes = stresses = None
-            if k == one_flex or (stressed and may_decide(basis(tri), k)):
-                counts, t = after_breaking(basis(tri), idx, params.tol_n)
+                broken = all_edges[list(idx)]
+                kept = np.ones(m, dtype=bool)
+                kept[list(idx)] = False
+                keep = all_edges[kept]
+                bt = tuple(pairs[q] for q in idx)  # the cluster's own contact tuples, shared
+                tri = contact_triangle(keep) if own_sides.intersection(bt) or own_tri is None else own_tri
+                if tri is None:
+                    yield Endpoint(bt, 0, NO_TRIANGLE)
+                    continue
+                x, free = frame(tri)
+                dim = ns = flexes = stresses = None
+                if idx in ranks:  # the frame is own_tri: the ranks are read only where no side of it is broken
+                    r = ranks[idx]
+                    counts, t = (None if r < 0 else (own.flexes + k - r, own.W.shape[1] - r)), None
+                elif k == one_flex or (stressed and may_decide(basis(tri), k)):
+                    counts, t = after_breaking(basis(tri), idx, params.tol_n)
+                else:
+                    counts = t = None
                 if counts is not None:
                     flexes, stresses = counts
                     if flexes == 0 or (stresses == 0 and flexes != 1):
@@ -358,37 +379,37 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                         continue
                     if t is not None:
                         dim = Dimension(1, t[:, None], "regular")
-            if flexes is None:
-                ns = kernels.null_spaces(x, keep, free, params.tol_n)
-                flexes = ns.V.shape[1]
-            if held and flexes == 1 and k > 1 and any(sub in one_d for sub in combinations(idx, k - 1)):
+                if flexes is None:
+                    ns = kernels.null_spaces(x, keep, free, params.tol_n)
+                    flexes = ns.V.shape[1]
+                if held and flexes == 1 and k > 1 and any(sub in one_d for sub in combinations(idx, k - 1)):
+                    one_d.add(idx)
+                    yield Endpoint(bt, 0, HELD, 1)
+                    continue
+                if dim is None:
+                    # A flex and a stress left, counted from the cluster's SVD: V and W of what is left from it too,
+                    # where they may decide the set without its SVD.  A cluster with a flex (singular, hypostatic) has
+                    # its stress spread over all of it, and its sets seldom fall to a rigid part or to the cheap cases
+                    # of the pre-stress test (docs/performance.md): they take the SVD at once.
+                    left = left_after_breaking(basis(tri), idx, params.tol_n) if stresses and rigid else None
+                    dim = solution_dimension(x, keep, free, params, ns=ns, limit=1, left=left)
+                if dim.dim != 1:
+                    yield Endpoint(bt, 0, NOT_1D, dim.dim)
+                    continue
                 one_d.add(idx)
-                yield Endpoint(bt, 0, HELD, 1)
-                continue
-            if dim is None:
-                # A flex and a stress left, counted from the cluster's SVD: V and W of what is left from it too, where
-                # they may decide the set without its SVD.  A cluster with a flex (singular, hypostatic) has its
-                # stress spread over all of it, and its sets seldom fall to a rigid part or to the cheap cases of
-                # the pre-stress test (docs/performance.md): they take the SVD at once.
-                left = left_after_breaking(basis(tri), idx, params.tol_n) if stresses and rigid else None
-                dim = solution_dimension(x, keep, free, params, ns=ns, limit=1, left=left)
-            if dim.dim != 1:
-                yield Endpoint(bt, 0, NOT_1D, dim.dim)
-                continue
-            one_d.add(idx)
-            v = dim.tangents[:, 0]
-            g = np.array([_lengthening(x, v, i, j) for i, j in broken])
-            signs = [s for s in (1, -1) if np.all(s * g > -params.tol_n)]
-            if not signs:
-                yield Endpoint(bt, 0, NO_DIRECTION, 1)
-                continue
-            # a smooth curve (R less the subset has full row rank) with one way out: the way the arrival came
-            if retrace is not None and len(signs) == 1 and dim.method == "regular" and bt in retrace:
-                a = retrace[bt]
-                yield Endpoint(bt, signs[0], RIGID, 1, a.steps, new_contacts=a.formed, reached=a)
-                continue
-            for s in signs:
-                yield PathStart(bt, s, x, keep, broken, s * v, free, dim.held_rows)
+                v = dim.tangents[:, 0]
+                g = np.array([_lengthening(x, v, i, j) for i, j in broken])
+                signs = [s for s in (1, -1) if np.all(s * g > -params.tol_n)]
+                if not signs:
+                    yield Endpoint(bt, 0, NO_DIRECTION, 1)
+                    continue
+                # a smooth curve (R less the subset has full row rank) with one way out: the way the arrival came
+                if retrace is not None and len(signs) == 1 and dim.method == "regular" and bt in retrace:
+                    a = retrace[bt]
+                    yield Endpoint(bt, signs[0], RIGID, 1, a.steps, new_contacts=a.formed, reached=a)
+                    continue
+                for s in signs:
+                    yield PathStart(bt, s, x, keep, broken, s * v, free, dim.held_rows)
 
 
 def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:

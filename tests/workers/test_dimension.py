@@ -712,3 +712,33 @@ def test_a_rigid_verdict_from_what_is_left_holds_in_every_basis_of_its_stresses(
     near = Params(tol_psd=margin / (dimension.PRESTRESS_GUARD * np.sqrt(b)) * 1.01)  # margin < the bound
     assert prestress_test(stress_forms(left.V, left.W, keep), near.tol_psd)[0]  # rigid, but not by the guard
     assert dimension._rigid_by_left(keep, left, near) is None
+
+
+def test_the_counts_read_in_batches_are_the_counts_read_one_by_one(close_packed_12, monkeypatch):
+    """ranks_after_breaking gives, for every subset of two and of three contacts, the rank of W_B that
+    counts_after_breaking counts (-1 where it gives None); and the attempts of a cluster whose counts are read
+    in batches are those read one by one, to the bit (outcomes, directions, steps, endpoints)."""
+    from packings.workers import expand
+
+    for c in (close_packed_12, Cluster.from_dict(FIXTURES["n10_m23_prestress"])):
+        basis = _basis(c, contact_triangle(c.edges()))
+        for k in (2, 3):
+            subsets = list(combinations(range(c.m), k))
+            ranks = dimension.ranks_after_breaking(basis, subsets, P.tol_n)
+            for idx, r in zip(subsets, ranks.tolist()):
+                counts = counts_after_breaking(basis, idx, P.tol_n)
+                assert counts == (None if r < 0 else (basis.flexes + k - r, basis.W.shape[1] - r)), idx
+    unsure = StressBasis(basis.W, basis.flexes, basis.smallest, basis.largest, noise=P.tol_n)
+    assert dimension.ranks_after_breaking(unsure, subsets, P.tol_n) is None
+
+    def attempts(c):
+        return [(e.broken, e.direction, e.outcome, e.steps, e.dim, e.new_contacts,
+                 None if e.cluster is None else e.cluster.coords.tobytes()) for e in expand.expand(c, P).endpoints]
+
+    c = Cluster.from_dict(FIXTURES["n10_m23_prestress"])
+    asked = []
+    monkeypatch.setattr(expand, "ranks_after_breaking", lambda *a: asked.append(a) or dimension.ranks_after_breaking(*a))
+    batched = attempts(c)
+    assert asked
+    monkeypatch.setattr(expand, "ranks_after_breaking", lambda *a: None)
+    assert attempts(c) == batched
