@@ -284,7 +284,12 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
     outcome is the same (where rounding could make them differ, the SVD decides).  Where that count is
     one flex and no stress, the tangent too comes from the cluster's SVD in that frame
     (:func:`packings.workers.dimension.tangent_after_breaking`; every single break of a regular
-    cluster is such a subset): the direction the SVD of what is left gives, up to sign and rounding.
+    cluster is such a subset): the direction the SVD of what is left gives, up to sign and rounding.  The
+    counts of a size that needs no tangent are read for up to :data:`_BATCH` subsets at once
+    (:func:`packings.workers.dimension.ranks_after_breaking`, the same numbers).  Where the count leaves a
+    flex and a stress in a first-order rigid cluster, V and W of what is left come from the same SVD
+    (:func:`packings.workers.dimension.left_after_breaking`) and may decide the set without its own SVD
+    (:func:`packings.workers.dimension.solution_dimension`, as that SVD decides it).
 
     With ``arrivals`` at a first-order rigid cluster, a subset with an arrival, whose break leaves a set
     that the first-order count (or an SVD) finds smooth and one-dimensional, with one direction that
