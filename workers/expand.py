@@ -34,7 +34,7 @@ from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attem
 )
 from packings.workers.params import Params
 from packings.workers.paths import PathEnd, follow_path
-from packings.workers.rigidity import Rigidity, contact_triangle
+from packings.workers.rigidity import FirstTriangles, Rigidity, contact_triangle
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,19 +249,39 @@ class _Orbits:
         self.moves = np.array([[at[pair(int(t[i]), int(t[j]))] for i, j in cluster.contacts] for t in self.perms],
                               dtype=np.int64).reshape(len(self.perms), cluster.m)
 
-    def first(self, idx: tuple[int, ...]) -> tuple[tuple[int, ...], np.ndarray] | None:
-        """None if ``idx`` is the first of its orbit; else that first subset and the relabelling that takes
-        it to ``idx``."""
-        images = np.sort(self.moves[:, idx], axis=1)
-        best, g = idx, -1
-        for k, row in enumerate(images.tolist()):
-            if tuple(row) < best:
-                best, g = tuple(row), k
-        if g < 0:
-            return None
-        inverse = np.empty_like(self.perms[g])  # symmetry g takes idx to best: its inverse takes best to idx
-        inverse[self.perms[g]] = np.arange(inverse.size)
-        return best, inverse
+    def firsts(self, chunk: list[tuple[int, ...]]) -> list[tuple[tuple[int, ...], np.ndarray] | None]:
+        """For each subset of ``chunk`` (subsets of one size, each sorted): None if it is the first of its orbit;
+        else that first subset and the relabelling that takes it to the subset.  Read off together: each subset's
+        images sorted, and the first symmetry giving the smallest of them in lexicographic order."""
+        if not chunk:
+            return []
+        idx = np.array(chunk, dtype=np.int64)
+        images = np.sort(self.moves[:, idx], axis=2)  # symmetry x subset x contact
+        g, smaller = _lexicographic_min(images, idx)
+        out: list[tuple[tuple[int, ...], np.ndarray] | None] = [None] * len(chunk)
+        for c in np.flatnonzero(smaller).tolist():
+            perm = self.perms[g[c]]
+            inverse = np.empty_like(perm)  # symmetry g takes idx to best: its inverse takes best to idx
+            inverse[perm] = np.arange(inverse.size)
+            out[c] = (tuple(images[g[c], c].tolist()), inverse)
+        return out
+
+
+def _lexicographic_min(images: np.ndarray, own: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each column c of ``images`` (G x C x k, rows sorted tuples), the first g whose tuple is the smallest in
+    lexicographic order, and whether that tuple is smaller than ``own[c]``."""
+    G, C, k = images.shape
+    alive = np.ones((G, C), dtype=bool)  # the symmetries whose tuple ties the smallest so far on the first places
+    for j in range(k):
+        col = np.where(alive, images[:, :, j], np.iinfo(np.int64).max)
+        alive &= col == col.min(axis=0)
+    g = alive.argmax(axis=0)
+    best = images[g, np.arange(C)]
+    differ = best != own
+    first = differ.argmax(axis=1)  # the first place where the smallest image and the subset differ
+    rows = np.arange(C)
+    smaller = differ.any(axis=1) & (best[rows, first] < own[rows, first])
+    return g, smaller
 
 
 #: subsets of one size taken at a time: their symmetries are sought, and their first-order counts read, together
@@ -338,6 +358,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
     # every contact before its first side had no triangle, and deleting contacts makes none.
     own_sides = set() if own_tri is None else {tuple(sorted(p)) for p in combinations(own_tri, 2)}
     orbits = _Orbits(cluster, perms) if perms is not None and len(perms) > 1 else None
+    triangles = FirstTriangles(pairs)  # the first triangle of what is left, as contact_triangle(keep) finds it
     one_d: set[tuple[int, ...]] = set()  # the subsets tried whose set is one-dimensional (an image's too)
     for k in break_sizes(m, rank, params):
         # Where the counts of this size come from the cluster's own SVD without vectors (not the size whose count
@@ -345,7 +366,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
         batched = first_order and stressed and own_tri is not None and k > 1 and k != one_flex and may_decide(own, k)
         combos = combinations(range(m), k)
         while chunk := list(islice(combos, _BATCH)):
-            firsts = [orbits.first(idx) for idx in chunk] if orbits is not None else [None] * len(chunk)
+            firsts = orbits.firsts(chunk) if orbits is not None else [None] * len(chunk)
             ranks: dict[tuple[int, ...], int] = {}
             if batched:
                 tried = [idx for idx, first in zip(chunk, firsts) if first is None and not own_sides.intersection(
@@ -364,7 +385,7 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
                 kept[list(idx)] = False
                 keep = all_edges[kept]
                 bt = tuple(pairs[q] for q in idx)  # the cluster's own contact tuples, shared
-                tri = contact_triangle(keep) if own_sides.intersection(bt) or own_tri is None else own_tri
+                tri = triangles.after_deleting(idx) if own_sides.intersection(bt) or own_tri is None else own_tri
                 if tri is None:
                     yield Endpoint(bt, 0, NO_TRIANGLE)
                     continue

@@ -223,6 +223,32 @@ def contact_triangle(edges, forbidden=()) -> tuple[int, int, int] | None:
     return None
 
 
+class FirstTriangles:
+    """:func:`contact_triangle` of what is left of ``contacts`` (pairs (i, j), i < j) after deleting some of them,
+    for many deletions: every triangle (i, j, k), (i, j) a contact and k a common neighbour, in the order in which
+    :func:`contact_triangle` looks at them (by (i, j), then k), with the indices of its three contacts; the first
+    whose three contacts are all left is the answer."""
+
+    def __init__(self, contacts) -> None:
+        contacts = [tuple(map(int, p)) for p in contacts]
+        at = {p: q for q, p in enumerate(contacts)}
+        nbr: dict[int, set[int]] = {}
+        for i, j in contacts:
+            nbr.setdefault(i, set()).add(j)
+            nbr.setdefault(j, set()).add(i)
+        self.triangles = [(i, j, k) for i, j in sorted(contacts) for k in sorted(nbr[i] & nbr[j])]
+        self.rows = np.array([(at[(i, j)], at[(min(i, k), max(i, k))], at[(min(j, k), max(j, k))])
+                              for i, j, k in self.triangles], dtype=np.int64).reshape(-1, 3)
+        self.m = len(contacts)
+
+    def after_deleting(self, idx) -> tuple[int, int, int] | None:
+        """contact_triangle of the contacts left after deleting those at the indices ``idx``."""
+        gone = np.zeros(self.m, dtype=bool)
+        gone[list(idx)] = True
+        left = ~gone[self.rows].any(axis=1)
+        return self.triangles[int(left.argmax())] if left.any() else None
+
+
 def rigidity(coords: np.ndarray, contacts, params: Params) -> Rigidity:
     """Rigidity test of a cluster given its coordinates (n x 3) and contacts."""
     edges = np.array(contacts, dtype=np.int64).reshape(-1, 2)

@@ -489,3 +489,39 @@ def test_the_held_subsets_are_the_same_after_rotation_reflection_relabelling(see
     held_b = {x.broken for x in b.endpoints if x.outcome == HELD}
     assert held_a and held_a == held_b
     assert _same_distinct_clusters(a, b)
+
+
+def test_the_orbits_of_a_chunk_of_subsets_are_those_found_one_by_one():
+    """_Orbits.firsts, read off a chunk at once, gives for every subset what comparing its images one symmetry
+    at a time gives: whether it is the first of its orbit, else that first subset and the first symmetry that
+    reaches it (its inverse relabels the first subset's attempts)."""
+    from itertools import combinations
+
+    from packings.workers.expand import _Orbits
+    from packings.workers.identity import symmetries
+    from packings.workers.seeds import close_packed_seed
+
+    def one_by_one(orbits, idx):
+        best, g = idx, -1
+        for k, row in enumerate(np.sort(orbits.moves[:, idx], axis=1).tolist()):
+            if tuple(row) < best:
+                best, g = tuple(row), k
+        if g < 0:
+            return None
+        inverse = np.empty_like(orbits.perms[g])
+        inverse[orbits.perms[g]] = np.arange(inverse.size)
+        return best, inverse
+
+    for c, top in ((seed_cluster(5), 5), (seed_cluster(6), 4), (close_packed_seed(14), 3)):
+        orbits = _Orbits(c, symmetries(c, P.tol_d))
+        firsts = 0
+        for k in range(1, top + 1):
+            chunk = list(combinations(range(c.m), k))
+            for idx, got in zip(chunk, orbits.firsts(chunk)):
+                want = one_by_one(orbits, idx)
+                assert (got is None) == (want is None), idx
+                if want is not None:
+                    assert got[0] == want[0] and np.array_equal(got[1], want[1]), idx
+                else:
+                    firsts += 1
+        assert 0 < firsts < sum(len(list(combinations(range(c.m), k))) for k in range(1, top + 1))

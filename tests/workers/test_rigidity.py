@@ -12,7 +12,8 @@ from packings.workers import kernels
 from packings.workers.cluster import Cluster
 from packings.workers.dimension import solution_dimension
 from packings.workers.params import Params
-from packings.workers.rigidity import FIRST_ORDER, FLOPPY, PRESTRESS, UNDECIDED, contact_triangle, prestress_test, rigidity, sdp_margin
+from packings.workers.rigidity import (FIRST_ORDER, FLOPPY, PRESTRESS, UNDECIDED, FirstTriangles, contact_triangle,
+                                       prestress_test, rigidity, sdp_margin)
 from packings.workers.seeds import seed_cluster
 
 P = Params()
@@ -182,3 +183,20 @@ def test_rigidity_invariant_under_rotation_reflection_relabelling(name, seed, re
     # the margin's size depends on which triangle is pinned (it scales the flexes); its sign does not
     if a.margin is not None:
         assert (a.margin > P.tol_psd) == (b.margin > P.tol_psd)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True)
+@given(st.sampled_from(sorted(FIXTURES) + ["seed 9", "chain"]), st.integers(0, 2**31 - 1), st.integers(0, 30))
+def test_the_first_triangle_after_deleting_contacts_is_contact_triangles(name, seed, k):
+    """FirstTriangles gives, for any contacts deleted, the triangle contact_triangle finds in what is left
+    (None where no triangle is left), relabelled clusters and deletions of most contacts included."""
+    c = seed_cluster(9) if name == "seed 9" else Cluster(np.zeros((5, 3)), [(0, 1), (1, 2), (2, 3), (3, 4)]) \
+        if name == "chain" else fixture(name)
+    rng = np.random.default_rng(seed)
+    perm = rng.permutation(c.n)
+    c = Cluster(c.coords[np.argsort(perm)], [(perm[i], perm[j]) for i, j in c.contacts])
+    edges = c.edges()
+    idx = tuple(sorted(rng.choice(c.m, size=min(k, c.m), replace=False).tolist()))
+    kept = np.ones(c.m, dtype=bool)
+    kept[list(idx)] = False
+    assert FirstTriangles(c.contacts).after_deleting(idx) == contact_triangle(edges[kept])
