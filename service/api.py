@@ -344,7 +344,7 @@ def _seconds(variable: str, default: float) -> float:
 
 def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
               max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
-              progress: bool = True, dashboard_address: str = DASHBOARD_ADDRESS) -> RunResult:
+              progress: bool = True, dashboard_address: str = DASHBOARD_ADDRESS, glued: bool = False) -> RunResult:
     """Enumerate the rigid clusters of ``n`` spheres into the database at ``url`` (as :func:`connect`;
     created if need be), or resume the run with the same n and parameters, and return its result:
     ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,
@@ -356,6 +356,13 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     with at least that many contacts.  ``progress`` shows a progress bar on standard error.  A local
     cluster serves its Dask dashboard, with the run's own page (``/packings``, :mod:`packings.dashboard`),
     at ``dashboard_address`` (another port if that one is taken).
+
+    With ``glued``, once the paths are done, a catalysis pass moves one sphere of every stored cluster
+    of n onto each of its contact triangles (:func:`packings.catalysis.catalyse`, as ``packings catalyse
+    N --glued``) and adds the rigid remainders no path reached; the run then expands them, and a pass over
+    the clusters stored since follows, until one adds nothing (``catalysis``: the passes' reports).  A
+    pass that ran to its end is recorded: the same call again makes none, unless clusters were stored
+    since.
     """
     from packings.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
     from packings.workers.params import Params
@@ -411,12 +418,60 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
             if scheduler and engine.dialect.name == "sqlite":
                 print("packings: warning: SQLite with a scheduler works only if every worker sees this file "
                       f"({engine.url.database}); use PostgreSQL for many machines", file=sys.stderr)
-            bar = _progress_bar(progress)
-            try:
-                return run_enumeration(engine, url, n, params, dask.client, on_progress=bar if progress else None,
-                                       max_attempts=max_attempts, workerless_timeout=workerless,
-                                       revive=dask.revive_workers)
-            finally:
-                bar.close()
+            def paths() -> RunResult:
+                bar = _progress_bar(progress)
+                try:
+                    return run_enumeration(engine, url, n, params, dask.client,
+                                           on_progress=bar if progress else None, max_attempts=max_attempts,
+                                           workerless_timeout=workerless, revive=dask.revive_workers)
+                finally:
+                    bar.close()
+
+            result = paths()
+            passes = []
+            while glued and result.status == "complete":
+                report = _glued_pass(engine, url, n, params, result.run_id, dask.client, progress)
+                if report is None:
+                    break
+                passes.append(report)
+                if not report.expansions_added:
+                    break
+                result = paths()
+            result.catalysis = passes
+            return result
         finally:
             engine.dispose()
+
+
+def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool):
+    """A glued catalysis pass into ``run_id`` over the clusters of n stored since the passes before it
+    (:func:`packings.catalysis.covered`), on ``client``'s workers; its report, or None if there are none."""
+    from packings.catalysis import catalyse, count_after, covered
+    from packings.db import sessions
+    from packings.plugin import plugin_name
+
+    Session_ = sessions(engine)
+    after = covered(Session_, run_id)
+    if not count_after(Session_, n, after):
+        return None
+    bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress)
+    try:
+        return catalyse(Session_, n, params, glued=True, client=client, plugin=plugin_name(url), after=after,
+                        on_progress=shown)
+    finally:
+        bar.close()
+
+
+def pass_bar(desc: str, unit: str, quiet: bool):
+    """A progress bar on standard error (none when ``quiet``; tqdm's own choice off a terminal) and the
+    ``on_progress(done, total)`` that moves it, for a catalysis pass."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=quiet or None)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    return bar, progress

@@ -43,8 +43,18 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import sessionmaker
 
 from packings import store
-from packings.owners import process_name
-from packings.models import FOUND_CATALYSIS, FOUND_CLOSE_PACKED, RUNNING, ClusterRow, Run, core_cluster
+from packings.models import (
+    FOUND_CATALYSIS,
+    FOUND_CLOSE_PACKED,
+    PASS_DELETED,
+    PASS_GLUED,
+    RUNNING,
+    CatalysisPass,
+    ClusterRow,
+    Run,
+    core_cluster,
+)
+from packings.owners import process_name, utcnow
 from packings.workers.catalysis import Seen, moved_remainders, remainder, remainder_count, rigid_remainders
 from packings.workers.fragments import close_packed
 from packings.workers.cluster import Cluster
@@ -93,6 +103,8 @@ class CatalysisReport:
     new: list[Found] = field(default_factory=list)
     expansions_added: int = 0
     run_reopened: bool = False
+    after: int = 0  #: the parents read were the stored clusters with a larger id
+    last_parent: int | None = None  #: the largest parent id read (None: none read)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -126,12 +138,28 @@ def run_for(Session_: sessionmaker, n: int, params: Params) -> int:
     return info.id
 
 
-class _Rows:
-    """The stored clusters of n (id, coords, contact list), ``batch`` at a time, by id; iterated again, it
-    goes on after the last id it gave (clusters stored since are read then)."""
+def covered(Session_: sessionmaker, run_id: int) -> int:
+    """The largest cluster id up to which glued passes into ``run_id`` that ran to their end have read every
+    stored parent (0: none ran): a pass after them need read only the clusters stored since."""
+    with Session_() as s:
+        rows = s.execute(select(CatalysisPass.after, CatalysisPass.last_parent)
+                         .where(CatalysisPass.run_id == run_id, CatalysisPass.kind == PASS_GLUED)).all()
+    return max((max(a, last or 0) for a, last in rows), default=0)
 
-    def __init__(self, Session_: sessionmaker, n: int, batch: int):
-        self.Session_, self.n, self.batch, self.last = Session_, n, batch, 0
+
+def count_after(Session_: sessionmaker, n: int, after: int) -> int:
+    """How many clusters of n are stored with an id above ``after``."""
+    with Session_() as s:
+        return s.execute(select(func.count()).select_from(ClusterRow)
+                         .where(ClusterRow.n == n, ClusterRow.id > after)).scalar_one()
+
+
+class _Rows:
+    """The stored clusters of n (id, coords, contact list) with an id above ``after``, ``batch`` at a time,
+    by id; iterated again, it goes on after the last id it gave (clusters stored since are read then)."""
+
+    def __init__(self, Session_: sessionmaker, n: int, batch: int, after: int = 0):
+        self.Session_, self.n, self.batch, self.last = Session_, n, batch, after
 
     def __iter__(self):
         while True:
@@ -195,7 +223,7 @@ def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
 
 def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, batch: int = BATCH,
              on_progress: Callable[[int, int], None] | None = None, glued: bool = False,
-             client=None, plugin: str | None = None) -> CatalysisReport:
+             client=None, plugin: str | None = None, after: int = 0) -> CatalysisReport:
     """Delete ``spheres`` spheres from every stored cluster of n + ``spheres`` (with ``glued``: move one
     sphere of every stored cluster of n) and store the new rigid remainders in the run of (n, params)
     (module doc).  The parents are read by id as the pass goes, so that with ``glued`` the clusters it
@@ -206,13 +234,21 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     each batch of parents is decided by a task on a worker (:func:`catalysis_task`), a few
     per worker at a time, and stored here as its task completes; with ``glued`` each worker process keeps
     its own record of what it has seen (the stored clusters, then what it decided), so that a remainder
-    may be decided once per worker rather than once: what is stored is the same."""
+    may be decided once per worker rather than once: what is stored is the same.
+
+    With ``after``, the parents are the stored clusters with a larger id (:func:`covered`: those stored
+    since the glued passes before).  A pass that runs to its end is recorded (table ``catalysis_passes``)
+    with the largest parent id it read; an interrupted one is not (what it stored stays)."""
     if glued and spheres != 1:
         raise ValueError("catalysis of glued clusters moves one sphere")
     source = n if glued else n + spheres
     total = parents_stored(Session_, source)
+    if after:
+        total = count_after(Session_, source, after)
     run_id = run_for(Session_, n, params)
-    report = CatalysisReport(n, spheres, run_id, glued=glued)
+    report = CatalysisReport(n, spheres, run_id, glued=glued, after=after)
+    started = utcnow()
+    parents = _Rows(Session_, source, batch, after)
 
     def absorb(d: Decided) -> None:
         report.parents += d.parents
@@ -226,11 +262,21 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
 
     if client is None:
         seen = stored_seen(Session_, n, params.tol_d, batch) if glued else None
-        for rows in _Rows(Session_, source, batch):
+        for rows in parents:
             absorb(decide(rows, n, params, spheres, glued, seen))
-        return report
-    _distributed(client, plugin, _Rows(Session_, source, batch), n, params, spheres, glued, absorb)
+    else:
+        _distributed(client, plugin, parents, n, params, spheres, glued, absorb)
+    report.last_parent = parents.last if parents.last > after else None
+    _record(Session_, report, started)
     return report
+
+
+def _record(Session_: sessionmaker, r: CatalysisReport, started) -> None:
+    """The pass ``r``, run to its end, as a row of ``catalysis_passes``."""
+    with Session_.begin() as s:
+        s.add(CatalysisPass(run_id=r.run_id, kind=PASS_GLUED if r.glued else PASS_DELETED, spheres=r.spheres,
+                            after=r.after, last_parent=r.last_parent, parents=r.parents, remainders=r.remainders,
+                            rigid=r.rigid, new=len(r.new), started_at=started, finished_at=utcnow()))
 
 
 def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contacts: int, batch: int = BATCH,

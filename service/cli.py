@@ -16,7 +16,7 @@ import threading
 
 import click
 
-from packings.api import check_n, resolve_url
+from packings.api import check_n, pass_bar, resolve_url
 from packings.dask_cluster import DASHBOARD_ADDRESS
 from packings.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
 from packings.workers.params import Params
@@ -89,22 +89,27 @@ def cli(verbose: int) -> None:
               help="Tries per expansion before it is marked failed.")
 @click.option("--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",
               help="Where a local cluster serves the Dask dashboard and its packings page (another port if taken).")
+@click.option("--glued", is_flag=True,
+              help="Then move one sphere of every cluster onto each contact triangle (as `catalyse N --glued`), "
+                   "add the rigid clusters no path reached and expand them, until nothing new is found.")
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: str | None, max_break: int | None,
-                  min_contacts: int | None, max_attempts: int, dashboard_address: str, as_json: bool,
+                  min_contacts: int | None, max_attempts: int, dashboard_address: str, glued: bool, as_json: bool,
                   quiet: bool) -> None:
     """Enumerate the rigid clusters of N spheres into the database and print them by number of contacts.
 
     Resumes the run with the same N and parameters if the database has one
     (an interrupted run goes on where it stopped; a complete one just prints).
+    With --glued, catalysis passes follow the paths (a pass that ran to its
+    end is not made again; one over the clusters stored since is).
     """
     from packings import api
 
     try:
         result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
                                min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet,
-                               dashboard_address=dashboard_address)
+                               dashboard_address=dashboard_address, glued=glued)
     except KeyboardInterrupt as e:  # the run put its leases back: one line (click would print a newline first)
         raise _stopped(e) from None
     url = resolve_url(db_url)
@@ -115,35 +120,47 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
         click.echo(json.dumps({"n": n, "run": result.run_id, "status": result.status, "total": result.total,
                                "by_contacts": {str(k): v for k, v in result.by_contacts.items()},
                                "diagnostics": result.diagnostics, "seconds": round(result.seconds, 2),
-                               "total_seconds": round(result.total_seconds, 2)}))
+                               "total_seconds": round(result.total_seconds, 2),
+                               **({"catalysis": [r.to_dict() for r in result.catalysis]} if glued else {})}))
     else:
+        from packings.catalysis import format_report
+
         click.echo(format_counts(n, result.by_contacts))
         click.echo("diagnostics: " + ", ".join(f"{k} {v}" for k, v in result.diagnostics.items()))
         took = (f"in {result.total_seconds:.1f} s, {result.seconds:.1f} s of it now (resumed)" if result.resumed
                 else f"in {result.seconds:.1f} s")
         click.echo(f"run {result.run_id}: {result.status} {took}; database {display_url(parse_url(url))}")
+        for report in result.catalysis:
+            click.echo(format_report(report))
     for err in result.errors[:10]:
         click.echo(f"packings: failed task: {err}", err=True)
     if result.status == "complete" and not as_json:
-        _offer_catalysis(url, n)
+        _offer_catalysis(url, n, result.run_id, restricted=max_break is not None or min_contacts is not None)
     if result.status != "complete":
         raise click.ClickException(f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
                                    "failed (see `packings status`); rerun the same command to retry them")
 
 
-def _offer_catalysis(url: str, n: int) -> None:
-    """One line when clusters of n + 1 spheres are stored: catalysis may find clusters no path reaches."""
-    from packings.catalysis import count_stored
+def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
+    """One line on catalysis, which may find clusters no path reaches: from the stored clusters of n + 1
+    spheres when there are some, else (a run not restricted, with no glued pass yet) by moving a sphere
+    of each cluster of n."""
+    from packings.catalysis import count_stored, covered
     from packings.db import make_engine, sessions
 
     engine = make_engine(url)
     try:
-        more = count_stored(sessions(engine, readonly=True), n + 1)
+        Session_ = sessions(engine, readonly=True)
+        more = count_stored(Session_, n + 1)
+        glued = more or restricted or covered(Session_, run_id)
     finally:
         engine.dispose()
     if more:
         click.echo(f"{more} clusters of {n + 1} spheres are stored: `packings catalyse {n}` deletes a sphere from "
                    "each and adds the rigid remainders no path reached")
+    elif not glued:
+        click.echo(f"some clusters no path reaches (n = 11 and 13 have one): `packings enumerate {n} --glued` "
+                   "moves a sphere of each cluster onto each contact triangle and adds the rigid ones")
 
 
 @cli.command("catalyse")
@@ -206,7 +223,7 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     except NoParents as e:
         engine.dispose()
         raise click.ClickException(str(e)) from None
-    bar, progress = _progress_bar(f"clusters of {n if glued else n + k}", "cluster", quiet)
+    bar, progress = pass_bar(f"clusters of {n if glued else n + k}", "cluster", quiet)
 
     plugin = DatabasePlugin(url)
     try:
@@ -224,21 +241,6 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
         bar.close()
         engine.dispose()
     _echo_report(report, n, as_json)
-
-
-def _progress_bar(desc: str, unit: str, quiet: bool):
-    """A progress bar on standard error (none when ``quiet``; tqdm's own choice off a terminal) and the
-    ``on_progress(done, total)`` that moves it, for a catalysis pass."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=quiet or None)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
-
-    return bar, progress
 
 
 def _echo_report(report, n: int, as_json: bool) -> None:
@@ -259,7 +261,7 @@ def _close_packed(n: int, m: int, db_url: str | None, params: Params, as_json: b
     from packings.db import sessions
 
     engine = open_db(db_url)
-    bar, progress = _progress_bar(f"fragments of {n}", "fragment", quiet or as_json)
+    bar, progress = pass_bar(f"fragments of {n}", "fragment", quiet or as_json)
 
     try:
         report = close_packed_pass(sessions(engine), n, params, m, on_progress=progress)

@@ -55,6 +55,10 @@ FOUND_PATH = "path"  #: the endpoint of a path from clusters.source_id
 FOUND_CATALYSIS = "catalysis"  #: a remainder of clusters.source_id (more spheres) after deleting spheres
 FOUND_CLOSE_PACKED = "close-packed"  #: a close-packed fragment (packings.workers.fragments), no source
 
+# How a catalysis pass made its parents' remainders (catalysis_passes.kind).
+PASS_GLUED = "glued"  #: one sphere of each stored cluster of n moved onto each contact triangle
+PASS_DELETED = "deleted"  #: spheres deleted from each stored cluster of n + spheres
+
 # Run statuses.
 RUNNING = "running"
 COMPLETE = "complete"
@@ -194,6 +198,27 @@ class ExpansionRow(Base):
         UniqueConstraint("run_id", "cluster_id", name="uq_expansions_run_cluster"),
         Index("ix_expansions_run_status", "run_id", "status"),
     )
+
+
+class CatalysisPass(Base):
+    """A catalysis pass that ran to its end (:func:`packings.catalysis.catalyse`): which run its finds went
+    to, how its parents were made, and the largest parent id it read.  ``packings enumerate N --glued``
+    takes as the parents of its next pass only the clusters stored after that id."""
+
+    __tablename__ = "catalysis_passes"
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"), index=True)
+    kind: Mapped[str] = mapped_column(String(16))  #: PASS_GLUED or PASS_DELETED
+    spheres: Mapped[int] = mapped_column(Integer)  #: spheres deleted from each parent (1 with glued)
+    after: Mapped[int] = mapped_column(Integer, default=0)  #: parents read: the clusters with a larger id
+    last_parent: Mapped[int | None] = mapped_column(Integer, nullable=True)  #: the largest parent id read
+    parents: Mapped[int] = mapped_column(Integer, default=0)
+    remainders: Mapped[int] = mapped_column(Integer, default=0)  #: remainders decided
+    rigid: Mapped[int] = mapped_column(Integer, default=0)
+    new: Mapped[int] = mapped_column(Integer, default=0)  #: clusters it stored
+    started_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+    finished_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
 class Transition(Base):

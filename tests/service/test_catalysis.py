@@ -9,10 +9,10 @@ import numpy as np
 from sqlalchemy import func, select, text
 
 from packings import store
-from packings.catalysis import NoParents, catalyse, close_packed_pass
+from packings.catalysis import NoParents, catalyse, close_packed_pass, count_after, covered
 from packings.db import sessions
-from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PENDING, RUNNING,
-                             ClusterRow, ExpansionRow, Run)
+from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PASS_DELETED, PASS_GLUED,
+                             PENDING, RUNNING, CatalysisPass, ClusterRow, ExpansionRow, Run)
 from tests.service.conftest import fill_database
 from tests.service.test_db import cli, one_line_error
 from packings.workers.cluster import Cluster as Core
@@ -95,6 +95,69 @@ def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_the
         assert s.get(Run, run6).status == COMPLETE
         exp = s.execute(select(ExpansionRow).where(ExpansionRow.cluster_id == new.id)).scalar_one()
         assert exp.status == DONE and exp.paths > 0
+
+
+def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_passes(engine, paper_counts):
+    """Into a complete run of 7 that holds only its seed, `enumerate 7` adds nothing and says that `--glued`
+    may.  `enumerate 7 --glued` moves a sphere of each stored cluster onto each contact triangle: the first
+    pass stores two clusters (found_by = catalysis), which it moves in their turn; the run expands them and
+    its paths reach the last two, which a second pass, over the clusters stored since, moves to find nothing
+    new.  The catalogue is the paper's, both passes are recorded, and the same command again makes no pass
+    and no longer says that `--glued` may add something."""
+    run7 = _complete_after_the_seed(engine, 7)
+    url = url_of(engine)
+    S = sessions(engine)
+    r = cli("enumerate", "7", "--quiet", "--workers", "1", "--db", url)
+    assert r.returncode == 0, r.stderr
+    assert "n = 7: 1 rigid clusters" in r.stdout and "`packings enumerate 7 --glued`" in r.stdout
+    r = cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert (out["run"], out["status"]) == (run7, "complete")
+    assert out["by_contacts"] == paper_counts["clusters_by_contacts"]["7"]
+    with S() as s:
+        ids = s.execute(select(ClusterRow.id).where(ClusterRow.n == 7).order_by(ClusterRow.id)).scalars().all()
+        found_by = dict(s.execute(select(ClusterRow.id, ClusterRow.found_by)).all())
+        records = s.execute(select(CatalysisPass).order_by(CatalysisPass.id)).scalars().all()
+        assert {e.status for e in s.execute(select(ExpansionRow)).scalars()} == {DONE}
+        assert s.get(Run, run7).status == COMPLETE
+    first, second = out["catalysis"]
+    assert (first["after"], first["parents"], first["last_parent"], first["expansions_added"]) == (0, 3, ids[2], 2)
+    assert [f["id"] for f in first["new"]] == ids[1:3]
+    assert [found_by[i] for i in ids] == [FOUND_SEED, FOUND_CATALYSIS, FOUND_CATALYSIS, "path", "path"]
+    assert (second["after"], second["parents"], second["last_parent"], second["new"]) == (ids[2], 2, ids[4], [])
+    assert [(x.run_id, x.kind, x.spheres, x.after, x.last_parent, x.parents, x.new) for x in records] == [
+        (run7, PASS_GLUED, 1, 0, ids[2], 3, 2), (run7, PASS_GLUED, 1, ids[2], ids[4], 2, 0)]
+    assert all(x.finished_at >= x.started_at for x in records)
+    assert covered(S, run7) == ids[4] and count_after(S, 7, ids[4]) == 0
+    again = json.loads(cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url).stdout)
+    assert again["catalysis"] == [] and again["by_contacts"] == out["by_contacts"]
+    r = cli("enumerate", "7", "--quiet", "--workers", "1", "--db", url)
+    assert r.returncode == 0 and "--glued" not in r.stdout
+    with S() as s:
+        assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 2
+
+
+def test_a_pass_after_an_id_reads_only_the_clusters_stored_since_and_is_recorded(engine):
+    """catalyse(..., after=i) takes as parents only the clusters with a larger id; the glued passes that ran
+    to their end say up to which id every cluster was a parent (covered), the passes deleting spheres
+    do not count there."""
+    run7 = fill_database(engine, 7)
+    S = sessions(engine)
+    with S() as s:
+        ids = s.execute(select(ClusterRow.id).where(ClusterRow.n == 7).order_by(ClusterRow.id)).scalars().all()
+    assert covered(S, run7) == 0 and count_after(S, 7, ids[2]) == 2
+    r = catalyse(S, 7, Params(), glued=True, after=ids[2])
+    assert (r.run_id, r.parents, r.after, r.last_parent) == (run7, 2, ids[2], ids[-1]) and r.new == []
+    assert covered(S, run7) == ids[-1]
+    none = catalyse(S, 7, Params(), glued=True, after=ids[-1])
+    assert (none.parents, none.last_parent) == (0, None) and covered(S, run7) == ids[-1]
+    fill_database(engine, 8)
+    catalyse(S, 7, Params())  # deleting a sphere from each cluster of 8
+    with S() as s:
+        kinds = s.execute(select(CatalysisPass.kind, CatalysisPass.after).order_by(CatalysisPass.id)).all()
+    assert [tuple(k) for k in kinds] == [(PASS_GLUED, ids[2]), (PASS_GLUED, ids[-1]), (PASS_DELETED, 0)]
+    assert covered(S, run7) == ids[-1]
 
 
 def test_catalyse_command(engine, tmp_path):
