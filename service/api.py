@@ -454,7 +454,7 @@ def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress:
     after = covered(Session_, run_id)
     if not count_after(Session_, n, after):
         return None
-    bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress)
+    bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress, off_terminal=True)
     try:
         return catalyse(Session_, n, params, glued=True, client=client, plugin=plugin_name(url), after=after,
                         on_progress=shown)
@@ -462,12 +462,14 @@ def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress:
         bar.close()
 
 
-def pass_bar(desc: str, unit: str, quiet: bool):
-    """A progress bar on standard error (none when ``quiet``; tqdm's own choice off a terminal) and the
-    ``on_progress(done, total)`` that moves it, for a catalysis pass."""
+def pass_bar(desc: str, unit: str, quiet: bool, off_terminal: bool = False):
+    """A progress bar on standard error (none when ``quiet``; off a terminal tqdm's own choice, none, unless
+    ``off_terminal``, as the expansions' bar of a run) and the ``on_progress(done, total)`` that moves it,
+    for a catalysis pass."""
     from tqdm import tqdm
 
-    bar = tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=quiet or None)
+    disable = True if quiet else False if off_terminal else None
+    bar = tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=disable)
 
     def progress(done: int, total: int) -> None:
         bar.total = total
