@@ -446,13 +446,13 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
 def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool):
     """A glued catalysis pass into ``run_id`` over the clusters of n stored since the passes before it
     (:func:`packings.catalysis.covered`), on ``client``'s workers; its report, or None if there are none."""
-    from packings.catalysis import catalyse, count_after, covered
+    from packings.catalysis import catalyse, count_stored, covered
     from packings.db import sessions
     from packings.plugin import plugin_name
 
     Session_ = sessions(engine)
     after = covered(Session_, run_id)
-    if not count_after(Session_, n, after):
+    if not count_stored(Session_, n, after):
         return None
     bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress, off_terminal=True)
     try:

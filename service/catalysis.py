@@ -110,9 +110,11 @@ class CatalysisReport:
         return asdict(self)
 
 
-def count_stored(Session_: sessionmaker, n: int) -> int:
+def count_stored(Session_: sessionmaker, n: int, after: int = 0) -> int:
+    """How many clusters of n are stored (with ``after``: with an id above it)."""
     with Session_() as s:
-        return s.execute(select(func.count()).select_from(ClusterRow).where(ClusterRow.n == n)).scalar_one()
+        return s.execute(select(func.count()).select_from(ClusterRow)
+                         .where(ClusterRow.n == n, ClusterRow.id > after)).scalar_one()
 
 
 def parents_stored(Session_: sessionmaker, source: int) -> int:
@@ -145,13 +147,6 @@ def covered(Session_: sessionmaker, run_id: int) -> int:
         rows = s.execute(select(CatalysisPass.after, CatalysisPass.last_parent)
                          .where(CatalysisPass.run_id == run_id, CatalysisPass.kind == PASS_GLUED)).all()
     return max((max(a, last or 0) for a, last in rows), default=0)
-
-
-def count_after(Session_: sessionmaker, n: int, after: int) -> int:
-    """How many clusters of n are stored with an id above ``after``."""
-    with Session_() as s:
-        return s.execute(select(func.count()).select_from(ClusterRow)
-                         .where(ClusterRow.n == n, ClusterRow.id > after)).scalar_one()
 
 
 class _Rows:
@@ -244,7 +239,7 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     source = n if glued else n + spheres
     total = parents_stored(Session_, source)
     if after:
-        total = count_after(Session_, source, after)
+        total = count_stored(Session_, source, after)
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, spheres, run_id, glued=glued, after=after)
     started = utcnow()

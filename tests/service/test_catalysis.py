@@ -9,7 +9,7 @@ import numpy as np
 from sqlalchemy import func, select, text
 
 from packings import store
-from packings.catalysis import NoParents, catalyse, close_packed_pass, count_after, covered
+from packings.catalysis import NoParents, catalyse, close_packed_pass, count_stored, covered
 from packings.db import sessions
 from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PASS_DELETED, PASS_GLUED,
                              PENDING, RUNNING, CatalysisPass, ClusterRow, ExpansionRow, Run)
@@ -129,7 +129,7 @@ def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_pa
     assert [(x.run_id, x.kind, x.spheres, x.after, x.last_parent, x.parents, x.new) for x in records] == [
         (run7, PASS_GLUED, 1, 0, ids[2], 3, 2), (run7, PASS_GLUED, 1, ids[2], ids[4], 2, 0)]
     assert all(x.finished_at >= x.started_at for x in records)
-    assert covered(S, run7) == ids[4] and count_after(S, 7, ids[4]) == 0
+    assert covered(S, run7) == ids[4] and count_stored(S, 7, ids[4]) == 0
     again = json.loads(cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url).stdout)
     assert again["catalysis"] == [] and again["by_contacts"] == out["by_contacts"]
     r = cli("enumerate", "7", "--quiet", "--workers", "1", "--db", url)
@@ -146,7 +146,7 @@ def test_a_pass_after_an_id_reads_only_the_clusters_stored_since_and_is_recorded
     S = sessions(engine)
     with S() as s:
         ids = s.execute(select(ClusterRow.id).where(ClusterRow.n == 7).order_by(ClusterRow.id)).scalars().all()
-    assert covered(S, run7) == 0 and count_after(S, 7, ids[2]) == 2
+    assert covered(S, run7) == 0 and count_stored(S, 7, ids[2]) == 2
     r = catalyse(S, 7, Params(), glued=True, after=ids[2])
     assert (r.run_id, r.parents, r.after, r.last_parent) == (run7, 2, ids[2], ids[-1]) and r.new == []
     assert covered(S, run7) == ids[-1]
