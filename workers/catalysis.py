@@ -160,30 +160,25 @@ def glued(cluster: Cluster, params: Params) -> Iterator[tuple[tuple[int, int, in
 class Seen:
     """Clusters already decided, by contact graph (nauty certificate) and sorted pair distances.
 
-    ``cluster in seen`` when a cluster with the same contact graph has sorted pair distances within
-    ``4 tol_d`` of it: what :func:`packings.workers.identity.same_geometry` requires before it aligns
-    (copies within tol_d always pass it).  It is a filter for work, not the identity: two clusters it
-    calls seen are not proved the same, so it only chooses which remainders are not decided again, and
-    what is stored is matched by the identity as always.
+    ``cluster in seen`` when a cluster with the same contact graph was added whose sorted pair distances
+    fall in the same cells of a grid of side ``4 tol_d``: each distance rounded to the nearest multiple of
+    ``4 tol_d``, the same.  Then every distance is within ``4 tol_d`` of the other's, what
+    :func:`packings.workers.identity.same_geometry` requires before it aligns, so the record calls seen no
+    cluster that a comparison of the distances within that bound would call new.  It is a filter for work,
+    not the identity: it only chooses which remainders are not decided again, and what is stored is matched
+    by the identity as always.  A copy whose distances straddle a cell's wall is decided again (work, not a
+    loss); repeats of one remainder agree far closer than a cell (docs/performance.md).
 
-    A pass at n = 13 keeps millions of them, so the record is compact: a graph is known by a 64-bit
-    digest of its certificate, in an open-addressing table of numpy arrays, and each cluster's distances
-    are a float32 row of chunked arrays, chained to the graph's earlier rows.  Rounding to float32 moves a
-    distance by at most 6e-8 of itself (2.4e-7 for one below 4: a hundredth of the bound for tol_d =
-    1e-5).  Two graphs share a digest with a chance of about 2^-64 a pair, and even then their clusters
-    are called the same only with distances within the bound.
+    A pass at n = 13 keeps millions of them, so a cluster is kept as one 128-bit digest (blake2b) of its
+    certificate and its rounded distances, in an open-addressing table of numpy arrays: 16 bytes a slot,
+    the table at most half full.  Two different clusters share a digest with a chance of about 2^-128 a
+    pair.
     """
-
-    CHUNK = 1 << 15  #: rows a chunk
 
     def __init__(self, tol_d: float):
         self.bound = 4.0 * tol_d
-        self._keys = np.zeros(1 << 10, np.uint64)  #: digests (0: an empty slot)
-        self._heads = np.full(1 << 10, -1, np.int64)  #: each graph's newest row
-        self._rows: list[np.ndarray] = []  #: chunks of rows, float32
-        self._next: list[np.ndarray] = []  #: chunks: the graph's row before each row (-1: none)
+        self._keys = np.zeros((1 << 10, 2), np.uint64)  #: digests, two words each (0, 0: an empty slot)
         self._count = 0
-        self._graphs = 0
         self._lock = threading.Lock()  # a worker's threads share one record (packings.catalysis)
 
     def add(self, cluster: Cluster) -> bool:
@@ -193,61 +188,44 @@ class Seen:
 
     def add_parts(self, certificate: bytes, sorted_distances: np.ndarray) -> bool:
         """:meth:`add` for a cluster given by its graph certificate and sorted pair distances."""
-        key = int.from_bytes(hashlib.blake2b(certificate, digest_size=8).digest(), "little") or 1
+        cells = np.rint(np.asarray(sorted_distances, np.float64) / self.bound).astype(np.int64)
+        h = hashlib.blake2b(certificate, digest_size=16)
+        h.update(cells.tobytes())
+        b = h.digest()
+        lo, hi = int.from_bytes(b[:8], "little"), int.from_bytes(b[8:], "little")
+        if lo == 0 and hi == 0:
+            lo = 1
         with self._lock:
-            return self._add(key, sorted_distances)
+            return self._add(lo, hi)
 
-    def _add(self, key: int, sorted_distances: np.ndarray) -> bool:
-        """:meth:`add_parts` for the graph whose certificate's digest is ``key``, under the lock."""
-        slot = self._slot(key)
-        if int(self._keys[slot]) == key:
-            r = int(self._heads[slot])
-            while r >= 0:
-                c, o = divmod(r, self.CHUNK)
-                if float(np.max(np.abs(self._rows[c][o] - sorted_distances))) <= self.bound:
-                    return False
-                r = int(self._next[c][o])
-        else:
-            if 2 * (self._graphs + 1) > self._keys.size:
-                self._grow()
-                slot = self._slot(key)
-            self._keys[slot] = key
-            self._graphs += 1
-        self._heads[slot] = self._append(sorted_distances, int(self._heads[slot]))
+    def _add(self, lo: int, hi: int) -> bool:
+        """:meth:`add_parts` for the digest (``lo``, ``hi``), under the lock."""
+        slot = self._slot(lo, hi)
+        if int(self._keys[slot, 0]) != 0 or int(self._keys[slot, 1]) != 0:
+            return False
+        if 2 * (self._count + 1) > len(self._keys):
+            self._grow()
+            slot = self._slot(lo, hi)
+        self._keys[slot] = (lo, hi)
+        self._count += 1
         return True
 
-    def _slot(self, key: int) -> int:
-        """The slot of ``key`` in the table, or the empty slot where it would go (linear probing)."""
-        mask = self._keys.size - 1
-        i = key & mask
+    def _slot(self, lo: int, hi: int) -> int:
+        """The slot of the digest in the table, or the empty slot where it would go (linear probing)."""
+        mask = len(self._keys) - 1
+        i = lo & mask
         while True:
-            k = int(self._keys[i])
-            if k == 0 or k == key:
+            a, b = int(self._keys[i, 0]), int(self._keys[i, 1])
+            if (a == lo and b == hi) or (a == 0 and b == 0):
                 return i
             i = (i + 1) & mask
 
     def _grow(self) -> None:
-        """The table twice as large, every graph in it again."""
-        keys, heads = self._keys, self._heads
-        self._keys = np.zeros(2 * keys.size, np.uint64)
-        self._heads = np.full(2 * keys.size, -1, np.int64)
-        for i in np.flatnonzero(keys):
-            slot = self._slot(int(keys[i]))
-            self._keys[slot] = keys[i]
-            self._heads[slot] = heads[i]
-
-    def _append(self, row: np.ndarray, before: int) -> int:
-        """Store ``row`` after the graph's row ``before``; its index."""
-        if self._rows and row.size != self._rows[0].shape[1]:
-            raise ValueError("clusters of one size only")
-        c, o = divmod(self._count, self.CHUNK)
-        if o == 0:
-            self._rows.append(np.empty((self.CHUNK, row.size), np.float32))
-            self._next.append(np.empty(self.CHUNK, np.int64))
-        self._rows[c][o] = row
-        self._next[c][o] = before
-        self._count += 1
-        return self._count - 1
+        """The table twice as large, every digest in it again."""
+        keys = self._keys
+        self._keys = np.zeros((2 * len(keys), 2), np.uint64)
+        for lo, hi in keys[(keys[:, 0] != 0) | (keys[:, 1] != 0)].tolist():
+            self._keys[self._slot(lo, hi)] = (lo, hi)
 
     def __len__(self) -> int:
         return self._count
