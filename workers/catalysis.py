@@ -55,7 +55,7 @@ from typing import Iterator
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster, contacts_from_coords, pair_distances, triangles
+from packings.workers.cluster import Cluster, contacts_from_coords, pair, pair_distances, triangles
 from packings.workers.identity import edges_certificate, graph_certificate
 from packings.workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
 from packings.workers.params import Params
@@ -91,7 +91,8 @@ def sub_cluster(parent: Cluster, kept) -> Cluster:
     """The spheres ``kept`` of ``parent`` (in that order, renumbered 0..) with the parent's contacts among them."""
     kept = tuple(int(i) for i in kept)
     new = {p: q for q, p in enumerate(kept)}
-    contacts = tuple((new[i], new[j]) for i, j in parent.contacts if i in new and j in new)
+    # the shared pairs (cluster.pair), so that contacts kept in order need no sorting by Cluster
+    contacts = tuple(pair(new[i], new[j]) for i, j in parent.contacts if i in new and j in new)
     return Cluster(parent.coords[list(kept)], contacts)
 
 

@@ -398,7 +398,7 @@ def near_pairs(x: np.ndarray, contacts, tol: float, candidates: np.ndarray | Non
     close = candidates[kernels.pair_distances_flat(x, candidates) < 1.0 + tol]
     if not close.size:
         return close
-    touching = set(map(tuple, np.asarray(contacts).tolist()))
+    touching = set(contacts) if type(contacts) is tuple else set(map(tuple, np.asarray(contacts).tolist()))
     return close[[tuple(p) not in touching for p in close.tolist()]]
 
 

@@ -211,7 +211,10 @@ def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray
 
 def contact_triangle(edges, forbidden=()) -> tuple[int, int, int] | None:
     """The lexicographically first triangle (a, b, c) of contacts, avoiding ``forbidden`` contacts."""
-    es = set(map(tuple, np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist())) - {tuple(e) for e in forbidden}
+    if type(edges) is tuple and not forbidden and (not edges or type(edges[0]) is tuple):  # a cluster's contacts
+        es = set(edges)
+    else:
+        es = set(map(tuple, np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist())) - {tuple(e) for e in forbidden}
     nbr: dict[int, set[int]] = {}
     for i, j in es:
         nbr.setdefault(i, set()).add(j)

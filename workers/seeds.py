@@ -11,7 +11,7 @@ import functools
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import Cluster, triangles
+from packings.workers.cluster import Cluster, cross3, triangles
 from packings.workers.fragments import close_packed
 from packings.workers.params import DEFAULT, Params
 from packings.workers.rigidity import rigidity
@@ -25,7 +25,7 @@ def cap_positions(p: np.ndarray, tri: tuple[int, int, int]) -> tuple[np.ndarray,
     """
     a, b, c = (p[i] for i in tri)
     centroid = (a + b + c) / 3.0
-    normal = np.cross(b - a, c - a)
+    normal = cross3(b - a, c - a)
     normal /= np.linalg.norm(normal)
     r2 = np.sum((a - centroid) ** 2)
     height = np.sqrt(max(1.0 - r2, 0.0))
