@@ -291,3 +291,18 @@ def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both
     r = subprocess.run([sys.executable, "-m", "benchmarks", "retrace", "--n", "10", "--db", url], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and "no complete run of n = 10" in r.stderr
+
+
+def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
+    """n = 9's 52 clusters in a record, then a sphere of 20 of them moved: the record holds every stored
+    cluster and every remainder decided, at a few dozen bytes each (a digest in a table half full at most
+    and the table's spare room; the float64 distances alone would be 288 bytes)."""
+    url, _ = run_of_9
+    row = benchmark("memory", "--glued", "--n", "9", "--db", url, "--parents", "20")
+    assert (row["n"], row["stored"], row["parents"]) == (9, 52, 20)
+    assert row["decided"] > 0 and row["not_again"] > 0 and row["seconds"] > 0
+    assert 0 < row["record_mib"] <= row["traced_peak_mib"]
+    assert 0 < row["record_bytes_per_cluster"] < 288
+    r = subprocess.run([sys.executable, "-m", "benchmarks", "memory", "--glued", "--n", "9"], cwd=ROOT,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode != 0 and "--glued needs --db" in r.stderr
