@@ -302,6 +302,7 @@ def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
     assert (row["n"], row["stored"], row["parents"]) == (9, 52, 20)
     assert row["decided"] > 0 and row["not_again"] > 0 and row["seconds"] > 0
     assert 0 < row["record_mib"] <= row["traced_peak_mib"]
+    assert row["stored"] <= row["record_clusters"] <= row["stored"] + row["decided"]
     assert 0 < row["record_bytes_per_cluster"] < 288
     r = subprocess.run([sys.executable, "-m", "benchmarks", "memory", "--glued", "--n", "9"], cwd=ROOT,
                        capture_output=True, text=True, timeout=300)
