@@ -58,6 +58,14 @@ def contacts_from_coords(x: np.ndarray, tol_a: float) -> tuple[Contact, ...]:
     return contacts_from_distances(pairs, np.sqrt(np.einsum("ij,ij->i", d, d)), tol_a)
 
 
+def pair_set(contacts) -> set[Contact]:
+    """The pairs (i, j) of ``contacts`` as a set: a cluster's tuple of pairs as it is, anything else (an
+    array of rows, a list) read as rows of two ints."""
+    if type(contacts) is tuple and (not contacts or type(contacts[0]) is tuple):
+        return set(contacts)
+    return set(map(tuple, np.asarray(contacts, dtype=np.int64).reshape(-1, 2).tolist()))
+
+
 def normalise_contacts(contacts) -> tuple[Contact, ...]:
     """Contacts as a sorted tuple of (i, j) with i < j and no repeats."""
     if type(contacts) is tuple and _normal(contacts):

@@ -10,7 +10,7 @@ from itertools import combinations
 import numpy as np
 
 from packings.workers import kernels
-from packings.workers.cluster import contacts_from_distances, upper_pairs
+from packings.workers.cluster import contacts_from_distances, pair_set, upper_pairs
 from packings.workers.dimension import RIGID_PART, StressBasis, rigid_part, solution_dimension
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
@@ -398,7 +398,7 @@ def near_pairs(x: np.ndarray, contacts, tol: float, candidates: np.ndarray | Non
     close = candidates[kernels.pair_distances_flat(x, candidates) < 1.0 + tol]
     if not close.size:
         return close
-    touching = set(contacts) if type(contacts) is tuple else set(map(tuple, np.asarray(contacts).tolist()))
+    touching = pair_set(contacts)
     return close[[tuple(p) not in touching for p in close.tolist()]]
 
 

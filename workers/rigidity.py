@@ -9,6 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from packings.workers import kernels
+from packings.workers.cluster import pair_set
 from packings.workers.params import Params
 
 FIRST_ORDER = "first-order"  #: V empty
@@ -211,10 +212,7 @@ def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray
 
 def contact_triangle(edges, forbidden=()) -> tuple[int, int, int] | None:
     """The lexicographically first triangle (a, b, c) of contacts, avoiding ``forbidden`` contacts."""
-    if type(edges) is tuple and not forbidden and (not edges or type(edges[0]) is tuple):  # a cluster's contacts
-        es = set(edges)
-    else:
-        es = set(map(tuple, np.asarray(edges, dtype=np.int64).reshape(-1, 2).tolist())) - {tuple(e) for e in forbidden}
+    es = pair_set(edges) - {tuple(e) for e in forbidden}
     nbr: dict[int, set[int]] = {}
     for i, j in es:
         nbr.setdefault(i, set()).add(j)
