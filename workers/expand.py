@@ -565,7 +565,7 @@ def _classify(source: Cluster, cert: bytes, broken, sign: int, end: PathEnd, par
     return Endpoint(broken, sign, outcome, 1, end.steps, c, end.rigidity, end.new_contacts, end.first_step_dim)
 
 
-def warm_up() -> float:
+def warm_up(apart: bool = True) -> float:
     """Compile (or load from numba's on-disk cache) every compiled kernel; returns the seconds taken.
 
     Runs each kernel once on a small cluster (a path of the 6-sphere
@@ -574,12 +574,18 @@ def warm_up() -> float:
     compilation.  Call it once per process (e.g. per Dask worker).  It lives here, above
     every module whose kernels it runs, not in :mod:`kernels`, the lowest layer.  Does nothing
     (returns 0.0) when the numpy backend is selected.
+
+    With ``apart``, a cold cache is filled by a child process first, and this one loads the kernels from
+    it (:func:`packings.workers.kernel_cache.compile_apart`): the compiler's memory goes with the child.
     """
     if kernels.get_backend() != "numba":
         return 0.0
+    from packings.workers.kernel_cache import compile_apart
     from packings.workers.seeds import seed_cluster
 
     start = time.perf_counter()
+    if apart:
+        compile_apart()
     params = Params()
     c = seed_cluster(6, params)
     edges = c.edges()
