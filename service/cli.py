@@ -29,6 +29,10 @@ db_option = click.option(
     "--db", "db_url", default=None, metavar="URL",
     help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
 )
+dashboard_option = click.option(
+    "--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",
+    help="Where a local cluster serves the Dask dashboard and its packings page (another port if taken).",
+)
 
 
 def open_db(db_url: str | None, create: bool = False, migrate: bool = False):
@@ -87,8 +91,7 @@ def cli(verbose: int) -> None:
                    "else the best of every close-packed fragment listed: minutes from N = 14).")
 @click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
               help="Tries per expansion before it is marked failed.")
-@click.option("--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",
-              help="Where a local cluster serves the Dask dashboard and its packings page (another port if taken).")
+@dashboard_option
 @click.option("--glued", is_flag=True,
               help="Then move one sphere of every cluster onto each contact triangle (as `catalyse N --glued`), "
                    "add the rigid clusters no path reached and expand them, until nothing new is found.")
@@ -183,11 +186,12 @@ def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
               help="Worker processes of the local Dask cluster (default: one per core).")
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="Use an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.")
+@dashboard_option
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, glued: bool,
-                 close_packed: int | None, n_workers: int | None, scheduler: str | None, as_json: bool,
-                 quiet: bool) -> None:
+                 close_packed: int | None, n_workers: int | None, scheduler: str | None, dashboard_address: str,
+                 as_json: bool, quiet: bool) -> None:
     """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
     yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
     afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one).
@@ -223,11 +227,13 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     except NoParents as e:
         engine.dispose()
         raise click.ClickException(str(e)) from None
-    bar, progress = pass_bar(f"clusters of {n if glued else n + k}", "cluster", quiet)
+    # shown off a terminal too (a log file), as enumerate's bars are: a pass may take many minutes
+    bar, progress = pass_bar(f"clusters of {n if glued else n + k}", "cluster", quiet, off_terminal=True)
 
     plugin = DatabasePlugin(url)
     try:
-        with dask_client(scheduler, n_workers, quiet or as_json, plugins=(plugin,), database=url) as dask:
+        with dask_client(scheduler, n_workers, quiet or as_json, plugins=(plugin,), database=url,
+                         dashboard_address=dashboard_address) as dask:
             client = dask.client
             if scheduler:  # an existing cluster's workers get the engine now (a local one's as they started)
                 client.register_plugin(plugin)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -312,6 +313,15 @@ def test_catalyse_glued_command(engine):
     assert "by moving one sphere" in r.stdout and "clusters 2," in r.stdout and "new 0" in r.stdout
     out = json.loads(cli("catalyse", "6", "--glued", "--db", url, "--json", "--workers", "1").stdout)
     assert out["glued"] and out["parents"] == 2 and out["new"] == []
+    with socket.socket() as taken:  # the dashboard where it is asked for, another port where that is taken
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        r = cli("catalyse", "6", "--glued", "--db", url, "--workers", "1", "--dashboard-address", f"127.0.0.1:{port}")
+    assert r.returncode == 0, r.stderr
+    assert f"packings: dashboard port {port} is taken; serving it on " in r.stderr
+    assert "clusters of 6: 100%" in r.stderr and "2/2" in r.stderr  # the pass's bar, off a terminal too
+    assert "clusters of 6" not in cli("catalyse", "6", "--glued", "--db", url, "--workers", "1", "--quiet").stderr
     line = one_line_error(cli("catalyse", "6", "--glued", "--db", url, "--workers", "2", "--scheduler", "tcp://h:1"))
     assert "not both" in line
 
