@@ -158,6 +158,10 @@ def glued(cluster: Cluster, params: Params) -> Iterator[tuple[tuple[int, int, in
             yield tri, Cluster(np.vstack([x, q]), cluster.contacts + new)
 
 
+#: digests placed together when the record's table grows (:meth:`Seen._grow`): the work arrays stay a few MiB
+GROW_CHUNK = 1 << 16
+
+
 class Seen:
     """Clusters already decided, by contact graph (nauty certificate) and sorted pair distances.
 
@@ -222,11 +226,27 @@ class Seen:
             i = (i + 1) & mask
 
     def _grow(self) -> None:
-        """The table twice as large, every digest in it again."""
-        keys = self._keys
-        self._keys = np.zeros((2 * len(keys), 2), np.uint64)
-        for lo, hi in keys[(keys[:, 0] != 0) | (keys[:, 1] != 0)].tolist():
-            self._keys[self._slot(lo, hi)] = (lo, hi)
+        """The table twice as large, every digest in it again.
+
+        The digests are placed in rounds, a chunk at a time, in numpy arrays (a list of Python ints would take
+        about 150 bytes a digest, 300 MiB at a glued pass's size, and a Python loop over millions of them
+        seconds under the lock): each round, the first digest bound for each empty slot takes it and the
+        others probe the next slot.  Without deletions any order of insertion leaves every digest reachable
+        from its home slot through occupied slots, which is all that :meth:`_slot` needs."""
+        live = self._keys[(self._keys[:, 0] != 0) | (self._keys[:, 1] != 0)]
+        self._keys = table = np.zeros((2 * len(self._keys), 2), np.uint64)
+        mask = np.uint64(len(table) - 1)
+        for start in range(0, len(live), GROW_CHUNK):
+            keys = live[start:start + GROW_CHUNK]
+            pos = keys[:, 0] & mask
+            while keys.size:
+                free = np.flatnonzero((table[pos, 0] == 0) & (table[pos, 1] == 0))
+                _, first = np.unique(pos[free], return_index=True)
+                placed = free[first]
+                table[pos[placed]] = keys[placed]
+                left = np.ones(len(keys), bool)
+                left[placed] = False
+                keys, pos = keys[left], (pos[left] + np.uint64(1)) & mask
 
     def __len__(self) -> int:
         return self._count

@@ -350,6 +350,37 @@ def test_the_record_calls_seen_only_what_a_plain_one_calls_seen(seed):
     assert len(seen._keys) > 2 * len(graphs) > 1 << 10  # grown from its first size
 
 
+@settings(max_examples=5, deadline=None, derandomize=True)
+@given(st.integers(0, 2**31 - 1), st.integers(0, 12))
+def test_the_table_keeps_every_digest_through_its_growth(seed, shared_bits):
+    """Digests whose home slots crowd together (the low ``shared_bits`` bits the same, so that probing runs
+    long) added to the table as it doubles: each is found again, and only those; the table is at most half
+    full, and holds each digest in one slot, reachable from its home slot through occupied slots.  The
+    digests are placed a chunk at a time as the table grows: chunks of 257 here, so that each growth takes
+    several."""
+    from unittest import mock
+
+    from packings.workers import catalysis
+
+    rng = np.random.default_rng(seed)
+    lo = rng.integers(1, 2**63, 6_000, dtype=np.uint64) & ~np.uint64((1 << shared_bits) - 1)
+    hi = rng.integers(0, 2**63, 6_000, dtype=np.uint64)
+    seen = Seen(P.tol_d)
+    with mock.patch.object(catalysis, "GROW_CHUNK", 257):
+        assert all(seen._add(int(a), int(b)) for a, b in zip(lo[:5_000], hi[:5_000]))
+    assert not any(seen._add(int(a), int(b)) for a, b in zip(lo[:5_000], hi[:5_000]))
+    assert all(seen._add(int(a), int(b)) for a, b in zip(lo[5_000:], hi[5_000:]))  # new: added
+    table = seen._keys
+    occupied = (table[:, 0] != 0) | (table[:, 1] != 0)
+    assert len(seen) == 6_000 == occupied.sum() and len(table) >= 2 * len(seen) and len(table) > 1 << 10
+    stored = {(int(a), int(b)) for a, b in table[occupied]}
+    assert stored == {(int(a), int(b)) for a, b in zip(lo, hi)}
+    mask = len(table) - 1
+    for i in np.flatnonzero(occupied)[::7]:  # probing from the home slot meets no empty slot before i
+        home = int(table[i, 0]) & mask
+        assert occupied[np.arange(home, home + ((i - home) & mask) + 1) & mask].all()
+
+
 def test_copies_within_a_millionth_of_the_cell_are_seen():
     """Copies of a shape whose distances differ by up to 1e-9 (repeats of one remainder agree that closely,
     docs/performance.md) are called seen unless a distance lies within 1e-9 of a cell's wall."""
