@@ -228,9 +228,9 @@ class Seen:
     def _grow(self) -> None:
         """The table twice as large, every digest in it again.
 
-        The digests are placed in rounds, a chunk at a time, in numpy arrays (a list of Python ints would take
-        about 150 bytes a digest, 300 MiB at a glued pass's size, and a Python loop over millions of them
-        seconds under the lock): each round, the first digest bound for each empty slot takes it and the
+        The digests are placed in rounds, a chunk at a time, in numpy arrays (as a list of Python ints they
+        would take about ten times the table's own bytes, and a Python loop over millions of them would hold
+        the lock for seconds): each round, the first digest bound for each empty slot takes it and the
         others probe the next slot.  Without deletions any order of insertion leaves every digest reachable
         from its home slot through occupied slots, which is all that :meth:`_slot` needs."""
         live = self._keys[(self._keys[:, 0] != 0) | (self._keys[:, 1] != 0)]

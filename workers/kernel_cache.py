@@ -8,8 +8,8 @@ file (the digest's 32 bytes appear as they are in the pickled index), and ignore
 stamp is not the source's.  The command line asks this before its workers warm up, to say that the
 first run compiles.
 
-Compiling leaves about 340 MiB of the compiler's memory in the process that compiled, where loading
-the kernels from the cache leaves none; every process forked from it (a local cluster's workers, from
+Compiling leaves hundreds of MiB of the compiler's memory in the process that compiled, where loading
+the kernels from the cache leaves none (docs/performance.md); every process forked from it (a local cluster's workers, from
 their fork server) would count those pages in its own resident memory, and Dask's memory limits act on
 that.  So a warm-up that finds the cache cold has a child process compile and write the cache, and
 loads the kernels from it (:func:`compile_apart`).
