@@ -17,6 +17,16 @@ def _source(tmp_path):
     return src
 
 
+def _index(cache, source: bytes, name="_compiled.residual-10.py311.nbi"):
+    """Write an index file stamped with the digest of ``source`` (a source file's bytes), as numba does."""
+    import hashlib
+    import pickle
+
+    cache.mkdir(parents=True, exist_ok=True)
+    stamp = hashlib.sha256(source).digest()
+    (cache / name).write_bytes(pickle.dumps("0.68.1") + pickle.dumps((stamp, {})))
+
+
 def test_no_cache_means_compiling(tmp_path, monkeypatch):
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     assert kernels_cached(_source(tmp_path)) is False
@@ -25,29 +35,13 @@ def test_no_cache_means_compiling(tmp_path, monkeypatch):
 
 
 def test_index_files_stamped_with_the_source_are_a_warm_cache(tmp_path, monkeypatch):
-    import hashlib
-    import pickle
-
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     src = _source(tmp_path)
-    cache = tmp_path / "__pycache__"
-    cache.mkdir()
     for name in ("_compiled.residual-10.py311.nbi", "_compiled.project-40.py311.nbi"):
-        stamp = hashlib.sha256(src.read_bytes()).digest()
-        (cache / name).write_bytes(pickle.dumps("0.68.1") + pickle.dumps((stamp, {})))
+        _index(tmp_path / "__pycache__", src.read_bytes(), name)
     assert kernels_cached(src) is True
     src.write_text("x = 2\n")  # the source changed since: numba compiles again
     assert kernels_cached(src) is False
-
-
-def _index(cache, src, name="_compiled.residual-10.py311.nbi"):
-    """Write an index file stamped with ``src`` as it is now, as numba does."""
-    import hashlib
-    import pickle
-
-    cache.mkdir(parents=True, exist_ok=True)
-    stamp = hashlib.sha256(src.read_bytes()).digest()
-    (cache / name).write_bytes(pickle.dumps("0.68.1") + pickle.dumps((stamp, {})))
 
 
 def test_a_cache_set_by_numba_cache_dir_is_looked_for_where_numba_keeps_it(tmp_path, monkeypatch):
@@ -61,12 +55,12 @@ def test_a_cache_set_by_numba_cache_dir_is_looked_for_where_numba_keeps_it(tmp_p
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(root))
     src = _source(tmp_path)
     assert kernels_cached(src) is False  # the folder does not exist yet: numba will make it
-    _index(tmp_path / "__pycache__", src)  # beside the source, where numba does not look now
+    _index(tmp_path / "__pycache__", src.read_bytes())  # beside the source, where numba does not look now
     assert kernels_cached(src) is False
     folder = f"{tmp_path.name}_{hashlib.sha1(str(tmp_path).encode()).hexdigest()}"
     assert kernel_cache.cache_directory(src) == root / folder
     assert UserProvidedCacheLocator.get_suitable_cache_subpath(str(src)) == folder  # numba's own name for it
-    _index(root / folder, src)
+    _index(root / folder, src.read_bytes())
     assert kernels_cached(src) is True
 
 
@@ -87,18 +81,12 @@ def test_the_installed_kernels_are_cached_once_a_process_has_warmed_them_up():
 def test_the_index_files_an_older_version_left_do_not_make_a_warm_cache_cold(tmp_path, monkeypatch):
     """Upgrading the package leaves the old kernels' index files (named after their old lines, stamped
     with the old source) beside the ones the new version's warm-up writes: the cache is warm."""
-    import hashlib
-    import pickle
-
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
     src = _source(tmp_path)
     cache = tmp_path / "__pycache__"
-    cache.mkdir()
-    old = hashlib.sha256(b"an older version").digest()
-    (cache / "_compiled.residual-10.py311.nbi").write_bytes(pickle.dumps("0.68.1") + pickle.dumps((old, {})))
+    _index(cache, b"an older version", "_compiled.residual-10.py311.nbi")
     assert kernels_cached(src) is False  # only the old version's: the next warm-up compiles
-    new = hashlib.sha256(src.read_bytes()).digest()
-    (cache / "_compiled.residual-12.py311.nbi").write_bytes(pickle.dumps("0.68.1") + pickle.dumps((new, {})))
+    _index(cache, src.read_bytes(), "_compiled.residual-12.py311.nbi")
     assert kernels_cached(src) is True
 
 
