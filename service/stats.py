@@ -17,6 +17,7 @@ from sqlalchemy.orm import Session, aliased
 from packings.export import table
 from packings.fit import fit_factorial
 from packings.models import COMPLETE, ClusterRow, Run, Transition
+from packings.paper import against_paper, verdict
 from packings.store import NOT_CLOSE_PACKED, counts_by_n, restricted_ns
 from packings.workers.outcomes import CIRCULAR
 
@@ -120,6 +121,7 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
             "unreached": paths["unreached"],
             "fit": None if fit is None else {"b": fit["b"], "predicted": fit["b"] * math.factorial(nn - 5)}
             if nn >= 5 else None,
+            "paper": against_paper(nn, by_contacts, restricted.get(nn)),
         })
     return out
 
@@ -140,12 +142,19 @@ def format_stats(d: dict) -> str:
         head = f"n = {n}: {d['total']} rigid clusters so far (partial: no full run of n = {n} is complete)"
     if d["fit"] is not None:
         head += f"; the fit b·(n−5)! with b = {d['fit']['b']:.3f} gives {d['fit']['predicted']:.0f}"
-    contacts = sorted(int(m) for m in d["by_contacts"])
-    cols = ["contacts", "3n-6+", "clusters", "singular", "close-packed"]
-    rows = [[m, f"{m - iso:+d}", d["by_contacts"][str(m)], d["singular_by_contacts"].get(str(m), 0),
-             d["close_packed_by_contacts"].get(str(m), 0)] for m in contacts]
-    rows.append(["total", "", d["total"], d["singular"], d["close_packed"]])
+    paper = (d.get("paper") or {}).get("by_contacts")
+    contacts = sorted({int(m) for m in d["by_contacts"]} | {int(m) for m in paper or ()})
+    cols = ["contacts", "3n-6+", "clusters"] + (["paper"] if paper is not None else []) + ["singular", "close-packed"]
+    rows = [[m, f"{m - iso:+d}", d["by_contacts"].get(str(m), 0)]
+            + ([paper.get(str(m), 0)] if paper is not None else [])
+            + [d["singular_by_contacts"].get(str(m), 0), d["close_packed_by_contacts"].get(str(m), 0)]
+            for m in contacts]
+    rows.append(["total", "", d["total"]] + ([d["paper"]["total"]] if paper is not None else [])
+                + [d["singular"], d["close_packed"]])
     parts = [head, _titled("clusters, singular clusters and close-packed fragments by number of contacts:", cols, rows)]
+    said = verdict(n, d.get("paper"), d["complete"], d.get("min_contacts"))
+    if said is not None:
+        parts.append(said)
     if d["close_packed"]:
         parts.append(_titled("close-packed fragments by lattice:", ["lattice", "clusters"],
                                 [[k, v] for k, v in d["lattice"].items()]))

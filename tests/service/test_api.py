@@ -240,6 +240,8 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
     text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
                           text=True, timeout=300, check=True).stdout
     assert "n = 9: 52 rigid clusters with at least 21 contacts (runs restricted by --min-contacts" in text
+    assert "as the paper at every number of contacts, with at least 21 contacts: 52 (" in text
+    assert stats[9]["paper"]["by_contacts"] == {"21": 52} and stats[9]["paper"]["same"] is True
     assert "n = 8: 13 rigid clusters (" in text
     fig = plot_counts({7: 5, 8: 13, 9: 52}, restricted={9: 21})
     [ax] = fig.axes

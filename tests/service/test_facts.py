@@ -139,7 +139,11 @@ def test_two_geometries_of_one_contact_graph_are_counted(engine):
     assert sorted(o["id"] for o in json.loads(ok("select", "geometries=2", "--json", "--db", u))) == sorted(ids[:2])
     (n11,) = json.loads(ok("stats", "--n", "11", "--json", "--db", u))
     assert n11["multi_embedding"] == {"2": 1} and n11["total"] == 2
-    assert "geometries  adjacency matrices\n         2                   1" in ok("stats", "--n", "11", "--db", u)
+    text = ok("stats", "--n", "11", "--db", u)
+    assert "geometries  adjacency matrices\n         2                   1" in text
+    # two clusters and no run: far from the paper's table, and said to be partial
+    assert "fewer than the paper: 0 with 25 contacts (the paper 2), 0 with 26 contacts (the paper 18), 2 with 27 " \
+           "contacts (the paper 1618)" in text and text.count("(partial") == 2
     (n6,) = json.loads(ok("stats", "--n", "6", "--json", "--db", u))
     assert n6["multi_embedding"] == {} and n6["lattice"] == {"both": 1}
 
@@ -167,7 +171,7 @@ def test_every_stored_cluster_has_its_facts(rows):
         assert c.min_gap == pytest.approx(core.min_gap(), abs=0)
 
 
-def test_stats_json_agrees_with_the_rows(catalog, rows):
+def test_stats_json_agrees_with_the_rows(catalog, rows, paper_counts):
     clusters, transitions = rows
     by_id = {c.id: c for c in clusters}
     out = {d["n"]: d for d in json.loads(ok("stats", "--json", "--db", catalog.url))}
@@ -196,6 +200,8 @@ def test_stats_json_agrees_with_the_rows(catalog, rows):
         reached = {t.target_id for t in transitions if t.direction != 0 and t.target_id not in (None, t.source_id)}
         assert d["unreached"] == [c.id for c in mine if c.id not in reached]
         assert d["fit"]["b"] > 0 and d["fit"]["predicted"] == pytest.approx(d["fit"]["b"] * math.factorial(n - 5))
+        assert d["paper"]["by_contacts"] == paper_counts["clusters_by_contacts"][str(n)] == d["by_contacts"]
+        assert d["paper"]["same"] is True and d["paper"]["total"] == paper_counts["totals"][str(n)]
     assert out[7]["total"] == 5 and out[8]["total"] == 13
 
 
@@ -203,7 +209,9 @@ def test_stats_prints_the_tables(catalog):
     out = ok("stats", "--db", catalog.url)
     for words in ("n = 7: 5 rigid clusters", "n = 8: 13 rigid clusters", "singular", "close-packed",
                   "adjacency matrices with more than one geometry", "smallest gap", "smallest gaps",
-                  "circular paths", "fit of the totals to b·(n−5)!"):
+                  "circular paths", "fit of the totals to b·(n−5)!", "contacts  3n-6+  clusters  paper  singular",
+                  "     18     +0        13     13", "as the paper at every number of contacts: 5 (Holmes-Cerfon",
+                  "as the paper at every number of contacts: 13 (Holmes-Cerfon"):
         assert words in out, words
 
 

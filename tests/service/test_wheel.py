@@ -80,6 +80,8 @@ def test_the_installed_wheel_enumerates_in_an_empty_directory(wheel_env, tmp_pat
     r = run(bin_dir, ["packings", "enumerate", "7", "--workers", "1", "--quiet", "--json"], tmp_path)
     assert r.returncode == 0 and json.loads(r.stdout)["total"] == 5 and "compiling" not in r.stderr, r.stderr
     assert (tmp_path / "packings.db").is_file(), "the default database is created where the command runs"
+    r = run(bin_dir, ["packings", "stats", "--n", "7"], tmp_path)  # the paper's counts ship with the wheel
+    assert r.returncode == 0 and "as the paper at every number of contacts: 5 (" in r.stdout, r.stdout + r.stderr
     r = run(bin_dir, ["packings", "db", "version"], tmp_path)
     assert r.returncode == 0 and r.stdout.splitlines()[-1] == "up to date", r.stdout + r.stderr
     code = "import packings; c = packings.connect(); print(c.count(n=7), c.get(1).coords.shape)"
