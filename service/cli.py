@@ -117,18 +117,23 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
         raise _stopped(e) from None
     url = resolve_url(db_url)
     from packings.db import display_url, parse_url
+    from packings.paper import against_paper, verdict
 
+    against = against_paper(n, result.by_contacts, min_contacts)
     gc.freeze()  # what is left is freed by the exit: skip the collector's last pass over it (0.2-0.3 s)
     if as_json:
         click.echo(json.dumps({"n": n, "run": result.run_id, "status": result.status, "total": result.total,
                                "by_contacts": {str(k): v for k, v in result.by_contacts.items()},
                                "diagnostics": result.diagnostics, "seconds": round(result.seconds, 2),
-                               "total_seconds": round(result.total_seconds, 2),
+                               "total_seconds": round(result.total_seconds, 2), "paper": against,
                                **({"catalysis": [r.to_dict() for r in result.catalysis]} if glued else {})}))
     else:
         from packings.catalysis import format_report
 
         click.echo(format_counts(n, result.by_contacts))
+        said = verdict(n, against, result.status == "complete", min_contacts)
+        if said is not None:
+            click.echo(said)
         click.echo("diagnostics: " + ", ".join(f"{k} {v}" for k, v in result.diagnostics.items()))
         took = (f"in {result.total_seconds:.1f} s, {result.seconds:.1f} s of it now (resumed)" if result.resumed
                 else f"in {result.seconds:.1f} s")

@@ -111,6 +111,7 @@ def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_pa
     r = cli("enumerate", "7", "--quiet", "--workers", "1", "--db", url)
     assert r.returncode == 0, r.stderr
     assert "n = 7: 1 rigid clusters" in r.stdout and "`packings enumerate 7 --glued`" in r.stdout
+    assert "fewer than the paper: 1 with 15 contacts (the paper 5)" in r.stdout
     r = cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)

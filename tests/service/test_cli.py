@@ -14,6 +14,7 @@ def test_enumerate_prints_the_table(sqlite_url):
     r = run("enumerate", "7", "--quiet", "--db", sqlite_url)
     assert r.returncode == 0, r.stderr
     assert "n = 7: 5 rigid clusters" in r.stdout
+    assert "\nas the paper at every number of contacts: 5 (Holmes-Cerfon" in r.stdout
     assert "diagnostics:" in r.stdout
 
 
@@ -24,6 +25,7 @@ def test_enumerate_json(paper_counts, sqlite_url):
     assert out["n"] == 8 and out["total"] == paper_counts["totals"]["8"]
     assert out["by_contacts"] == paper_counts["clusters_by_contacts"]["8"]
     assert out["diagnostics"]["expansions"] == 13
+    assert out["paper"]["same"] is True and out["paper"]["by_contacts"] == out["by_contacts"]
 
 
 def test_bad_n_is_one_line_and_nonzero(tmp_path):
