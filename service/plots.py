@@ -35,6 +35,7 @@ from typing import Sequence
 import click
 
 from packings.fit import fit_factorial, predicted
+from packings.paper import paper_totals
 
 SIZE, DPI = (6.4, 4.8), 150  #: a figure's default size in inches, and its dots per inch
 FORMATS = ("png", "pdf", "svg")  #: what a figure can be written as, by the file name's suffix
@@ -141,13 +142,15 @@ def _log_ticks(axis, lo: float, hi: float) -> None:
 
 
 def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *, restricted=None, ax=None,
-                size: tuple[float, float] | None = None, dpi: float | None = None):
+                size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
     """The number of clusters against n (log scale, one marker per n, the count
     written above it) with the fitted curve b·(n − 5)! of
     :func:`packings.fit.fit_factorial` (b in the legend).  ``restricted``: {n:
     fewest contacts kept} for the n whose totals count only the clusters with
     that many contacts or more (runs restricted by ``--min-contacts``): drawn
-    hollow, marked "≥ M contacts", and left out of the fit.  Returns the figure."""
+    hollow, marked "≥ M contacts", and left out of the fit.  ``paper``: {n: the
+    paper's count} to compare (:func:`packings.paper.paper_totals`), drawn as
+    crosses at the n plotted.  Returns the figure."""
     import numpy as np
 
     totals = {int(n): int(t) for n, t in totals.items() if t and t > 0}
@@ -164,6 +167,10 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
         part = sorted(restricted)
         ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="C2", mew=1.5, zorder=3,
                  label="clusters with ≥ M contacts only (--min-contacts M)")
+    shown = sorted(n for n in (paper or {}) if n in totals)
+    if shown:
+        ax_.plot(shown, [paper[n] for n in shown], "x", ms=9, mew=1.5, color="C3", zorder=4,
+                 label="the paper (Holmes-Cerfon 2016, Table 1)")
     for n in ns:
         text = f"{totals[n]:,}" + (f"\n(≥ {restricted[n]})" if n in restricted else "")
         ax_.annotate(text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center",
@@ -744,7 +751,7 @@ def counts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size
     if not counts:
         raise click.ClickException(_nothing(ns_))
     _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=path, restricted=restricted, size=size,
-           dpi=dpi)
+           dpi=dpi, paper=paper_totals(counts, restricted))
 
 
 @plot.command("gaps", short_help="Cumulative distribution of the minimum gaps, one line per n.")
@@ -848,7 +855,7 @@ def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: st
         raise click.ClickException(_nothing(ns_))
     options = {"size": size, "dpi": dpi}
     _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=directory / names["counts"],
-           restricted=restricted, **options)
+           restricted=restricted, paper=paper_totals(counts, restricted), **options)
     if gaps:
         _write(plot_gap_cdf, gaps, path=directory / names["gaps"], **options)
     else:  # only clusters in which every pair touches (n <= 4)

@@ -85,6 +85,33 @@ def test_plot_counts(tmp_path):
     assert files(tmp_path) == ["counts.png", "one.png"]
 
 
+def test_the_counts_figure_draws_the_papers_counts_where_asked():
+    """Crosses at the paper's counts for the n drawn (not for an n the catalogue lacks), in the legend."""
+    fig = plot_counts({7: 5, 8: 12, 9: 40}, restricted={9: 21}, paper={6: 2, 7: 5, 8: 13, 9: 52})
+    [ax] = fig.axes
+    [crosses] = [line for line in ax.get_lines() if line.get_marker() == "x"]
+    assert list(crosses.get_xdata()) == [7, 8, 9] and list(crosses.get_ydata()) == [5, 13, 52]
+    assert "the paper (Holmes-Cerfon 2016, Table 1)" in [t.get_text() for t in ax.get_legend().get_texts()]
+    [ax] = plot_counts({7: 5}).axes
+    assert not [line for line in ax.get_lines() if line.get_marker() == "x"]
+
+
+def test_the_command_compares_with_the_paper_from_the_fewest_contacts_kept(catalog, monkeypatch, tmp_path):
+    """`plot counts` and `plot all` pass the paper's totals of the n they draw, from M contacts up for an n
+    only restricted runs hold."""
+    from packings import plots
+    from packings.paper import paper_totals
+
+    assert paper_totals([7, 8, 9, 15], {9: 21}) == {7: 5, 8: 13, 9: 52}
+    assert paper_totals([10, 14], {10: 24, 14: 39}) == {10: 262, 14: 83}
+    seen = []
+    real = plots.plot_counts
+    monkeypatch.setattr(plots, "plot_counts", lambda *a, **kw: seen.append(kw["paper"]) or real(*a, **kw))
+    assert invoke("counts", "--db", catalog.url, "-o", tmp_path / "c.png").exit_code == 0
+    assert invoke("all", "--db", catalog.url, "-o", tmp_path).exit_code == 0
+    assert seen == [{7: 5, 8: 13}, {7: 5, 8: 13}]
+
+
 def test_plot_gap_cdf(tmp_path):
     rng = np.random.default_rng(0)
     gaps = {n: list(np.exp(rng.normal(-2 - 0.2 * n, 1.0, size=20 * n))) for n in (8, 9, 10)}
