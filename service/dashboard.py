@@ -14,7 +14,7 @@ then at most :data:`READ_SHARE` of its time: the thread shares the coordinator's
 cores with the workers, and at n = 13 one read takes a few tenths of a second
 (docs/performance.md).  What it shows:
 the run being driven (the one whose coordinator is alive, else the latest), its
-clusters by number of contacts, its frontier (pending, leased, done, failed), the
+clusters by number of contacts and the paper's count of them where it gives one, its frontier (pending, leased, done, failed), the
 faults recovered, expansions per second over the last minute, an estimate of the
 time left (pending expansions over that rate: a lower bound, since the frontier
 grows while a run goes on), each worker's expansions, and the failed expansions
@@ -109,6 +109,7 @@ def read_run(s) -> dict:
     from packings import store
     from packings.models import FAILED, ExpansionRow, Run
     from packings.owners import coordinator_alive
+    from packings.paper import paper_totals
     from packings.tasks import summary
 
     runs = s.execute(select(Run).order_by(Run.started_at.desc(), Run.id.desc())).scalars().all()
@@ -127,8 +128,10 @@ def read_run(s) -> dict:
         select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == run.id, ExpansionRow.status == FAILED)
         .order_by(ExpansionRow.id).limit(50))]
     by_contacts = store.run_counts(s, run.id)
+    least = json.loads(run.params or "{}").get("min_contacts")
     return {"run": run.id, "n": run.n, "status": store.shown_status(run),
             "at": at, "clusters": sum(by_contacts.values()), "by_contacts": {str(m): k for m, k in by_contacts.items()},
+            "min_contacts": least, "paper": paper_totals([run.n], {run.n: least} if least else None).get(run.n),
             "frontier": frontier, **store.faults(s, run.id), "workers": workers, "failed": failed,
             "seconds": round(run.seconds or 0.0, 1)}
 
@@ -161,7 +164,11 @@ def _html(d: dict) -> str:
     fr = d["frontier"]
     eta = d.get("eta_seconds")
     left = "—" if eta is None else str(dt.timedelta(seconds=int(eta)))
-    rows = [("run", f"{d['run']} (n = {d['n']}), {d['status']}"), ("clusters found", d["clusters"]),
+    found = f"{d['clusters']:,}"
+    if d.get("paper") is not None:
+        least = f" with at least {d['min_contacts']} contacts" if d.get("min_contacts") else ""
+        found += f" (the paper has {d['paper']:,}{least})"
+    rows = [("run", f"{d['run']} (n = {d['n']}), {d['status']}"), ("clusters found", found),
             ("expansions", f"{fr['done']} done, {fr['pending']} pending, {fr['leased']} leased, {fr['failed']} failed"),
             ("faults recovered", f"{d['retries']} retries, {d['isolated_failures']} isolated failures"),
             ("expansions per second", d.get("rate", "—")),

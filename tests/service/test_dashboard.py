@@ -69,6 +69,7 @@ def test_the_page_shows_the_run_as_the_database_has_it(db_url):
     assert snap["frontier"]["done"] >= 20 and snap["clusters"] >= 20
     assert sum(snap["frontier"].values()) == snap["clusters"] == sum(snap["by_contacts"].values())
     assert snap["rate"] > 0 and snap["eta_seconds"] is not None and snap["failed"] == []
+    assert (snap["paper"], snap["min_contacts"]) == (1659, None)  # the paper's count, to compare
     assert sum(w["done"] for w in snap["workers"]) == snap["frontier"]["done"] and len(snap["workers"]) <= 2
     assert before["done"] >= 20
     assert page_status == 200 and "Dask Diagnostic UI" in page and "bokeh" in page  # the Bokeh document's page
@@ -92,6 +93,7 @@ def test_the_page_draws_in_a_browser(sqlite_url):
         proc.kill()
     assert drawn["errors"] == [] and "run 1 (n = 11), running" in drawn["text"], drawn["text"][-600:]
     assert "clusters found" in drawn["text"] and "expansions done" in drawn["text"]
+    assert "(the paper has 1,659)" in drawn["text"], drawn["text"][-600:]
     assert drawn["png"].startswith(b"\x89PNG")
 
 
@@ -152,3 +154,18 @@ def test_nobody_looking_nothing_is_read_and_a_look_reads_at_once(monkeypatch):
             break
         time.sleep(0.02)
     assert w.reads > idle and w.looked_at()["reads"] > idle
+
+
+def test_the_header_gives_the_papers_count_from_the_fewest_contacts_a_run_keeps(engine):
+    """A run restricted by --min-contacts is shown beside the paper's count of clusters with that many contacts
+    or more; an n the paper does not count has no such count."""
+    from packings.db import sessions
+    from packings.workers.params import Params
+    from tests.service.conftest import fill_database
+
+    fill_database(engine, 9, Params(min_contacts=21, max_break=3))
+    with sessions(engine)() as s:
+        d = dashboard.read_run(s)
+    assert (d["n"], d["clusters"], d["paper"], d["min_contacts"]) == (9, 52, 52, 21)
+    assert "<td>52 (the paper has 52 with at least 21 contacts)</td>" in dashboard._html(d)
+    assert "the paper" not in dashboard._html({**d, "n": 20, "paper": None})
