@@ -14,11 +14,11 @@ then at most :data:`READ_SHARE` of its time: the thread shares the coordinator's
 cores with the workers, and at n = 13 one read takes a few tenths of a second
 (docs/performance.md).  What it shows:
 the run being driven (the one whose coordinator is alive, else the latest), its
-clusters by number of contacts and the paper's count of them where it gives one, its frontier (pending, leased, done, failed), the
-faults recovered, expansions per second over the last minute, an estimate of the
-time left (pending expansions over that rate: a lower bound, since the frontier
-grows while a run goes on), each worker's expansions, and the failed expansions
-with their errors.  The JSON is the same snapshot.
+clusters by number of contacts and the paper's count of them where it gives one,
+its frontier (pending, leased, done, failed), the faults recovered, expansions per
+second over the last minute, an estimate of the time left (pending expansions over
+that rate: a lower bound, since the frontier grows while a run goes on), each
+worker's expansions, and the failed expansions with their errors.  The JSON is the same snapshot.
 """
 
 from __future__ import annotations

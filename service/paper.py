@@ -92,7 +92,7 @@ def _listed(d: Mapping[str, list[int]]) -> str:
 
 
 def verdict(n: int, against: dict | None, complete: bool, min_contacts: int | None = None) -> str | None:
-    """One line on ``against`` (:func:`against_paper`) for the text of ``packings stats``: the same as
+    """One line on ``against`` (:func:`against_paper`) for ``packings stats`` and ``enumerate``: the same as
     the paper, or where it differs; None where the paper gives nothing for n.  ``complete``: whether a
     full run of n is complete (else a full catalogue's counts are partial); ``min_contacts``: the counts
     are those of runs restricted by ``--min-contacts``."""
