@@ -37,16 +37,21 @@ def max_contacts(n: int) -> int | None:
     return None if m is None else int(m)
 
 
-def paper_totals(ns, restricted: Mapping[int, int] | None = None) -> dict[int, int]:
-    """{n: the paper's number of rigid clusters of n} for each n of ``ns`` that its Table 1 covers; for an n
-    of ``restricted`` ({n: the fewest contacts kept}), its number with at least that many contacts."""
+def paper_tables(ns, restricted: Mapping[int, int] | None = None) -> dict[int, dict[int, int]]:
+    """{n: the paper's number of rigid clusters of n by number of contacts} for each n of ``ns`` that its
+    Table 1 covers; for an n of ``restricted`` ({n: the fewest contacts kept}), from that many contacts up."""
     restricted = restricted or {}
     out = {}
     for n in ns:
         table = by_contacts(int(n))
         if table is not None:
-            out[int(n)] = sum(c for m, c in table.items() if m >= restricted.get(int(n), 0))
+            out[int(n)] = {m: c for m, c in table.items() if m >= restricted.get(int(n), 0)}
     return out
+
+
+def paper_totals(ns, restricted: Mapping[int, int] | None = None) -> dict[int, int]:
+    """{n: the paper's number of rigid clusters of n} (:func:`paper_tables`, summed)."""
+    return {n: sum(t.values()) for n, t in paper_tables(ns, restricted).items()}
 
 
 def against_paper(n: int, found: Mapping[int, int], min_contacts: int | None = None) -> dict | None:

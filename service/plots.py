@@ -35,7 +35,7 @@ from typing import Sequence
 import click
 
 from packings.fit import fit_factorial, predicted
-from packings.paper import paper_totals
+from packings.paper import paper_tables, paper_totals
 
 SIZE, DPI = (6.4, 4.8), 150  #: a figure's default size in inches, and its dots per inch
 FORMATS = ("png", "pdf", "svg")  #: what a figure can be written as, by the file name's suffix
@@ -231,13 +231,16 @@ def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike | None = 
 
 
 def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | None = None, *, ax=None,
-                     size: tuple[float, float] | None = None, dpi: float | None = None):
+                     size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
     """The number of clusters by number of contacts, one series per n, against
-    contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  Returns the figure."""
+    contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  ``paper``: {n: the
+    paper's counts by number of contacts} to compare (:func:`packings.paper.paper_tables`),
+    drawn as crosses in the colour of their n, for the n drawn.  Returns the figure."""
     series = {int(n): {int(m): int(c) for m, c in d.items() if c and c > 0} for n, d in by_n.items()}
     series = {n: d for n, d in series.items() if d}
     if not series:
         raise ValueError("no clusters to plot")
+    theirs = {n: {int(m): int(c) for m, c in (paper or {}).get(n, {}).items() if c > 0} for n in series}
     fig, ax_ = _canvas(ax, size, dpi, path)
     ax_.set_yscale("log")
     ax_.axvline(0, color="0.6", lw=1, ls="--", zorder=1)
@@ -246,11 +249,17 @@ def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | 
         ms = sorted(d)
         ax_.plot([m - (3 * n - 6) for m in ms], [d[m] for m in ms], marker=markers[i % len(markers)], ms=6, lw=1.5,
                  color=color, zorder=3, label=f"n = {n} ({sum(d.values()):,})")
-    excess = [m - (3 * n - 6) for n, d in series.items() for m in d]
+        if theirs[n]:
+            ps = sorted(theirs[n])
+            ax_.plot([m - (3 * n - 6) for m in ps], [theirs[n][m] for m in ps], "x", ms=9, mew=1.3, color=color,
+                     zorder=4)
+    if any(theirs.values()):
+        ax_.plot([], [], "x", ms=9, mew=1.3, color="0.3", label="the paper (Table 1)")
+    excess = [m - (3 * n - 6) for n, d in (*series.items(), *theirs.items()) for m in d]
     lo, hi = min(min(excess), -1), max(max(excess), 1)
     ax_.set_xlim(lo - 0.5, hi + 0.5)
     _integer_ticks(ax_.xaxis, lo, hi)
-    counts = [c for d in series.values() for c in d.values()]
+    counts = [c for d in (*series.values(), *theirs.values()) for c in d.values()]
     ax_.set_ylim(min(counts) / 2, max(counts) * 2)
     _log_ticks(ax_.yaxis, min(counts) / 2, max(counts) * 2)
     ax_.set_xlabel("contacts − (3n − 6)    (0: isostatic)")
@@ -780,10 +789,10 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, si
     ns_ = parse_ns(ns)
     path = _output_file(output, DEFAULT_NAMES["contacts"])
     with _reading(db_url) as s:
-        counts = load_counts(s, ns_)
+        counts, restricted = load_counts(s, ns_), _restricted(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_by_contacts, counts, path=path, size=size, dpi=dpi)
+    _write(plot_by_contacts, counts, path=path, size=size, dpi=dpi, paper=paper_tables(counts, restricted))
 
 
 @plot.command("cluster", short_help="Clusters in 3D, side by side: spheres, contacts, the closest gap.")
@@ -861,4 +870,5 @@ def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: st
     else:  # only clusters in which every pair touches (n <= 4)
         click.echo(f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; "
                    f"{names['gaps']} not written", err=True)
-    _write(plot_by_contacts, counts, path=directory / names["contacts"], **options)
+    _write(plot_by_contacts, counts, path=directory / names["contacts"], paper=paper_tables(counts, restricted),
+           **options)

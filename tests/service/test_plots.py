@@ -96,20 +96,40 @@ def test_the_counts_figure_draws_the_papers_counts_where_asked():
     assert not [line for line in ax.get_lines() if line.get_marker() == "x"]
 
 
-def test_the_command_compares_with_the_paper_from_the_fewest_contacts_kept(catalog, monkeypatch, tmp_path):
-    """`plot counts` and `plot all` pass the paper's totals of the n they draw, from M contacts up for an n
-    only restricted runs hold."""
+def test_the_contacts_figure_draws_the_papers_counts_in_the_colour_of_their_n():
+    """n = 10 drawn with one cluster fewer than the paper at 24 contacts: the paper's three points as crosses
+    of n = 10's colour, the one the catalogue lacks (23) included; n = 9, which the paper's data given lacks,
+    has none."""
+    fig = plot_by_contacts({9: {21: 52}, 10: {24: 258, 25: 3}}, paper={10: {23: 1, 24: 259, 25: 3}})
+    [ax] = fig.axes
+    lines = [line for line in ax.get_lines() if len(line.get_xdata())]
+    [crosses] = [line for line in lines if line.get_marker() == "x"]
+    [ten] = [line for line in lines if line.get_label().startswith("n = 10")]
+    assert list(crosses.get_xdata()) == [-1, 0, 1] and list(crosses.get_ydata()) == [1, 259, 3]
+    assert crosses.get_color() == ten.get_color()
+    assert ax.get_xlim()[0] <= -1.5 and "the paper (Table 1)" in [t.get_text() for t in ax.get_legend().get_texts()]
+    [ax] = plot_by_contacts({9: {21: 52}}).axes
+    assert not [line for line in ax.get_lines() if line.get_marker() == "x"]
+
+
+def test_the_commands_compare_with_the_paper_from_the_fewest_contacts_kept(catalog, monkeypatch, tmp_path):
+    """`plot counts`, `plot contacts` and `plot all` pass the paper's counts of the n they draw, from M
+    contacts up for an n only restricted runs hold."""
     from packings import plots
-    from packings.paper import paper_totals
+    from packings.paper import paper_tables, paper_totals
 
     assert paper_totals([7, 8, 9, 15], {9: 21}) == {7: 5, 8: 13, 9: 52}
     assert paper_totals([10, 14], {10: 24, 14: 39}) == {10: 262, 14: 83}
+    assert paper_tables([10, 14, 15], {14: 39}) == {10: {23: 1, 24: 259, 25: 3}, 14: {39: 79, 40: 4}}
     seen = []
-    real = plots.plot_counts
-    monkeypatch.setattr(plots, "plot_counts", lambda *a, **kw: seen.append(kw["paper"]) or real(*a, **kw))
+    for name in ("plot_counts", "plot_by_contacts"):
+        real = getattr(plots, name)
+        monkeypatch.setattr(plots, name, lambda *a, _real=real, **kw: seen.append(kw["paper"]) or _real(*a, **kw))
     assert invoke("counts", "--db", catalog.url, "-o", tmp_path / "c.png").exit_code == 0
+    assert invoke("contacts", "--db", catalog.url, "-o", tmp_path / "k.png").exit_code == 0
     assert invoke("all", "--db", catalog.url, "-o", tmp_path).exit_code == 0
-    assert seen == [{7: 5, 8: 13}, {7: 5, 8: 13}]
+    totals, tables = {7: 5, 8: 13}, {7: {15: 5}, 8: {18: 13}}
+    assert seen == [totals, tables, totals, tables]
 
 
 def test_plot_gap_cdf(tmp_path):
