@@ -254,7 +254,7 @@ def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | 
             ax_.plot([m - (3 * n - 6) for m in ps], [theirs[n][m] for m in ps], "x", ms=9, mew=1.3, color=color,
                      zorder=4)
     if any(theirs.values()):
-        ax_.plot([], [], "x", ms=9, mew=1.3, color="0.3", label="the paper (Table 1)")
+        ax_.plot([], [], "x", ms=9, mew=1.3, color="0.3", label="the paper (Holmes-Cerfon 2016, Table 1)")
     excess = [m - (3 * n - 6) for n, d in (*series.items(), *theirs.items()) for m in d]
     lo, hi = min(min(excess), -1), max(max(excess), 1)
     ax_.set_xlim(lo - 0.5, hi + 0.5)

@@ -107,7 +107,8 @@ def test_the_contacts_figure_draws_the_papers_counts_in_the_colour_of_their_n():
     [ten] = [line for line in lines if line.get_label().startswith("n = 10")]
     assert list(crosses.get_xdata()) == [-1, 0, 1] and list(crosses.get_ydata()) == [1, 259, 3]
     assert crosses.get_color() == ten.get_color()
-    assert ax.get_xlim()[0] <= -1.5 and "the paper (Table 1)" in [t.get_text() for t in ax.get_legend().get_texts()]
+    assert ax.get_xlim()[0] <= -1.5
+    assert "the paper (Holmes-Cerfon 2016, Table 1)" in [t.get_text() for t in ax.get_legend().get_texts()]
     [ax] = plot_by_contacts({9: {21: 52}}).axes
     assert not [line for line in ax.get_lines() if line.get_marker() == "x"]
 
