@@ -66,20 +66,18 @@ def against_paper(n: int, found: Mapping[int, int], min_contacts: int | None = N
     than the paper; where the paper has no table, ``more`` lists the clusters with more contacts than
     M(n)) and ``same`` (True where the paper has a table and nothing differs, else False; None without a
     table)."""
-    table, top = by_contacts(n), max_contacts(n)
-    if table is None and top is None:
+    paper, top = paper_tables([n], {n: min_contacts or 0}).get(n), max_contacts(n)
+    if paper is None and top is None:
         return None
-    low = min_contacts or 0
-    found = {int(m): int(c) for m, c in found.items() if int(m) >= low}
+    found = {int(m): int(c) for m, c in found.items() if int(m) >= (min_contacts or 0)}
     fewer: dict[str, list[int]] = {}
     more: dict[str, list[int]] = {}
-    paper = None if table is None else {m: c for m, c in table.items() if m >= low}
     if paper is not None:
         for m in sorted(set(paper) | set(found)):
             f, p = found.get(m, 0), paper.get(m, 0)
             if f != p:
                 (fewer if f < p else more)[str(m)] = [f, p]
-    elif top is not None:
+    else:
         more = {str(m): [c, 0] for m, c in sorted(found.items()) if m > top and c}
     return {
         "source": SOURCE,
