@@ -9,10 +9,10 @@ stamp is not the source's.  The command line asks this before its workers warm u
 first run compiles.
 
 Compiling leaves hundreds of MiB of the compiler's memory in the process that compiled, where loading
-the kernels from the cache leaves none (docs/performance.md); every process forked from it (a local cluster's workers, from
-their fork server) would count those pages in its own resident memory, and Dask's memory limits act on
-that.  So a warm-up that finds the cache cold has a child process compile and write the cache, and
-loads the kernels from it (:func:`compile_apart`).
+the kernels from the cache leaves none (docs/performance.md); every process forked from it (a local
+cluster's workers, from their fork server) would count those pages in its own resident memory, and
+Dask's memory limits act on that.  So a warm-up that finds the cache cold has a child process compile
+and write the cache, and loads the kernels from it (:func:`compile_apart`).
 """
 
 from __future__ import annotations
