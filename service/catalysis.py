@@ -237,8 +237,8 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     if glued and spheres != 1:
         raise ValueError("catalysis of glued clusters moves one sphere")
     source = n if glued else n + spheres
-    total = parents_stored(Session_, source)
-    if after:
+    total = parents_stored(Session_, source)  # NoParents when none is stored
+    if after:  # only those stored since the passes before are read
         total = count_stored(Session_, source, after)
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, spheres, run_id, glued=glued, after=after)

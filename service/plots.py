@@ -230,14 +230,17 @@ def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike | None = 
     return _done(fig, path, ax is None)
 
 
-def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | None = None, *, ax=None,
-                     size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
+def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | None = None, *, restricted=None,
+                     ax=None, size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
     """The number of clusters by number of contacts, one series per n, against
-    contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  ``paper``: {n: the
-    paper's counts by number of contacts} to compare (:func:`packings.paper.paper_tables`),
-    drawn as crosses in the colour of their n, for the n drawn.  Returns the figure."""
+    contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  ``restricted``: {n:
+    M} for the n whose clusters were counted only from M contacts up (as in
+    :func:`plot_counts`): their legend says "≥ M".  ``paper``: {n: the paper's counts by
+    number of contacts} to compare (:func:`packings.paper.paper_tables`), drawn as crosses
+    in the colour of their n, for the n drawn.  Returns the figure."""
     series = {int(n): {int(m): int(c) for m, c in d.items() if c and c > 0} for n, d in by_n.items()}
     series = {n: d for n, d in series.items() if d}
+    restricted = {int(n): int(m) for n, m in (restricted or {}).items() if int(n) in series}
     if not series:
         raise ValueError("no clusters to plot")
     theirs = {n: {int(m): int(c) for m, c in (paper or {}).get(n, {}).items() if c > 0} for n in series}
@@ -248,7 +251,8 @@ def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | 
     for i, ((n, d), color) in enumerate(zip(sorted(series.items()), _colors(len(series)))):
         ms = sorted(d)
         ax_.plot([m - (3 * n - 6) for m in ms], [d[m] for m in ms], marker=markers[i % len(markers)], ms=6, lw=1.5,
-                 color=color, zorder=3, label=f"n = {n} ({sum(d.values()):,})")
+                 color=color, zorder=3,
+                 label=f"n = {n} ({sum(d.values()):,}" + (f", ≥ {restricted[n]} contacts)" if n in restricted else ")"))
         if theirs[n]:
             ps = sorted(theirs[n])
             ax_.plot([m - (3 * n - 6) for m in ps], [theirs[n][m] for m in ps], "x", ms=9, mew=1.3, color=color,
@@ -792,7 +796,8 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, si
         counts, restricted = load_counts(s, ns_), _restricted(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_by_contacts, counts, path=path, size=size, dpi=dpi, paper=paper_tables(counts, restricted))
+    _write(plot_by_contacts, counts, path=path, restricted=restricted, size=size, dpi=dpi,
+           paper=paper_tables(counts, restricted))
 
 
 @plot.command("cluster", short_help="Clusters in 3D, side by side: spheres, contacts, the closest gap.")
@@ -870,5 +875,5 @@ def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: st
     else:  # only clusters in which every pair touches (n <= 4)
         click.echo(f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; "
                    f"{names['gaps']} not written", err=True)
-    _write(plot_by_contacts, counts, path=directory / names["contacts"], paper=paper_tables(counts, restricted),
-           **options)
+    _write(plot_by_contacts, counts, path=directory / names["contacts"], restricted=restricted,
+           paper=paper_tables(counts, restricted), **options)

@@ -504,7 +504,7 @@ def _as_tuples(pairs: np.ndarray) -> tuple[tuple[int, int], ...]:
 
 def _formed(contacts, keep) -> tuple[tuple[int, int], ...]:
     """The contacts of an endpoint that the path did not keep: the ones it formed."""
-    kept = set(map(tuple, np.asarray(keep).tolist()))
+    kept = pair_set(keep)
     return tuple(c for c in contacts if c not in kept)
 
 

@@ -113,6 +113,16 @@ def test_the_contacts_figure_draws_the_papers_counts_in_the_colour_of_their_n():
     assert not [line for line in ax.get_lines() if line.get_marker() == "x"]
 
 
+def test_the_contacts_figure_says_which_n_were_counted_from_m_contacts_up():
+    """An n only restricted runs hold is labelled with its M, as in the counts figure; a full n is not, and an
+    M given for an n not drawn is ignored."""
+    fig = plot_by_contacts({10: {24: 259}, 14: {39: 79, 40: 4}}, restricted={14: 39, 15: 43},
+                           paper={14: {39: 79, 40: 4}})
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "n = 14 (83, ≥ 39 contacts)" in labels and "n = 10 (259)" in labels
+    assert not [label for label in labels if "15" in label]
+
+
 def test_the_commands_compare_with_the_paper_from_the_fewest_contacts_kept(catalog, monkeypatch, tmp_path):
     """`plot counts`, `plot contacts` and `plot all` pass the paper's counts of the n they draw, from M
     contacts up for an n only restricted runs hold."""
@@ -131,6 +141,31 @@ def test_the_commands_compare_with_the_paper_from_the_fewest_contacts_kept(catal
     assert invoke("all", "--db", catalog.url, "-o", tmp_path).exit_code == 0
     totals, tables = {7: 5, 8: 13}, {7: {15: 5}, 8: {18: 13}}
     assert seen == [totals, tables, totals, tables]
+
+
+def test_the_commands_label_an_n_counted_from_m_contacts_up(sqlite_url, monkeypatch, tmp_path):
+    """`plot contacts` and `plot all` pass {n: M} of the n that only restricted runs hold, so that the
+    contacts figure's legend says "≥ M" for them."""
+    from packings import plots
+    from packings.db import open_database
+    from packings.workers.params import Params
+    from tests.service.conftest import fill_database
+
+    engine = open_database(sqlite_url, create=True)
+    try:
+        fill_database(engine, 7)
+        fill_database(engine, 9, Params(min_contacts=21, max_break=3))
+    finally:
+        engine.dispose()
+    seen = []
+    real = plots.plot_by_contacts
+    monkeypatch.setattr(plots, "plot_by_contacts", lambda *a, **kw: seen.append(real(*a, **kw)) or seen[-1])
+    assert invoke("contacts", "--db", sqlite_url, "-o", tmp_path / "k.png").exit_code == 0
+    assert invoke("all", "--db", sqlite_url, "-o", tmp_path).exit_code == 0
+    for fig in seen:
+        labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+        assert labels[:2] == ["n = 7 (5)", "n = 9 (52, ≥ 21 contacts)"], labels
+    assert len(seen) == 2
 
 
 def test_plot_gap_cdf(tmp_path):
