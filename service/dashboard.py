@@ -12,7 +12,10 @@ What the page shows comes from a thread that reads the database every
 while the page or its JSON has been looked at in the last :data:`IDLE_SECONDS`, and
 then at most :data:`READ_SHARE` of its time: the thread shares the coordinator's
 cores with the workers, and at n = 13 one read takes a few tenths of a second
-(docs/performance.md).  What it shows:
+(docs/performance.md).  The JSON, asked for after nobody has looked for a while, waits
+for a new read (at most :data:`FRESH_SECONDS`) rather than give what was read when
+somebody last looked: a script that polls it now and then gets the run as it is.
+What it shows:
 the run being driven (the one whose coordinator is alive, else the latest), its
 clusters by number of contacts and the paper's count of them where it gives one,
 its frontier (pending, leased, done, failed), the faults recovered, expansions per
@@ -23,6 +26,7 @@ worker's expansions, and the failed expansions with their errors.  The JSON is t
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
 import json
 import logging
@@ -37,6 +41,7 @@ POLL_SECONDS = 1.0  #: how often the database is read while the page is looked a
 READ_SHARE = 0.05  #: the largest share of the time the reads may take (a read of t s waits t / READ_SHARE - t after)
 IDLE_SECONDS = 120.0  #: with neither the page nor its JSON asked for in this long, the database is not read
 RATE_WINDOW = 60.0  #: seconds over which expansions per second are measured
+FRESH_SECONDS = 10.0  #: how long the JSON waits for a new read when reading had stopped
 PAGE = "/packings"
 
 
@@ -57,6 +62,20 @@ class Watcher(threading.Thread):
         """The snapshot, for the page or its JSON: reading goes on (or starts again at once) for IDLE_SECONDS."""
         self._viewed = time.monotonic()
         self._looked.set()
+        return self.snapshot
+
+    async def fresh(self, timeout: float | None = None) -> dict:
+        """As :meth:`looked_at`, but where reading had stopped (or not yet begun) the snapshot of a read
+        made after this call, awaited for at most ``timeout`` (default :data:`FRESH_SECONDS`) without
+        holding up the caller's event loop; past it, the snapshot there is."""
+        stale = not self.reads or time.monotonic() - self._viewed > IDLE_SECONDS  # reading stopped
+        reads = self.reads
+        snapshot = self.looked_at()
+        if not stale:
+            return snapshot
+        end = time.monotonic() + (FRESH_SECONDS if timeout is None else timeout)
+        while self.reads == reads and time.monotonic() < end:
+            await asyncio.sleep(0.02)
         return self.snapshot
 
     def run(self) -> None:
@@ -151,8 +170,16 @@ def watch(url: str) -> Watcher:
 
 
 def current() -> dict:
-    """What the page and its JSON show (which keeps the watching thread reading)."""
-    return _CURRENT[0].looked_at() if _CURRENT else {"run": None, "error": "no database: set PACKINGS_DB"}
+    """What the page shows (which keeps the watching thread reading)."""
+    return _CURRENT[0].looked_at() if _CURRENT else _NO_DATABASE
+
+
+async def current_fresh() -> dict:
+    """What the JSON shows: :func:`current`, read anew if reading had stopped (:meth:`Watcher.fresh`)."""
+    return await _CURRENT[0].fresh() if _CURRENT else _NO_DATABASE
+
+
+_NO_DATABASE = {"run": None, "error": "no database: set PACKINGS_DB"}
 
 
 # --------------------------------------------------------------------------- the page
@@ -236,9 +263,10 @@ def _json_handler():
     from tornado import web
 
     class SnapshotHandler(web.RequestHandler):
-        def get(self) -> None:
+        async def get(self) -> None:
+            snapshot = await current_fresh()
             self.set_header("Content-Type", "application/json")
-            self.write(json.dumps(current()))
+            self.write(json.dumps(snapshot))
 
     return SnapshotHandler
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import shutil
 import socket
@@ -154,6 +155,45 @@ def test_nobody_looking_nothing_is_read_and_a_look_reads_at_once(monkeypatch):
             break
         time.sleep(0.02)
     assert w.reads > idle and w.looked_at()["reads"] > idle
+
+
+def test_the_json_asked_for_after_nobody_looked_is_read_anew(monkeypatch):
+    """Reading had stopped: the JSON's snapshot comes from a read made after it was asked for, not the one
+    made when somebody last looked (a script polling every few minutes would get data as old as its
+    interval); asked for again while reading goes on, it is given at once."""
+    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
+    monkeypatch.setattr(dashboard, "IDLE_SECONDS", 0.3)
+    w = _Slow(0.2)
+    idle = _reads_over(w, 2.0, look=False)
+    time.sleep(0.5)
+    assert w.reads == idle
+    start = time.monotonic()
+    assert asyncio.run(w.fresh())["reads"] == idle + 1
+    assert time.monotonic() - start >= 0.2  # it waited for that read
+    start = time.monotonic()
+    assert asyncio.run(w.fresh())["reads"] == idle + 1 and time.monotonic() - start < 0.15
+
+
+def test_the_json_waits_for_a_new_read_no_longer_than_its_timeout(monkeypatch):
+    """A read slower than the wait allowed: the snapshot there is, after the wait, and the read goes on."""
+    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
+    monkeypatch.setattr(dashboard, "IDLE_SECONDS", 0.3)
+    w = _Slow(0.8)
+    _reads_over(w, 1.5, look=False)  # one read, then nobody looks
+    assert w.reads == 1
+    start = time.monotonic()
+    assert asyncio.run(w.fresh(timeout=0.2))["reads"] == 1
+    assert 0.2 <= time.monotonic() - start < 0.6
+    for _ in range(100):
+        if w.reads > 1:
+            break
+        time.sleep(0.02)
+    assert w.looked_at()["reads"] == 2
+
+
+def test_the_json_without_a_database_says_so(monkeypatch):
+    monkeypatch.setattr(dashboard, "_CURRENT", [])
+    assert asyncio.run(dashboard.current_fresh()) == {"run": None, "error": "no database: set PACKINGS_DB"}
 
 
 def test_the_header_gives_the_papers_count_from_the_fewest_contacts_a_run_keeps(engine):
