@@ -257,12 +257,13 @@ class Catalogue:
             return stats(s, n, counts_by_n(s))
 
     def fit(self) -> dict | None:
-        """The fit of the totals to b·(n−5)!, runs restricted by --min-contacts left out (None if no n)."""
+        """The fit of the totals to b·(n−5)!, the n held only by runs restricted by --min-contacts and those
+        no full run has completed left out (None if no n is left)."""
         from packings.stats import fit_all
-        from packings.store import counts_by_n, restricted_ns
+        from packings.store import counts_by_n, partial_ns, restricted_ns
 
         with self.session() as s:
-            return fit_all(counts_by_n(s), restricted_ns(s))
+            return fit_all(counts_by_n(s), restricted_ns(s), partial_ns(s))
 
     def runs(self) -> list[dict]:
         """Every run with its frontier, one dict each: what ``packings status --json`` prints.  A run

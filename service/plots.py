@@ -141,14 +141,16 @@ def _log_ticks(axis, lo: float, hi: float) -> None:
 # --------------------------------------------------------------------------- the figures
 
 
-def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *, restricted=None, ax=None,
-                size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
+def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *, restricted=None, partial=(),
+                ax=None, size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
     """The number of clusters against n (log scale, one marker per n, the count
     written above it) with the fitted curve b·(n − 5)! of
     :func:`packings.fit.fit_factorial` (b in the legend).  ``restricted``: {n:
     fewest contacts kept} for the n whose totals count only the clusters with
     that many contacts or more (runs restricted by ``--min-contacts``): drawn
-    hollow, marked "≥ M contacts", and left out of the fit.  ``paper``: {n: the
+    hollow, marked "≥ M contacts", and left out of the fit.  ``partial``: the n
+    whose totals are not complete (:func:`packings.store.partial_ns`): drawn
+    hollow in grey, marked "partial", and left out of the fit.  ``paper``: {n: the
     paper's count} to compare (:func:`packings.paper.paper_totals`), drawn as
     crosses at the n plotted.  Returns the figure."""
     import numpy as np
@@ -157,8 +159,9 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
     if not totals:
         raise ValueError("no clusters to plot")
     restricted = {int(n): int(m) for n, m in (restricted or {}).items() if int(n) in totals}
+    partial = {int(n) for n in partial if int(n) in totals and int(n) not in restricted}
     ns = sorted(totals)
-    full = [n for n in ns if n not in restricted]
+    full = [n for n in ns if n not in restricted and n not in partial]
     fig, ax_ = _canvas(ax, size, dpi, path)
     ax_.set_yscale("log")
     if full:
@@ -167,12 +170,17 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
         part = sorted(restricted)
         ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="C2", mew=1.5, zorder=3,
                  label="clusters with ≥ M contacts only (--min-contacts M)")
+    if partial:
+        part = sorted(partial)
+        ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="0.45", mew=1.5, zorder=3,
+                 label="partial counts (no run of n complete)")
     shown = sorted(n for n in (paper or {}) if n in totals)
     if shown:
         ax_.plot(shown, [paper[n] for n in shown], "x", ms=9, mew=1.5, color="C3", zorder=4,
                  label="the paper (Holmes-Cerfon 2016, Table 1)")
     for n in ns:
-        text = f"{totals[n]:,}" + (f"\n(≥ {restricted[n]})" if n in restricted else "")
+        text = f"{totals[n]:,}" + (f"\n(≥ {restricted[n]})" if n in restricted else "\n(partial)" if n in partial
+                                   else "")
         ax_.annotate(text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center",
                      fontsize=8, color="0.25")
     fit = fit_factorial({n: totals[n] for n in full})
@@ -231,16 +239,19 @@ def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike | None = 
 
 
 def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | None = None, *, restricted=None,
-                     ax=None, size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
+                     partial=(), ax=None, size: tuple[float, float] | None = None, dpi: float | None = None,
+                     paper=None):
     """The number of clusters by number of contacts, one series per n, against
     contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  ``restricted``: {n:
     M} for the n whose clusters were counted only from M contacts up (as in
-    :func:`plot_counts`): their legend says "≥ M".  ``paper``: {n: the paper's counts by
+    :func:`plot_counts`): their legend says "≥ M"; ``partial``: the n whose counts are not
+    complete, "partial" in the legend.  ``paper``: {n: the paper's counts by
     number of contacts} to compare (:func:`packings.paper.paper_tables`), drawn as crosses
     in the colour of their n, for the n drawn.  Returns the figure."""
     series = {int(n): {int(m): int(c) for m, c in d.items() if c and c > 0} for n, d in by_n.items()}
     series = {n: d for n, d in series.items() if d}
     restricted = {int(n): int(m) for n, m in (restricted or {}).items() if int(n) in series}
+    partial = {int(n) for n in partial if int(n) not in restricted}
     if not series:
         raise ValueError("no clusters to plot")
     theirs = {n: {int(m): int(c) for m, c in (paper or {}).get(n, {}).items() if c > 0} for n in series}
@@ -252,7 +263,8 @@ def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | 
         ms = sorted(d)
         ax_.plot([m - (3 * n - 6) for m in ms], [d[m] for m in ms], marker=markers[i % len(markers)], ms=6, lw=1.5,
                  color=color, zorder=3,
-                 label=f"n = {n} ({sum(d.values()):,}" + (f", ≥ {restricted[n]} contacts)" if n in restricted else ")"))
+                 label=f"n = {n} ({sum(d.values()):,}" + (f", ≥ {restricted[n]} contacts)" if n in restricted
+                                                          else ", partial)" if n in partial else ")"))
         if theirs[n]:
             ps = sorted(theirs[n])
             ax_.plot([m - (3 * n - 6) for m in ps], [theirs[n][m] for m in ps], "x", ms=9, mew=1.3, color=color,
@@ -706,10 +718,11 @@ def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
     return out
 
 
-def _restricted(s) -> dict[int, int]:
-    from packings.store import restricted_ns
+def _incomplete(s) -> tuple[dict[int, int], set[int]]:
+    """{n: M} of the n held only by runs restricted by --min-contacts, and the n whose counts are partial."""
+    from packings.store import partial_ns, restricted_ns
 
-    return restricted_ns(s)
+    return restricted_ns(s), partial_ns(s)
 
 
 def load_gaps(s, ns: set[int] | None) -> dict[int, list[float]]:
@@ -760,11 +773,11 @@ def counts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size
     ns_ = parse_ns(ns)
     path = _output_file(output, DEFAULT_NAMES["counts"])
     with _reading(db_url) as s:
-        counts, restricted = load_counts(s, ns_), _restricted(s)
+        counts, (restricted, partial) = load_counts(s, ns_), _incomplete(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=path, restricted=restricted, size=size,
-           dpi=dpi, paper=paper_totals(counts, restricted))
+    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=path, restricted=restricted,
+           partial=partial, size=size, dpi=dpi, paper=paper_totals(counts, restricted))
 
 
 @plot.command("gaps", short_help="Cumulative distribution of the minimum gaps, one line per n.")
@@ -793,10 +806,10 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, si
     ns_ = parse_ns(ns)
     path = _output_file(output, DEFAULT_NAMES["contacts"])
     with _reading(db_url) as s:
-        counts, restricted = load_counts(s, ns_), _restricted(s)
+        counts, (restricted, partial) = load_counts(s, ns_), _incomplete(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_by_contacts, counts, path=path, restricted=restricted, size=size, dpi=dpi,
+    _write(plot_by_contacts, counts, path=path, restricted=restricted, partial=partial, size=size, dpi=dpi,
            paper=paper_tables(counts, restricted))
 
 
@@ -864,16 +877,16 @@ def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: st
     ns_ = parse_ns(ns)
     directory = _output_dir(output)
     with _reading(db_url) as s:
-        counts, gaps, restricted = load_counts(s, ns_), load_gaps(s, ns_), _restricted(s)
+        counts, gaps, (restricted, partial) = load_counts(s, ns_), load_gaps(s, ns_), _incomplete(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
     options = {"size": size, "dpi": dpi}
     _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=directory / names["counts"],
-           restricted=restricted, paper=paper_totals(counts, restricted), **options)
+           restricted=restricted, partial=partial, paper=paper_totals(counts, restricted), **options)
     if gaps:
         _write(plot_gap_cdf, gaps, path=directory / names["gaps"], **options)
     else:  # only clusters in which every pair touches (n <= 4)
         click.echo(f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; "
                    f"{names['gaps']} not written", err=True)
-    _write(plot_by_contacts, counts, path=directory / names["contacts"], restricted=restricted,
+    _write(plot_by_contacts, counts, path=directory / names["contacts"], restricted=restricted, partial=partial,
            paper=paper_tables(counts, restricted), **options)

@@ -8,7 +8,6 @@ over every run of that n (normally there is one).
 
 from __future__ import annotations
 
-import json
 import math
 
 from sqlalchemy import func, select
@@ -16,9 +15,9 @@ from sqlalchemy.orm import Session, aliased
 
 from packings.export import table
 from packings.fit import fit_factorial
-from packings.models import COMPLETE, ClusterRow, Run, Transition
+from packings.models import ClusterRow, Transition
 from packings.paper import against_paper, verdict
-from packings.store import NOT_CLOSE_PACKED, counts_by_n, restricted_ns
+from packings.store import NOT_CLOSE_PACKED, counts_by_n, partial_ns, restricted_ns
 from packings.workers.outcomes import CIRCULAR
 
 #: how many of the smallest gaps are listed
@@ -65,26 +64,16 @@ def _gaps(s: Session, n: int) -> list[dict]:
     return [{"id": i, "contacts": m, "min_gap": g} for i, m, g in s.execute(q)]
 
 
-def _complete(s: Session, n: int) -> bool:
-    """Whether a full run of n (no --max-break cap, no --min-contacts) is complete: else the counts
-    of n are partial."""
-    for status, params in s.execute(select(Run.status, Run.params).where(Run.n == n)):
-        p = json.loads(params)
-        if status == COMPLETE and p.get("max_break") is None and p.get("min_contacts") is None:
-            return True
-    return False
-
-
 def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | None = None) -> list[dict]:
     """One dict per n (ascending), with the keys documented in the README.
 
     ``fit`` is the fit of the totals of every n in the database (not only
-    ``n``) to b·(n−5)!, and what it predicts for this n.  ``every`` is
-    ``counts_by_n(s)`` if the caller has it.
+    ``n``) whose count is complete to b·(n−5)!, and what it predicts for this n.
+    ``every`` is ``counts_by_n(s)`` if the caller has it.
     """
     every = counts_by_n(s) if every is None else every
-    restricted = restricted_ns(s)
-    fit = fit_all(every, restricted)
+    restricted, partial = restricted_ns(s), partial_ns(s)
+    fit = fit_all(every, restricted, partial)
     out = []
     for nn, by_contacts in every.items():
         if n is not None and nn != n:
@@ -99,7 +88,7 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
         singular = _by(s, nn, ClusterRow.singular.is_(True))
         out.append({
             "n": nn,
-            "complete": _complete(s, nn),
+            "complete": nn not in restricted and nn not in partial,  # a full run of n is complete
             "min_contacts": restricted.get(nn),
             "total": total,
             "by_contacts": {str(m): c for m, c in by_contacts.items()},
@@ -178,10 +167,11 @@ def format_stats(d: dict) -> str:
     return "\n".join(parts)
 
 
-def fit_all(every: dict[int, dict[int, int]], restricted=()) -> dict | None:
+def fit_all(every: dict[int, dict[int, int]], restricted=(), partial=()) -> dict | None:
     """The fit of the totals of ``counts_by_n`` to b·(n−5)!, leaving out the ``restricted`` n (counts of
-    runs restricted by --min-contacts: :func:`packings.store.restricted_ns`)."""
-    return fit_factorial({k: sum(v.values()) for k, v in every.items() if k not in restricted})
+    runs restricted by --min-contacts: :func:`packings.store.restricted_ns`) and the ``partial`` ones
+    (no full run complete: :func:`packings.store.partial_ns`)."""
+    return fit_factorial({k: sum(v.values()) for k, v in every.items() if k not in restricted and k not in partial})
 
 
 def format_fit(fit: dict | None) -> str:

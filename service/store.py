@@ -724,6 +724,20 @@ def restricted_ns(s: Session) -> dict[int, int]:
     return {n: m for n, m in sorted(least.items()) if n not in full}
 
 
+def partial_ns(s: Session) -> set[int]:
+    """The n with stored clusters whose counts are partial: no run of n that keeps every cluster (no
+    ``--min-contacts``, no ``--max-break`` cap) is complete (a run going on or interrupted, a catalysis
+    pass's, no run at all), and they are not held only by restricted runs (:func:`restricted_ns` names
+    those): their totals are not the method's count of n, never to be fitted."""
+    complete = set()
+    for n, params in s.execute(select(Run.n, Run.params).where(Run.status == COMPLETE)):
+        p = json.loads(params)
+        if p.get("min_contacts") is None and p.get("max_break") is None:
+            complete.add(n)
+    held = set(s.execute(select(ClusterRow.n).distinct()).scalars())
+    return held - complete - set(restricted_ns(s))
+
+
 def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:
     """All stored clusters: {n: {contacts: count}}."""
     q = select(ClusterRow.n, ClusterRow.contacts, func.count()).group_by(ClusterRow.n, ClusterRow.contacts)

@@ -207,6 +207,7 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
     with packings.connect(url) as cat:
         assert cat.runs()[0]["status"] == "interrupted"
         assert cat.stats(7)[0]["complete"] is False
+        assert cat.fit() is None and cat.stats(7)[0]["fit"] is None  # a partial count is never fitted
     text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
                           text=True, timeout=300, check=True).stdout
     assert "n = 7: 1 rigid clusters so far (partial" in text
@@ -217,6 +218,8 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
     with packings.connect(url) as cat:
         assert [r["status"] for r in cat.runs()] == ["running", "complete"]
         assert [(d["n"], d["complete"]) for d in cat.stats()] == [(6, True), (7, False)]
+        fit = cat.fit()
+        assert fit["ns"] == [6] and cat.stats(7)[0]["fit"]["predicted"] == pytest.approx(2 * fit["b"])
 
 
 def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_fit(engine, tmp_path):

@@ -143,11 +143,29 @@ def test_the_commands_compare_with_the_paper_from_the_fewest_contacts_kept(catal
     assert seen == [totals, tables, totals, tables]
 
 
-def test_the_commands_label_an_n_counted_from_m_contacts_up(sqlite_url, monkeypatch, tmp_path):
-    """`plot contacts` and `plot all` pass {n: M} of the n that only restricted runs hold, so that the
-    contacts figure's legend says "≥ M" for them."""
-    from packings import plots
-    from packings.db import open_database
+def test_the_counts_figure_leaves_partial_counts_out_of_the_fit():
+    """n = 9 partial (no run of it complete): hollow, "(partial)" under its count, and the fit is of n = 7 and
+    8 alone, as without n = 9; n = 10 restricted stays as it was."""
+    fig = plot_counts({7: 5, 8: 13, 9: 20, 10: 262}, restricted={10: 24}, partial={9, 10})
+    [ax] = fig.axes
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    [alone] = [t for t in (t.get_text() for t in plot_counts({7: 5, 8: 13}).axes[0].get_legend().get_texts())
+               if t.startswith("fit")]
+    assert "partial counts (no run of n complete)" in labels and alone in labels
+    [hollow] = [line for line in ax.get_lines() if line.get_label().startswith("partial")]
+    assert list(hollow.get_xdata()) == [9] and hollow.get_markerfacecolor() == "none"
+    assert "20\n(partial)" in [t.get_text() for t in ax.texts] and "262\n(≥ 24)" in [t.get_text() for t in ax.texts]
+
+
+def test_the_commands_label_partial_and_restricted_n(sqlite_url, monkeypatch, tmp_path):
+    """`plot counts`, `plot contacts` and `plot all` pass the n that only restricted runs hold ("≥ M") and
+    those with no run complete ("partial"): the contacts figure's legend says so, and the counts figure fits
+    only the n counted in full."""
+    import os
+    import socket
+
+    from packings import plots, store
+    from packings.db import open_database, sessions
     from packings.workers.params import Params
     from tests.service.conftest import fill_database
 
@@ -155,17 +173,24 @@ def test_the_commands_label_an_n_counted_from_m_contacts_up(sqlite_url, monkeypa
     try:
         fill_database(engine, 7)
         fill_database(engine, 9, Params(min_contacts=21, max_break=3))
+        store.start_run(sessions(engine), 8, Params(), f"{socket.gethostname()}:{2 ** 22 + 12345}:gone")
     finally:
         engine.dispose()
-    seen = []
-    real = plots.plot_by_contacts
-    monkeypatch.setattr(plots, "plot_by_contacts", lambda *a, **kw: seen.append(real(*a, **kw)) or seen[-1])
+    seen = {"plot_counts": [], "plot_by_contacts": []}
+    for name, kept in seen.items():
+        real = getattr(plots, name)
+        monkeypatch.setattr(plots, name, lambda *a, _real=real, _kept=kept, **kw: _kept.append(_real(*a, **kw))
+                            or _kept[-1])
+    assert invoke("counts", "--db", sqlite_url, "-o", tmp_path / "c.png").exit_code == 0
     assert invoke("contacts", "--db", sqlite_url, "-o", tmp_path / "k.png").exit_code == 0
     assert invoke("all", "--db", sqlite_url, "-o", tmp_path).exit_code == 0
-    for fig in seen:
+    assert len(seen["plot_counts"]) == len(seen["plot_by_contacts"]) == 2
+    for fig in seen["plot_by_contacts"]:
         labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
-        assert labels[:2] == ["n = 7 (5)", "n = 9 (52, ≥ 21 contacts)"], labels
-    assert len(seen) == 2
+        assert labels[:3] == ["n = 7 (5)", "n = 8 (1, partial)", "n = 9 (52, ≥ 21 contacts)"], labels
+    for fig in seen["plot_counts"]:
+        labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+        assert [label for label in labels if label.startswith("fit")] == ["fit 2.50·(n − 5)!  (n = 7)"], labels
 
 
 def test_plot_gap_cdf(tmp_path):
