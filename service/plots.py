@@ -199,7 +199,7 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
     ax_.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
     _log_ticks(ax_.yaxis, lo / 2, hi * 4)
     ax_.grid(True, which="major", alpha=0.3)
-    ax_.legend(loc="upper left")
+    ax_.legend(loc="upper left", fontsize=8)
     return _done(fig, path, ax is None)
 
 
