@@ -161,7 +161,6 @@ def test_the_commands_label_partial_and_restricted_n(sqlite_url, monkeypatch, tm
     """`plot counts`, `plot contacts` and `plot all` pass the n that only restricted runs hold ("≥ M") and
     those with no run complete ("partial"): the contacts figure's legend says so, and the counts figure fits
     only the n counted in full."""
-    import os
     import socket
 
     from packings import plots, store
