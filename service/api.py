@@ -260,10 +260,10 @@ class Catalogue:
         """The fit of the totals to b·(n−5)!, the n held only by runs restricted by --min-contacts and those
         no full run has completed left out (None if no n is left)."""
         from packings.stats import fit_all
-        from packings.store import counts_by_n, partial_ns, restricted_ns
+        from packings.store import counts_by_n, incomplete_ns
 
         with self.session() as s:
-            return fit_all(counts_by_n(s), restricted_ns(s), partial_ns(s))
+            return fit_all(counts_by_n(s), *incomplete_ns(s))
 
     def runs(self) -> list[dict]:
         """Every run with its frontier, one dict each: what ``packings status --json`` prints.  A run

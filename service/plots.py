@@ -149,7 +149,7 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
     fewest contacts kept} for the n whose totals count only the clusters with
     that many contacts or more (runs restricted by ``--min-contacts``): drawn
     hollow, marked "≥ M contacts", and left out of the fit.  ``partial``: the n
-    whose totals are not complete (:func:`packings.store.partial_ns`): drawn
+    whose totals are not complete (:func:`packings.store.incomplete_ns`): drawn
     hollow in grey, marked "partial", and left out of the fit.  ``paper``: {n: the
     paper's count} to compare (:func:`packings.paper.paper_totals`), drawn as
     crosses at the n plotted.  Returns the figure."""
@@ -720,9 +720,9 @@ def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
 
 def _incomplete(s) -> tuple[dict[int, int], set[int]]:
     """{n: M} of the n held only by runs restricted by --min-contacts, and the n whose counts are partial."""
-    from packings.store import partial_ns, restricted_ns
+    from packings.store import incomplete_ns
 
-    return restricted_ns(s), partial_ns(s)
+    return incomplete_ns(s)
 
 
 def load_gaps(s, ns: set[int] | None) -> dict[int, list[float]]:

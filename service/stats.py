@@ -17,7 +17,7 @@ from packings.export import table
 from packings.fit import fit_factorial
 from packings.models import ClusterRow, Transition
 from packings.paper import against_paper, verdict
-from packings.store import NOT_CLOSE_PACKED, counts_by_n, partial_ns, restricted_ns
+from packings.store import NOT_CLOSE_PACKED, counts_by_n, incomplete_ns
 from packings.workers.outcomes import CIRCULAR
 
 #: how many of the smallest gaps are listed
@@ -72,7 +72,7 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
     ``every`` is ``counts_by_n(s)`` if the caller has it.
     """
     every = counts_by_n(s) if every is None else every
-    restricted, partial = restricted_ns(s), partial_ns(s)
+    restricted, partial = incomplete_ns(s)
     fit = fit_all(every, restricted, partial)
     out = []
     for nn, by_contacts in every.items():
@@ -169,8 +169,8 @@ def format_stats(d: dict) -> str:
 
 def fit_all(every: dict[int, dict[int, int]], restricted=(), partial=()) -> dict | None:
     """The fit of the totals of ``counts_by_n`` to b·(n−5)!, leaving out the ``restricted`` n (counts of
-    runs restricted by --min-contacts: :func:`packings.store.restricted_ns`) and the ``partial`` ones
-    (no full run complete: :func:`packings.store.partial_ns`)."""
+    runs restricted by --min-contacts: :func:`packings.store.incomplete_ns`) and the ``partial`` ones
+    (no full run complete)."""
     return fit_factorial({k: sum(v.values()) for k, v in every.items() if k not in restricted and k not in partial})
 
 

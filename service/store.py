@@ -709,33 +709,31 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
     }
 
 
-def restricted_ns(s: Session) -> dict[int, int]:
-    """{n: the fewest contacts kept} for each n whose clusters come only from runs restricted by
-    ``--min-contacts`` (no run of n keeps every cluster): their counts are of the clusters with that
-    many contacts or more, never to be mixed with full counts (the fit, the totals)."""
+def incomplete_ns(s: Session) -> tuple[dict[int, int], set[int]]:
+    """The n whose counts are not the method's full count of n, never to be mixed with full counts (the fit,
+    the totals), from one read of the runs:
+
+    - restricted: {n: the fewest contacts kept} for each n whose clusters come only from runs restricted by
+      ``--min-contacts`` (no run of n keeps every cluster): their counts are of the clusters with that many
+      contacts or more;
+    - partial: the other n with stored clusters of which no run that keeps every cluster (no
+      ``--min-contacts``, no ``--max-break`` cap) is complete (a run going on or interrupted, a catalysis
+      pass's, no run at all)."""
     full: set[int] = set()
+    complete: set[int] = set()
     least: dict[int, int] = {}
-    for n, params in s.execute(select(Run.n, Run.params)):
-        m = json.loads(params).get("min_contacts")
+    for n, status, params in s.execute(select(Run.n, Run.status, Run.params)):
+        p = json.loads(params)
+        m = p.get("min_contacts")
         if m is None:
             full.add(n)
+            if status == COMPLETE and p.get("max_break") is None:
+                complete.add(n)
         else:
             least[n] = min(m, least.get(n, m))
-    return {n: m for n, m in sorted(least.items()) if n not in full}
-
-
-def partial_ns(s: Session) -> set[int]:
-    """The n with stored clusters whose counts are partial: no run of n that keeps every cluster (no
-    ``--min-contacts``, no ``--max-break`` cap) is complete (a run going on or interrupted, a catalysis
-    pass's, no run at all), and they are not held only by restricted runs (:func:`restricted_ns` names
-    those): their totals are not the method's count of n, never to be fitted."""
-    complete = set()
-    for n, params in s.execute(select(Run.n, Run.params).where(Run.status == COMPLETE)):
-        p = json.loads(params)
-        if p.get("min_contacts") is None and p.get("max_break") is None:
-            complete.add(n)
+    restricted = {n: m for n, m in sorted(least.items()) if n not in full}
     held = set(s.execute(select(ClusterRow.n).distinct()).scalars())
-    return held - complete - set(restricted_ns(s))
+    return restricted, held - complete - set(restricted)
 
 
 def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:
