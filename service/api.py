@@ -431,7 +431,8 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
             result = paths()
             passes = []
             while glued and result.status == "complete":
-                report = _glued_pass(engine, url, n, params, result.run_id, dask.client, progress)
+                report = _glued_pass(engine, url, n, params, result.run_id, dask.client, progress,
+                                     before=dask.fresh_workers)
                 if report is None:
                     break
                 passes.append(report)
@@ -444,9 +445,12 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
             engine.dispose()
 
 
-def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool):
+def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool, before=None):
     """A glued catalysis pass into ``run_id`` over the clusters of n stored since the passes before it
-    (:func:`packings.catalysis.covered`), on ``client``'s workers; its report, or None if there are none."""
+    (:func:`packings.catalysis.covered`), on ``client``'s workers; its report, or None if there are none.
+    ``before()`` is called first when there is a pass to make (``packings enumerate`` gives its local
+    workers fresh processes there, so that a pass's record of the remainders seen is not added on top of
+    what the paths left in them)."""
     from packings.catalysis import catalyse, count_stored, covered
     from packings.db import sessions
     from packings.plugin import plugin_name
@@ -455,6 +459,8 @@ def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress:
     after = covered(Session_, run_id)
     if not count_stored(Session_, n, after):
         return None
+    if before is not None:
+        before()
     bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress, off_terminal=True)
     try:
         return catalyse(Session_, n, params, glued=True, client=client, plugin=plugin_name(url), after=after,

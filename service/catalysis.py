@@ -17,7 +17,8 @@ or of one decided earlier in the pass, is not decided again.
 
 The parents are decided in this process, or (the command line) by Dask tasks, a batch of parents each
 (:func:`catalysis_task`), on a local cluster or an existing one, as ``packings enumerate`` runs its
-expansions; what a task found is stored by the caller.
+expansions: a task carries the parents' ids, reads them with its worker's engine and stores what it
+found, as an expansion's task writes its results back; the caller adds up what the tasks report.
 
 With ``close_packed`` (:func:`close_packed_pass`), there are no parents: every close-packed fragment
 of n spheres with at least that many contacts (:func:`packings.workers.fragments.close_packed`) is
@@ -36,7 +37,7 @@ import json
 import threading
 import uuid
 from dataclasses import asdict, dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 from sqlalchemy import func, select, update
@@ -55,11 +56,18 @@ from packings.models import (
     core_cluster,
 )
 from packings.owners import process_name, utcnow
-from packings.workers.catalysis import Seen, moved_remainders, remainder, remainder_count, rigid_remainders
 from packings.workers.fragments import close_packed
 from packings.workers.cluster import Cluster
 from packings.workers.identity import certificate_key
 from packings.workers.params import Params
+from packings.workers.rigidity import Rigidity
+
+if TYPE_CHECKING:
+    from packings.workers.catalysis import Seen
+
+# packings.workers.catalysis (the endpoint rule, and with it the path-following code and numba's compiled
+# kernels, about 130 MiB) is imported by the functions that decide remainders: a coordinator whose workers
+# decide them never loads it.
 
 BATCH = 200  #: parents per transaction
 
@@ -109,6 +117,13 @@ class CatalysisReport:
     def to_dict(self) -> dict:
         return asdict(self)
 
+    def add(self, w: Written) -> None:
+        """What one transaction of the pass stored."""
+        self.new.extend(w.new)
+        self.already_stored += w.already_stored
+        self.expansions_added += w.expansions_added
+        self.run_reopened |= w.run_reopened
+
 
 def count_stored(Session_: sessionmaker, n: int, after: int = 0) -> int:
     """How many clusters of n are stored (with ``after``: with an id above it)."""
@@ -151,15 +166,17 @@ def covered(Session_: sessionmaker, run_id: int) -> int:
 
 class _Rows:
     """The stored clusters of n (id, coords, contact list) with an id above ``after``, ``batch`` at a time,
-    by id; iterated again, it goes on after the last id it gave (clusters stored since are read then)."""
+    by id; iterated again, it goes on after the last id it gave (clusters stored since are read then).
+    With ``ids_only``, each row is the id alone (a Dask task reads the rest itself: :func:`catalysis_task`)."""
 
-    def __init__(self, Session_: sessionmaker, n: int, batch: int, after: int = 0):
+    def __init__(self, Session_: sessionmaker, n: int, batch: int, after: int = 0, ids_only: bool = False):
         self.Session_, self.n, self.batch, self.last = Session_, n, batch, after
+        self.columns = (ClusterRow.id,) if ids_only else (ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
 
     def __iter__(self):
         while True:
             with self.Session_() as s:
-                rows = s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
+                rows = s.execute(select(*self.columns)
                                  .where(ClusterRow.n == self.n, ClusterRow.id > self.last)
                                  .order_by(ClusterRow.id).limit(self.batch)).all()
             if not rows:
@@ -168,9 +185,18 @@ class _Rows:
             yield rows
 
 
+def rows_of(Session_: sessionmaker, ids: list[int]) -> list:
+    """The stored clusters ``ids`` as :class:`_Rows` gives them (id, coords, contact list), by id."""
+    with Session_() as s:
+        return s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
+                         .where(ClusterRow.id.in_(ids)).order_by(ClusterRow.id)).all()
+
+
 def stored_seen(Session_: sessionmaker, n: int, tol_d: float, batch: int = BATCH) -> Seen:
     """Every stored cluster of n (of any run), as :class:`packings.workers.catalysis.Seen` has them: the
     remainders a pass of ``glued`` does not decide again."""
+    from packings.workers.catalysis import Seen
+
     seen = Seen(tol_d)
     for rows in _Rows(Session_, n, batch):
         for _, coords, contact_list in rows:  # plain clusters: their canonical forms are not kept
@@ -179,15 +205,55 @@ def stored_seen(Session_: sessionmaker, n: int, tol_d: float, batch: int = BATCH
     return seen
 
 
+@dataclass(frozen=True)
+class Kept:
+    """A rigid remainder as it is stored: the parent's id (None for a close-packed fragment), the parent's
+    spheres deleted, the remainder's cluster, rigidity and certificate, and (``glued``) the contact triangle
+    its moved sphere was put on."""
+
+    parent_id: int | None
+    deleted: tuple[int, ...]
+    cluster: Cluster
+    rigidity: Rigidity
+    certificate: str
+    moved_onto: tuple[int, int, int] | None = None
+
+    @classmethod
+    def of(cls, parent_id: int | None, r, moved_onto: tuple[int, int, int] | None = None) -> Kept:
+        """From a rigid :class:`packings.workers.catalysis.Remainder` ``r``."""
+        return cls(parent_id, r.deleted, r.cluster, r.rigidity, certificate_key(r.cluster), moved_onto)
+
+
+@dataclass
+class Written:
+    """What one transaction of :func:`_store` did: the clusters it inserted, the rigid remainders it matched
+    to stored clusters, the expansions it added and whether it marked the run running again."""
+
+    new: list[Found] = field(default_factory=list)
+    already_stored: int = 0
+    expansions_added: int = 0
+    run_reopened: bool = False
+
+
 @dataclass
 class Decided:
-    """What one batch of parents gave: the rigid remainders ((parent id, Remainder, certificate, triangle
-    moved onto or None)), the parents, the remainders decided and (``glued``) those seen already."""
+    """What one batch of parents gave: the rigid remainders (:class:`Kept`, until they are stored: then
+    ``written``), how many they were, the parents, the remainders decided and (``glued``) those seen
+    already."""
 
     found: list = field(default_factory=list)
     parents: int = 0
     remainders: int = 0
     seen: int = 0
+    rigid: int = 0
+    written: Written | None = None
+
+    def store(self, Session_: sessionmaker, n: int, run_id: int, params: Params) -> Decided:
+        """The rigid remainders stored (:func:`_store`) and dropped, ``written`` saying what that did."""
+        if self.found:
+            self.written = _store(Session_, n, run_id, params, self.found)
+            self.found = []
+        return self
 
 
 def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
@@ -196,6 +262,8 @@ def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
     ``spheres`` spheres, or with ``glued`` of n, whose spheres are moved one at a time, ``seen`` being the
     remainders not to decide again, which grows with those decided).  Pure computation: the same in this
     process or in a Dask task (:func:`catalysis_task`)."""
+    from packings.workers.catalysis import moved_remainders, remainder_count, rigid_remainders
+
     source = n if glued else n + spheres
     out = Decided()
     for pid, coords, contact_list in rows:
@@ -208,11 +276,12 @@ def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
                     continue
                 out.remainders += 1
                 if mv.remainder.rigid:
-                    out.found.append((pid, mv.remainder, certificate_key(mv.remainder.cluster), mv.triangle))
+                    out.found.append(Kept.of(pid, mv.remainder, mv.triangle))
             continue
         out.remainders += remainder_count(parent.n, spheres)
         for r in rigid_remainders(parent, spheres, params):
-            out.found.append((pid, r, certificate_key(r.cluster), None))
+            out.found.append(Kept.of(pid, r))
+    out.rigid = len(out.found)
     return out
 
 
@@ -226,8 +295,8 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     :class:`NoParents` when no cluster of n + spheres (with ``glued``: of n) is stored.
 
     With a Dask ``client`` (whose workers have the :class:`packings.plugin.DatabasePlugin` named ``plugin``),
-    each batch of parents is decided by a task on a worker (:func:`catalysis_task`), a few
-    per worker at a time, and stored here as its task completes; with ``glued`` each worker process keeps
+    each batch of parents is decided and stored by a task on a worker (:func:`catalysis_task`), a few
+    per worker at a time; with ``glued`` each worker process keeps
     its own record of what it has seen (the stored clusters, then what it decided), so that a remainder
     may be decided once per worker rather than once: what is stored is the same.
 
@@ -243,24 +312,24 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, spheres, run_id, glued=glued, after=after)
     started = utcnow()
-    parents = _Rows(Session_, source, batch, after)
+    parents = _Rows(Session_, source, batch, after, ids_only=client is not None)
 
     def absorb(d: Decided) -> None:
         report.parents += d.parents
         report.remainders += d.remainders
         report.seen += d.seen
-        report.rigid += len(d.found)
-        if d.found:
-            _store(Session_, n, run_id, params, d.found, report)
+        report.rigid += d.rigid
+        if d.written is not None:
+            report.add(d.written)
         if on_progress is not None:
             on_progress(report.parents, total)
 
     if client is None:
         seen = stored_seen(Session_, n, params.tol_d, batch) if glued else None
         for rows in parents:
-            absorb(decide(rows, n, params, spheres, glued, seen))
+            absorb(decide(rows, n, params, spheres, glued, seen).store(Session_, n, run_id, params))
     else:
-        _distributed(client, plugin, parents, n, params, spheres, glued, absorb)
+        _distributed(client, plugin, parents, n, params, spheres, glued, run_id, absorb)
     report.last_parent = parents.last if parents.last > after else None
     _record(Session_, report, started)
     return report
@@ -280,6 +349,8 @@ def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contac
     by the endpoint rule (:func:`packings.workers.catalysis.remainder` with nothing deleted); the rigid ones
     (with at least ``params.min_contacts`` contacts if that is set) not yet stored go into the run of
     (n, params), each with an expansion, one transaction per ``batch``.  ``on_progress(done, fragments)``."""
+    from packings.workers.catalysis import remainder
+
     fragments = close_packed(n, min_contacts, params)
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, 0, run_id, close_packed=min_contacts)
@@ -289,23 +360,24 @@ def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contac
         for f in chunk:
             r = remainder(f.cluster, (), params)
             if r.rigid:
-                found.append((None, r, certificate_key(r.cluster), None))
+                found.append(Kept.of(None, r))
         report.parents += len(chunk)
         report.remainders += len(chunk)
         report.rigid += len(found)
         if found:
-            _store(Session_, n, run_id, params, found, report, FOUND_CLOSE_PACKED)
+            report.add(_store(Session_, n, run_id, params, found, FOUND_CLOSE_PACKED))
         if on_progress is not None:
             on_progress(report.parents, len(fragments))
     return report
 
 
-def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: int, glued: bool,
+def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: int, glued: bool, run_id: int,
                  absorb: Callable[[Decided], None]) -> None:
     """Each batch a task (:func:`catalysis_task`), at most two per worker thread queued at a
-    time; ``absorb`` each result here as it completes.  ``batches`` reads the stored parents by id as it
-    is iterated, so that, as in one process, the clusters that tasks find become parents in their turn:
-    when it is exhausted while tasks are still running, it is read again once one of them is absorbed.
+    time; ``absorb`` each result here as it completes.  ``batches`` reads the stored parents' ids as it
+    is iterated (a task carries the ids alone and reads its parents itself), so that, as in one process,
+    the clusters that tasks find become parents in their turn: when it is exhausted while tasks are still
+    running, it is read again once one of them is absorbed.
     A task that fails stops the pass with its error (what was stored stays: the pass is idempotent)."""
     from distributed import as_completed
 
@@ -314,8 +386,8 @@ def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: 
     running = as_completed()
     while True:
         for rows in batches:
-            running.add(client.submit(catalysis_task, [tuple(r) for r in rows], n, params, spheres, glued, plugin,
-                                      pass_id, pure=False))
+            running.add(client.submit(catalysis_task, [r.id for r in rows], n, params, spheres, glued, plugin,
+                                      pass_id, run_id, pure=False))
             while running.count() >= width:
                 absorb(next(running).result())
         if running.is_empty():
@@ -326,50 +398,57 @@ def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: 
 _SEEN_LOCK = threading.Lock()
 
 
-def catalysis_task(rows: list[tuple], n: int, params, spheres: int, glued: bool, plugin: str, pass_id: str):
-    """The Dask task of a catalysis pass: :func:`decide` of one batch of stored parents,
-    computed here and stored by the caller.  With ``glued``, this worker process's record of what it has
-    seen in the pass ``pass_id`` (the stored clusters of n, read once with this worker's engine, then what
+def catalysis_task(ids: list[int], n: int, params, spheres: int, glued: bool, plugin: str, pass_id: str,
+                   run_id: int) -> Decided:
+    """The Dask task of a catalysis pass: :func:`decide` of one batch of stored parents (``ids``, read here
+    with this worker's engine), its rigid remainders stored here into the run ``run_id`` in one transaction
+    (as an expansion's task writes its results back), and what that did returned.  So the coordinator and
+    the scheduler never hold the parents' coordinates, and the coordinator never loads the numerical code
+    (the endpoint rule, the identity's compiled kernels).  With ``glued``, this worker process's record of
+    what it has seen in the pass ``pass_id`` (the stored clusters of n, read once with this worker's engine, then what
     its tasks decided) is kept between its tasks, and dropped when another pass begins."""
     from distributed import get_worker
 
+    p = get_worker().plugins[plugin]
+    rows = rows_of(p.readers, ids)
     seen = None
     if glued:
-        p = get_worker().plugins[plugin]
         with _SEEN_LOCK:  # one worker's threads build it once
             kept = getattr(p, "catalysis_seen", None)
             if kept is None or kept[0] != pass_id:
                 p.catalysis_seen = None  # the last pass's, freed before this one's is read
                 p.catalysis_seen = kept = (pass_id, stored_seen(p.readers, n, params.tol_d))
         seen = kept[1]
-    return decide(rows, n, params, spheres, glued, seen)
+    return decide(rows, n, params, spheres, glued, seen).store(p.sessions, n, run_id, params)
 
 
-def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found, report: CatalysisReport,
-           found_by: str = FOUND_CATALYSIS) -> None:
-    """One transaction: the rigid remainders ``found`` ((parent id or None, Remainder, certificate, triangle))
-    inserted or matched, expansions for those new to the run, the run reopened if it was not running."""
+def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found,
+           found_by: str = FOUND_CATALYSIS) -> Written:
+    """One transaction: the rigid remainders ``found`` (:class:`Kept`) inserted or matched, expansions for
+    those new to the run, the run reopened if it was not running; what it did."""
     with Session_.kw["bind"].begin() as s:
-        keys = {(n, cert) for _, _, cert, _ in found}
+        keys = {(n, k.certificate) for k in found}
         store.lock_certificates(s, keys)
         stored = store.stored_with(s, n, {cert for _, cert in keys})
-        inserted, others = [], []
-        for pid, r, cert, onto in found:
-            rows = stored[cert]
-            cid, is_new = store.insert_or_match(s, r.cluster, r.rigidity, run_id, params.tol_d, rows,
-                                                found_by=found_by, source_id=pid)
+        inserted, others, w = [], [], Written()
+        for k in found:
+            rows = stored[k.certificate]
+            cid, is_new = store.insert_or_match(s, k.cluster, k.rigidity, run_id, params.tol_d, rows,
+                                                found_by=found_by, source_id=k.parent_id)
             if is_new:
                 inserted.append(cid)
-                report.new.append(Found(cid, pid, r.deleted, r.cluster.m, store.lattice_value(r.cluster), onto))
+                w.new.append(Found(cid, k.parent_id, k.deleted, k.cluster.m, store.lattice_value(k.cluster),
+                                   k.moved_onto))
             else:
-                report.already_stored += 1
+                w.already_stored += 1
                 if next(x.found_in_run for x in rows if x.id == cid) != run_id:
                     others.append(cid)
         added = store.ensure_expansions(s, run_id, others, new=inserted) if (inserted or others) else 0
-        report.expansions_added += added
+        w.expansions_added = added
         if added:
             reopened = s.execute(update(Run).where(Run.id == run_id, Run.status != RUNNING).values(status=RUNNING))
-            report.run_reopened |= reopened.rowcount > 0
+            w.run_reopened = reopened.rowcount > 0
+    return w
 
 
 def format_report(r: CatalysisReport) -> str:

@@ -197,6 +197,22 @@ class dask_client:
             self.cluster.scale(len(self.cluster.worker_spec) + len(dead))
         return len(dead)
 
+    def fresh_workers(self) -> bool:
+        """Replace the local cluster's worker processes by new ones (forked from the fork server by their
+        nannies: a second or two), so that what one phase of a command grew in them (a run's caches, the
+        heap its expansions left) is not carried into the next, e.g. the glued pass after the paths.
+        An existing cluster's workers are its operator's: left alone.  Returns whether they were replaced;
+        a restart that fails is logged and the work goes on with the workers there are."""
+        if self.cluster is None:
+            return False
+        client = self.wait()
+        try:
+            client.restart_workers(list(client.scheduler_info()["workers"]), timeout=120)
+        except Exception as e:  # noqa: BLE001 - a slower pass, not a failed one
+            log.warning("the local workers could not be restarted (%s): going on with them", e)
+            return False
+        return True
+
     @property
     def client(self):
         """The Client, once connected (waits); a failure to connect is raised here."""

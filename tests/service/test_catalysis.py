@@ -375,3 +375,93 @@ def test_the_lost_cluster_of_11_is_stored_by_a_pass_on_dask_workers(engine):
     # the clusters found were moved in their turn, as one process moves them: it finds nothing more
     here = catalyse(S, 11, Params(), glued=True)
     assert here.new == [] and here.parents == stored
+
+
+def test_a_task_carries_the_parents_ids_alone_and_stores_what_it_found(engine, monkeypatch):
+    """A pass on Dask workers submits each batch as a list of cluster ids (the scheduler and the coordinator
+    never hold the parents' coordinates), and the task stores the lost cluster of 11 itself: nothing is
+    stored outside a worker."""
+    import packings.catalysis as catalysis_module
+    from distributed import Client, get_worker
+
+    data, S, pid = _glued_parent_of_11(engine)
+    submitted, real_submit, real_store = [], Client.submit, catalysis_module._store
+
+    def submit(self, fn, *args, **kw):
+        submitted.append((fn.__name__, args))
+        return real_submit(self, fn, *args, **kw)
+
+    def store_in_a_worker_only(*args, **kw):
+        get_worker()  # ValueError outside a worker (the workers are threads of this process here)
+        return real_store(*args, **kw)
+
+    monkeypatch.setattr(Client, "submit", submit)
+    monkeypatch.setattr(catalysis_module, "_store", store_in_a_worker_only)
+    r = _dask_pass(engine, 11, batch=1, glued=True)
+    lost = [f for f in r.new if (f.parent_id, f.moved_onto, f.deleted) == (pid, tuple(data["triangle"]),
+                                                                            (data["sphere"],))]
+    assert len(lost) == 1 and (lost[0].contacts, lost[0].lattice) == (26, "hcp")
+    assert r.rigid == len(r.new) + r.already_stored
+    assert submitted and all(name == "catalysis_task" for name, _ in submitted)
+    ids = [args[0] for _, args in submitted]
+    assert ids[0] == [pid] and all(type(i) is int for batch in ids for i in batch)
+    assert not any(isinstance(a, (bytes, np.ndarray)) for _, args in submitted for a in args)
+
+
+def test_the_coordinator_of_a_pass_on_worker_processes_loads_no_numerical_code(engine, tmp_path):
+    """The glued pass of tests/data/n11_glued.json on a local cluster of worker processes, driven by a
+    process of its own: the lost cluster is stored, and that process never imported the endpoint rule, the
+    path code or numba (about 170 MiB in every coordinator that did)."""
+    data, S, pid = _glued_parent_of_11(engine)
+    script = tmp_path / "coordinator.py"
+    script.write_text(
+        "import json, sys\n"
+        "def main():\n"
+        "    from distributed import Client, LocalCluster\n"
+        "    from packings.catalysis import catalyse\n"
+        "    from packings.db import make_engine, sessions\n"
+        "    from packings.plugin import DatabasePlugin\n"
+        "    from packings.workers.params import Params\n"
+        "    url = sys.argv[1]\n"
+        "    plugin = DatabasePlugin(url)\n"
+        "    engine = make_engine(url)\n"
+        "    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as c, \\\n"
+        "            Client(c) as client:\n"
+        "        client.register_plugin(plugin)\n"
+        "        r = catalyse(sessions(engine), 11, Params(), client=client, plugin=plugin.name, glued=True)\n"
+        "    engine.dispose()\n"
+        "    print(json.dumps({'new': [[f.deleted, f.moved_onto] for f in r.new],\n"
+        "                      'loaded': sorted(m for m in ('numba', 'packings.workers.catalysis',\n"
+        "                                                   'packings.workers.paths', 'packings.workers._compiled')\n"
+        "                                       if m in sys.modules)}))\n"
+        "if __name__ == '__main__':\n"
+        "    main()\n")
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, str(script), url_of(engine)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert [data["sphere"]] in [d for d, onto in out["new"] if onto == data["triangle"]]
+    assert out["loaded"] == []
+
+
+def test_enumerate_glued_gives_each_pass_fresh_local_workers(engine, monkeypatch):
+    """packings.enumerate(..., glued=True) replaces its local workers before each pass it makes (not before
+    the paths, nor when no pass is due), and the catalogue is the same."""
+    import packings
+    import packings.dask_cluster as dc
+
+    run7 = _complete_after_the_seed(engine, 7)
+    calls, real = [], dc.dask_client.fresh_workers
+
+    def fresh(self):
+        calls.append(real(self))
+        return calls[-1]
+
+    monkeypatch.setattr(dc.dask_client, "fresh_workers", fresh)
+    r = packings.enumerate(7, url_of(engine), workers=1, progress=False, glued=True)
+    assert (r.run_id, r.status, r.total) == (run7, "complete", 5)
+    assert len(r.catalysis) == 2 and calls == [True, True]
+    again = packings.enumerate(7, url_of(engine), workers=1, progress=False, glued=True)
+    assert again.catalysis == [] and calls == [True, True]

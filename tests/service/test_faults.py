@@ -459,6 +459,27 @@ def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
         assert len(client.nthreads()) == 2 and all(n is not nanny for n in d.cluster.workers.values())
 
 
+def test_fresh_workers_replaces_the_local_worker_processes():
+    """dask_client.fresh_workers: the local cluster's worker processes are new ones, set up with the
+    plugins as the first were, and take tasks; an existing cluster's workers are left alone."""
+    import os
+
+    import packings.dask_cluster as dc
+
+    with dc.dask_client(None, 2, quiet=True) as d:
+        client = d.client
+        client.wait_for_workers(2, timeout=120)
+        before = set(client.run(os.getpid).values())
+        assert d.fresh_workers()
+        client.wait_for_workers(2, timeout=120)
+        after = set(client.run(os.getpid).values())
+        assert len(after) == 2 and not before & after
+        plugins = client.run(lambda dask_worker: sorted(dask_worker.plugins))
+        assert all("packings-local-worker" in names for names in plugins.values())
+        assert client.submit(sum, [1, 2]).result() == 3
+    assert dc.dask_client("tcp://127.0.0.1:1", None, True).fresh_workers() is False
+
+
 class _DaskCluster:
     """`dask scheduler` and `dask worker` processes on one port, started again as an operator's
     supervisor would (a Dask worker ends when it loses its scheduler)."""
