@@ -173,7 +173,7 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
     if partial:
         part = sorted(partial)
         ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="0.45", mew=1.5, zorder=3,
-                 label="partial counts (no run of n complete)")
+                 label="partial counts (no full run of n complete)")
     shown = sorted(n for n in (paper or {}) if n in totals)
     if shown:
         ax_.plot(shown, [paper[n] for n in shown], "x", ms=9, mew=1.5, color="C3", zorder=4,

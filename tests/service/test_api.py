@@ -222,6 +222,23 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
         assert fit["ns"] == [6] and cat.stats(7)[0]["fit"]["predicted"] == pytest.approx(2 * fit["b"])
 
 
+def test_a_complete_run_capped_by_max_break_is_partial(engine):
+    """A run of n = 8 complete with --max-break 1 and no --min-contacts is not the method's full count of
+    n = 8 (the paper caps nothing up to n = 14): stats says partial and the fit leaves it out."""
+    from packings.workers.params import Params
+
+    fill_database(engine, 7)
+    fill_database(engine, 8, Params(max_break=1))
+    url = engine.url.render_as_string(hide_password=False)
+    with packings.connect(url) as cat:
+        assert [r["status"] for r in cat.runs()] == ["complete", "complete"]
+        assert [(d["n"], d["complete"]) for d in cat.stats()] == [(7, True), (8, False)]
+        assert cat.fit()["ns"] == [7] and cat.stats(8)[0]["fit"]["predicted"] == pytest.approx(6 * cat.fit()["b"])
+    text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
+                          text=True, timeout=300, check=True).stdout
+    assert "(partial: no full run of n = 8 is complete)" in text
+
+
 def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_fit(engine, tmp_path):
     """n = 7 and 8 in full, n = 9 only from a run restricted by --min-contacts: stats, the fit and the
     counts figure keep n = 9 apart."""

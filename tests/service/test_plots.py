@@ -151,7 +151,7 @@ def test_the_counts_figure_leaves_partial_counts_out_of_the_fit():
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     [alone] = [t for t in (t.get_text() for t in plot_counts({7: 5, 8: 13}).axes[0].get_legend().get_texts())
                if t.startswith("fit")]
-    assert "partial counts (no run of n complete)" in labels and alone in labels
+    assert "partial counts (no full run of n complete)" in labels and alone in labels
     [hollow] = [line for line in ax.get_lines() if line.get_label().startswith("partial")]
     assert list(hollow.get_xdata()) == [9] and hollow.get_markerfacecolor() == "none"
     assert "20\n(partial)" in [t.get_text() for t in ax.texts] and "262\n(≥ 24)" in [t.get_text() for t in ax.texts]
