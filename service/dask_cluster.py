@@ -208,7 +208,7 @@ class dask_client:
         client = self.wait()
         try:
             client.restart_workers(list(client.scheduler_info()["workers"]), timeout=120)
-        except Exception as e:  # noqa: BLE001 - a slower pass, not a failed one
+        except Exception as e:  # noqa: BLE001 - the work runs on the workers as they are: more memory, no loss
             log.warning("the local workers could not be restarted (%s): going on with them", e)
             return False
         return True
