@@ -66,10 +66,12 @@ if TYPE_CHECKING:
     from packings.workers.catalysis import Seen
 
 # packings.workers.catalysis (the endpoint rule, and with it the path-following code and numba's compiled
-# kernels, about 130 MiB) is imported by the functions that decide remainders: a coordinator whose workers
-# decide them never loads it.
+# kernels) is imported by the functions that decide remainders: a coordinator whose workers decide them
+# never loads it.
 
 BATCH = 200  #: parents per transaction
+#: a parent as a pass reads it (:class:`_Rows`, :func:`rows_of`): id, coordinates, contact list
+PARENT_COLUMNS = (ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
 
 
 class NoParents(Exception):
@@ -171,7 +173,7 @@ class _Rows:
 
     def __init__(self, Session_: sessionmaker, n: int, batch: int, after: int = 0, ids_only: bool = False):
         self.Session_, self.n, self.batch, self.last = Session_, n, batch, after
-        self.columns = (ClusterRow.id,) if ids_only else (ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
+        self.columns = (ClusterRow.id,) if ids_only else PARENT_COLUMNS
 
     def __iter__(self):
         while True:
@@ -188,8 +190,7 @@ class _Rows:
 def rows_of(Session_: sessionmaker, ids: list[int]) -> list:
     """The stored clusters ``ids`` as :class:`_Rows` gives them (id, coords, contact list), by id."""
     with Session_() as s:
-        return s.execute(select(ClusterRow.id, ClusterRow.coords, ClusterRow.contact_list)
-                         .where(ClusterRow.id.in_(ids)).order_by(ClusterRow.id)).all()
+        return s.execute(select(*PARENT_COLUMNS).where(ClusterRow.id.in_(ids)).order_by(ClusterRow.id)).all()
 
 
 def stored_seen(Session_: sessionmaker, n: int, tol_d: float, batch: int = BATCH) -> Seen:
