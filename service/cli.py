@@ -638,17 +638,53 @@ def _on_sigterm(signum, frame) -> None:
     raise SigTerm()
 
 
+def _unraisable(previous):
+    """A ``sys.unraisablehook`` that delivers again the signal whose exception a finalizer swallowed.
+
+    A signal's handler runs in the main thread between two bytecodes, and that may be inside a
+    finalizer (a Dask future's or a connection's ``__del__``, a generator's close) run by the collector:
+    Python then prints what the handler raised ("Exception ignored in ...") and goes on, and the
+    command would run to its end with exit status 0.  Here the same signal is sent to the main thread
+    again a moment later, from another thread, so that its handler runs once the finalizer and this hook
+    have returned (in another finalizer, it comes here again; a wait of the main thread's is cut short
+    by it, as by the first); any other unraisable exception goes to ``previous``."""
+    main_thread = threading.main_thread()
+
+    def again(signum: int) -> None:
+        if sys.unraisablehook is hook:  # main has not returned (its handlers are still set)
+            signal.pthread_kill(main_thread.ident, signum)
+
+    def hook(unraisable) -> None:
+        e = unraisable.exc_value
+        if isinstance(e, KeyboardInterrupt) and threading.current_thread() is main_thread:
+            later = threading.Timer(0.05, again, (signal.SIGTERM if isinstance(e, SigTerm) else signal.SIGINT,))
+            later.daemon = True
+            try:
+                later.start()
+                return
+            except RuntimeError:  # no new thread as the interpreter exits: what it stopped is ending anyway
+                pass
+        previous(unraisable)
+
+    return hook
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     # SIGTERM (docker compose stop, systemd, kill) stops a command as Ctrl-C does, rather than ending
-    # the process where it stands (a handler only the main thread may set; put back when main returns)
+    # the process where it stands (a handler only the main thread may set; put back when main returns),
+    # and neither is lost in a finalizer
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _on_sigterm) if main_thread else None
+    previous_hook = sys.unraisablehook
+    if main_thread:
+        sys.unraisablehook = _unraisable(previous_hook)
     try:
         _main(argv)
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        sys.unraisablehook = previous_hook
 
 
 def _main(argv: list[str]) -> None:

@@ -42,3 +42,45 @@ def test_bad_n_is_one_line_and_nonzero(tmp_path):
 def test_help():
     r = run("enumerate", "--help")
     assert r.returncode == 0 and "--max-break" in r.stdout
+
+
+# A command whose main thread is inside a finalizer (a Dask Future's or a connection's __del__) when the
+# signal's handler runs: Python prints what the handler raised there ("Exception ignored in ...") and goes on
+SIGNAL_IN_A_FINALIZER = r"""
+import os, signal, sys, time
+
+import click
+
+from packings import cli
+
+
+class Finalized:
+    def __del__(self):
+        os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+        t = time.monotonic()
+        while time.monotonic() - t < 0.5:  # the handler runs here, between two bytecodes of the finalizer
+            pass
+
+
+@cli.cli.command("spin")
+def spin():
+    Finalized()  # dropped at once: its finalizer runs
+    time.sleep(5)
+    click.echo("ran to its end")
+
+
+cli.main(["spin"])
+"""
+
+
+def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command():
+    """SIGTERM (and Ctrl-C's SIGINT) whose handler runs inside a finalizer, where Python swallows what it
+    raises, still stops the command at once: its one line and exit status, no traceback, not a command
+    that goes on to its end with exit status 0."""
+    for name, status, line in (("SIGTERM", 143, "packings: terminated (SIGTERM); run the same command to resume"),
+                               ("SIGINT", 130, "packings: interrupted; run the same command to resume")):
+        r = subprocess.run([sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name], capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == status, (name, r.stdout, r.stderr)
+        assert "ran to its end" not in r.stdout
+        assert r.stderr.strip().splitlines() == [line], (name, r.stderr)
