@@ -647,24 +647,34 @@ def _unraisable(previous):
     command would run to its end with exit status 0.  Here the same signal is sent to the main thread
     again a moment later, from another thread, so that its handler runs once the finalizer and this hook
     have returned (in another finalizer, it comes here again; a wait of the main thread's is cut short
-    by it, as by the first); any other unraisable exception goes to ``previous``."""
+    by it, as by the first); any other unraisable exception goes to ``previous``, and a signal whose
+    handler runs while it does is sent again as well."""
     main_thread = threading.main_thread()
 
     def again(signum: int) -> None:
         if sys.unraisablehook is hook:  # main has not returned (its handlers are still set)
             signal.pthread_kill(main_thread.ident, signum)
 
+    def later(e: KeyboardInterrupt) -> bool:
+        """Send e's signal to the main thread again in a moment; False if no thread can be started (as the
+        interpreter exits: what it stopped is ending anyway)."""
+        timer = threading.Timer(0.05, again, (signal.SIGTERM if isinstance(e, SigTerm) else signal.SIGINT,))
+        timer.daemon = True
+        try:
+            timer.start()
+        except RuntimeError:
+            return False
+        return True
+
     def hook(unraisable) -> None:
         e = unraisable.exc_value
-        if isinstance(e, KeyboardInterrupt) and threading.current_thread() is main_thread:
-            later = threading.Timer(0.05, again, (signal.SIGTERM if isinstance(e, SigTerm) else signal.SIGINT,))
-            later.daemon = True
-            try:
-                later.start()
+        try:
+            if isinstance(e, KeyboardInterrupt) and threading.current_thread() is main_thread and later(e):
                 return
-            except RuntimeError:  # no new thread as the interpreter exits: what it stopped is ending anyway
-                pass
-        previous(unraisable)
+            previous(unraisable)
+        except KeyboardInterrupt as inside:  # the handler ran in here (printing another one): lost as well
+            if threading.current_thread() is not main_thread or not later(inside):
+                raise
 
     return hook
 

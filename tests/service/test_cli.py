@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 
 def run(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True, timeout=600,
@@ -54,12 +56,22 @@ import click
 from packings import cli
 
 
+def signal_and_spin():
+    os.kill(os.getpid(), getattr(signal, sys.argv[1]))
+    t = time.monotonic()
+    while time.monotonic() - t < 0.5:  # the handler runs here, between two bytecodes
+        pass
+
+
 class Finalized:
     def __del__(self):
-        os.kill(os.getpid(), getattr(signal, sys.argv[1]))
-        t = time.monotonic()
-        while time.monotonic() - t < 0.5:  # the handler runs here, between two bytecodes of the finalizer
-            pass
+        if sys.argv[2] == "hook":  # another error, whose report (the unraisable hook) the signal lands in
+            raise ValueError("not the signal's")
+        signal_and_spin()
+
+
+if sys.argv[2] == "hook":
+    sys.unraisablehook = lambda unraisable: signal_and_spin()
 
 
 @cli.cli.command("spin")
@@ -73,14 +85,15 @@ cli.main(["spin"])
 """
 
 
-def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command():
-    """SIGTERM (and Ctrl-C's SIGINT) whose handler runs inside a finalizer, where Python swallows what it
-    raises, still stops the command at once: its one line and exit status, no traceback, not a command
-    that goes on to its end with exit status 0."""
+@pytest.mark.parametrize("where", ["finalizer", "hook"])
+def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command(where):
+    """SIGTERM (and Ctrl-C's SIGINT) whose handler runs inside a finalizer, or inside the report of another
+    finalizer's error, where Python swallows what it raises, still stops the command at once: its one line
+    and exit status, no traceback, not a command that goes on to its end with exit status 0."""
     for name, status, line in (("SIGTERM", 143, "packings: terminated (SIGTERM); run the same command to resume"),
                                ("SIGINT", 130, "packings: interrupted; run the same command to resume")):
-        r = subprocess.run([sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name], capture_output=True, text=True,
-                           timeout=60)
+        r = subprocess.run([sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name, where], capture_output=True,
+                           text=True, timeout=60)
         assert r.returncode == status, (name, r.stdout, r.stderr)
         assert "ran to its end" not in r.stdout
         assert r.stderr.strip().splitlines() == [line], (name, r.stderr)

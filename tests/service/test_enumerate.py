@@ -579,10 +579,10 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10
         proc.kill()
     assert proc.returncode == 130, (out, err)
     lines = err.splitlines()
-    assert lines[-1] == "packings: interrupted; run the same command to resume" and "Traceback" not in err
-    assert all(line.startswith("packings: compiling the numerical kernels") for line in lines[:-1])
+    assert lines[-1] == "packings: interrupted; run the same command to resume" and "Traceback" not in err, err
+    assert all(line.startswith("packings: compiling the numerical kernels") for line in lines[:-1]), err
     [run] = json.loads(packings("status", "--json", "--db", db_url).stdout)
-    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 263
+    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 263, run
     r = packings("enumerate", "10", "--db", db_url, "--workers", "2", "--quiet")
     assert r.returncode == 0, r.stderr
     assert "n = 10: 263 rigid clusters" in r.stdout and "(resumed)" in r.stdout
@@ -605,9 +605,9 @@ def test_sigterm_stops_a_run_as_ctrl_c_does_with_exit_143(db_url):
         proc.kill()
     assert proc.returncode == 143, (out, err)
     lines = err.splitlines()
-    assert lines[-1] == "packings: terminated (SIGTERM); run the same command to resume" and "Traceback" not in err
+    assert lines[-1] == "packings: terminated (SIGTERM); run the same command to resume" and "Traceback" not in err, err
     [run] = json.loads(packings("status", "--json", "--db", db_url).stdout)
-    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 263
+    assert run["status"] == "interrupted" and run["leased"] == 0 and run["done"] < 263, run
     gone, alive = psutil.wait_procs(workers, timeout=30)
     assert alive == []
 
