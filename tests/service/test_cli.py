@@ -46,7 +46,7 @@ def test_help():
     assert r.returncode == 0 and "--max-break" in r.stdout
 
 
-# A command whose main thread is inside a finalizer (a Dask Future's or a connection's __del__) when the
+# A command whose main thread is inside a finalizer (as a Dask Future's or a connection's __del__ may be) when the
 # signal's handler runs: Python prints what the handler raised there ("Exception ignored in ...") and goes on
 SIGNAL_IN_A_FINALIZER = r"""
 import os, signal, sys, time
