@@ -39,7 +39,10 @@ the last bit).  Unless ``--no-every``, expand is also timed following every path
 code before it followed one path of each set that a symmetry of the cluster makes congruent), with
 the paths whose outcome then differs counted.  Unless ``--no-unheld``, expand is timed following the paths
 of subsets with a contact the rest holds at its length too (``unheld``: the code before the outcome
-``held``), with the clusters whose other attempts or distinct clusters reached then differ counted.  Also printed per class: the subsets of contacts tried per cluster (least
+``held``), with the clusters whose other attempts or distinct clusters reached then differ counted.
+With ``--parts`` each class's time is split (:func:`_parts`): the paths that keep a self-stress where
+they start, by their stepping loop, first step and endpoint, the other paths, and the rest of expand
+(deciding the subsets).  Also printed per class: the subsets of contacts tried per cluster (least
 and most), the share of them whose set is not one-dimensional, and how many
 sampled clusters gave the same endpoints with both backends.  Ratios measured in one run are what compare; absolute times
 depend on the machine's load.
@@ -89,6 +92,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--arrivals", choices=ARRIVALS, default="run",
                         help="with --db, the paths that arrived at each cluster that it is given: those its run had "
                              "stored when it was expanded (run, the default), every one stored (all), or none")
+    parser.add_argument("--parts", action="store_true",
+                        help="also split each class's time in expand (one more call per cluster, as a run makes it): "
+                             "the paths whose set keeps a self-stress (their steps, first step and endpoint), the "
+                             "other paths, and the rest (deciding the subsets)")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -286,6 +293,79 @@ def _time(cluster, params, variant: str, against=None, came: tuple = ()):
         return time.perf_counter() - t0, ex
 
 
+#: what :func:`_parts` splits a path's time into (beside the whole path): the compiled stepping loop, the first
+#: step's dimension and tangent where the loop hands it to Python, and the endpoint (its rigidity included)
+PATH_PARTS = ("steps", "first_step", "endpoint")
+
+
+@contextlib.contextmanager
+def _instrumented(split: dict):
+    """Time every path that expand follows, and its parts (:data:`PATH_PARTS`), into ``split``: for each kind of
+    path ("stressed": the contacts it keeps have a self-stress where it starts, the SVD of their pinned rigidity
+    matrix counting a singular value below tol_n, so that each step of the compiled loop fails the rank guard
+    wherever the stress persists; "plain": the others) the count, the seconds of whole paths, of each part and
+    the steps taken; and under "overhead" the seconds spent telling the kinds apart, which the caller takes off.
+    The functions wrapped are put back when the block ends."""
+    import numpy as np
+
+    from packings.workers import expand, kernels, paths
+
+    compiled = paths._compiled
+    saved = expand.PathStart.follow, paths._endpoint, paths._svd_tangent, compiled.follow_steps
+    follow, endpoint, first_step, steps = saved
+    inside = Counter()
+
+    def timed(f, part):
+        def call(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                inside[part] += time.perf_counter() - t0
+        return call
+
+    def timed_follow(start, params):
+        inside.clear()
+        t0 = time.perf_counter()
+        end = follow(start, params)
+        seconds = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        ns = kernels.null_spaces(start.x, np.asarray(start.keep).reshape(-1, 2), start.free, params.tol_n)
+        kind = split.setdefault("stressed" if ns.W.shape[1] else "plain",
+                                {"paths": 0, "seconds": 0.0, "path_steps": 0, **{p: 0.0 for p in PATH_PARTS}})
+        kind["paths"] += 1
+        kind["seconds"] += seconds
+        kind["path_steps"] += end.steps
+        for part in PATH_PARTS:
+            kind[part] += inside[part]
+        split["overhead"] = split.get("overhead", 0.0) + time.perf_counter() - t1
+        return end
+
+    expand.PathStart.follow = timed_follow
+    paths._endpoint, paths._svd_tangent = timed(endpoint, "endpoint"), timed(first_step, "first_step")
+    compiled.follow_steps = timed(steps, "steps")
+    try:
+        yield
+    finally:
+        expand.PathStart.follow, paths._endpoint, paths._svd_tangent, compiled.follow_steps = saved
+
+
+def _parts(cluster, params, came: tuple = ()) -> dict:
+    """One expand call of ``cluster`` as a run makes it, its time split by :func:`_instrumented`: "seconds" the
+    whole call less the time spent telling the kinds of path apart, "stressed" and "plain" the paths of each kind
+    (absent where there is none)."""
+    from packings.workers import kernels
+    from packings.workers.expand import arrivals, expand
+
+    split: dict = {}
+    with kernels.backend("numba"), _instrumented(split):
+        t0 = time.perf_counter()
+        expand(cluster, params, arrivals=arrivals(came))
+        seconds = time.perf_counter() - t0
+    split["seconds"] = seconds - split.pop("overhead", 0.0)
+    return split
+
+
 def _attempt_keys(ex) -> list[tuple]:
     """Every attempt of an expansion as (subset, direction, outcome, steps, new contacts, endpoint coordinates'
     bytes): what must be the same, to the last bit, after a change that moves no number."""
@@ -315,12 +395,13 @@ def _stratified(members, sample: int, rng) -> list[int]:
 
 
 def measure(clusters: list[tuple[object, str, object]], params, sample: int, seed: int, numpy: bool,
-            against=None, every: bool = False, came=None, unheld: bool = False) -> list[dict]:
+            against=None, every: bool = False, came=None, unheld: bool = False, parts: bool = False) -> list[dict]:
     """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share, paths
     taken from the other end; with ``against`` (a kernels module, :func:`load_kernels`) also its time and the
     attempts that differ; with ``every``, the time of following every path and the paths whose outcome
     differs; with ``unheld``, the time of following the paths of held subsets too, and the clusters whose other
-    attempts or distinct clusters reached differ.  ``clusters``: (cluster, class, key); ``came(keys)``: for each of the clusters ``keys``, the rows of
+    attempts or distinct clusters reached differ; with ``parts``, where the time goes (:func:`_parts`, a row's
+    "parts").  ``clusters``: (cluster, class, key); ``came(keys)``: for each of the clusters ``keys``, the rows of
     the paths that arrived at it and the paths its run took from the other end (:func:`arrivals_of`); every
     cluster given none without it."""
     import numpy as np
@@ -344,6 +425,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
         subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
         retraced = run_retraced = held = unheld_differ = 0
+        split = {"seconds": 0.0, "weighted": Counter(), "stressed": Counter(), "plain": Counter()}
         for i in pick:
             came_rows, took = given.get(keys[i], ((), 0))
             run_retraced += took
@@ -378,6 +460,14 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
                 reached = [Counter(certificate_hex(x.endpoints[j].cluster) for j in x.distinct()) for x in (ex, other)]
                 unheld_differ += (reached[0] != reached[1] or [k for k in _attempt_keys(ex) if k[0] not in kept]
                                   != [k for k in _attempt_keys(other) if k[0] not in kept])
+            if parts:  # one more call, apart from the others: its wrappers cost a little
+                one = _parts(members[i], params, came_rows)
+                split["seconds"] += one["seconds"] * weight[m] / picked[m]
+                for kind in ("stressed", "plain"):
+                    for key, value in one.get(kind, {}).items():
+                        split[kind][key] += value  # the sample's own paths: counts, ms a path
+                        if key not in ("paths", "path_steps"):
+                            split["weighted"][(kind, key)] += value * weight[m] / picked[m]
             if against is not None:
                 mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
                 against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
@@ -401,6 +491,8 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         if against is not None:
             row["against_ratio"] = row[f"mean_ms_{AGAINST}"] / row["mean_ms_numba"]
             row["against_attempts_differing"] = against_differ
+        if parts:
+            row["parts"] = _parts_row(split, len(members), len(pick))
         if numpy:
             row["same_endpoints"] = same
             row["ratio"] = row["mean_ms_numpy"] / row["mean_ms_numba"]
@@ -410,6 +502,26 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         for r in rows:
             r[f"share_{b}"] = r[f"total_s_{b}"] / whole
     return rows
+
+
+def _parts_row(split: dict, clusters: int, sampled: int) -> dict:
+    """A class's "parts": ``ms_each`` the mean time of its instrumented expand calls (each number of contacts by
+    its own mean, as the class's time), and for each kind of path its ``share`` of that time, its parts' shares
+    (:data:`PATH_PARTS`), the paths ``per_cluster``, ``ms_per_path`` and ``steps_per_path`` of the sample; the
+    ``rest_share``, what deciding the subsets (and everything else expand does) takes."""
+    whole = split["seconds"] or 1.0
+    row = {"ms_each": 1e3 * split["seconds"] / clusters}
+    rest = 1.0
+    for kind in ("stressed", "plain"):
+        mine = split[kind]
+        share = split["weighted"][(kind, "seconds")] / whole
+        rest -= share
+        row[kind] = {"share": share, **{f"{p}_share": split["weighted"][(kind, p)] / whole for p in PATH_PARTS},
+                     "per_cluster": mine["paths"] / sampled,
+                     "ms_per_path": 1e3 * mine["seconds"] / mine["paths"] if mine["paths"] else 0.0,
+                     "steps_per_path": mine["path_steps"] / mine["paths"] if mine["paths"] else 0.0}
+    row["rest_share"] = rest
+    return row
 
 
 def run(args: argparse.Namespace) -> int:
@@ -439,7 +551,8 @@ def run(args: argparse.Namespace) -> int:
     if mode != "none":
         run_id, run_times = _the_run(args.db, args.n, params)
         came = lambda keys: arrivals_of(args.db, run_id, mode, keys)  # noqa: E731
-    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every, came, args.unheld)
+    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every, came, args.unheld,
+                   args.parts)
     whole = sum(seconds for _, seconds in run_times.values()) or 1.0
     for r in rows:
         expanded, seconds = run_times.get(r["class"], (0, 0.0))
@@ -505,8 +618,30 @@ def run(args: argparse.Namespace) -> int:
           + ("; unheld: the paths of subsets with a contact the rest holds followed too, unheld/ = unheld / ms each, "
              "held: subsets held, differ: clusters whose other attempts or clusters reached differ" if args.unheld
              else "") + ")")
+    if args.parts:
+        _print_parts(rows)
     differ = sum(r["svd_paths_differing"] for r in rows)
     if differ:
         print(f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "
               "their tangents agree only to rounding)")
     return 0
+
+
+def _print_parts(rows: list[dict]) -> None:
+    """The table of --parts: where each class's time in expand goes."""
+    print()
+    print(f"{'class':<12}{'ms each':>9}{'stressed':>10}{'each':>7}{'ms':>7}{'steps':>7}{'loop':>7}"
+          f"{'first':>7}{'end':>7}{'plain':>8}{'each':>7}{'ms':>7}{'rest':>7}")
+    for r in rows:
+        p = r["parts"]
+        st, pl = p["stressed"], p["plain"]
+        print(f"{r['class']:<12}{p['ms_each']:>9.1f}{st['share']:>10.0%}{st['per_cluster']:>7.1f}"
+              f"{st['ms_per_path']:>7.2f}"
+              f"{st['steps_per_path']:>7.0f}{st['steps_share']:>7.0%}{st['first_step_share']:>7.0%}"
+              f"{st['endpoint_share']:>7.0%}{pl['share']:>8.0%}{pl['per_cluster']:>7.1f}{pl['ms_per_path']:>7.2f}"
+              f"{p['rest_share']:>7.0%}")
+    print("(--parts: one more expand call per sampled cluster, timed by parts; stressed: the paths whose contacts "
+          "kept have a self-stress where they start, their share of the class's time, paths per cluster (each), ms "
+          "and steps a path, and the shares of the class's time in their stepping loop (loop), their first step "
+          "where Python decides it (first) and their endpoints (end); plain: the other paths; rest: deciding the "
+          "subsets and the rest of expand)")

@@ -156,6 +156,47 @@ def test_the_classes_benchmark_times_the_kernels_of_another_file_against_the_cur
     assert r.returncode != 0 and r.stderr.strip().startswith("--against: cannot load") and "Traceback" not in r.stderr
 
 
+def test_the_classes_benchmark_splits_the_time_of_expand_between_the_paths_and_the_rest():
+    """--parts at n = 10: a path keeps a self-stress exactly where the counts leave one. A regular cluster's single
+    breaks leave 3n - 7 independent contacts, so none of its paths does; a hypostatic cluster has more flexes than
+    stresses (f = 3n - 6 - m + s), so a set it leaves with one flex keeps a stress, and every path it follows does.
+    The shares of each class add up to one."""
+    rows = {r["class"]: r for r in benchmark("classes", "--n", "10", "--sample", "1", "--no-numpy", "--no-every",
+                                             "--no-unheld", "--parts")["rows"]}
+    assert set(rows) == {"regular", "singular", "hypostatic", "hyperstatic"}
+    regular, hypostatic = rows["regular"]["parts"], rows["hypostatic"]["parts"]
+    assert regular["stressed"]["per_cluster"] == 0 and regular["plain"]["per_cluster"] > 0
+    assert hypostatic["plain"]["per_cluster"] == 0 and hypostatic["stressed"]["per_cluster"] > 0
+    assert hypostatic["stressed"]["ms_per_path"] > 0 and hypostatic["stressed"]["steps_per_path"] > 0
+    for r in rows.values():
+        p = r["parts"]
+        assert p["ms_each"] > 0 and 0.0 < p["rest_share"] < 1.0
+        assert abs(p["stressed"]["share"] + p["plain"]["share"] + p["rest_share"] - 1.0) < 1e-9
+        for kind in ("stressed", "plain"):
+            parts = sum(p[kind][f"{part}_share"] for part in ("steps", "first_step", "endpoint"))
+            assert 0.0 <= parts <= p[kind]["share"] + 1e-9
+    [row] = benchmark("classes", "--n", "8", "--sample", "1", "--no-numpy", "--no-every", "--no-unheld")["rows"]
+    assert "parts" not in row
+
+
+def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
+    """The functions --parts wraps are the package's again after each call, and the call's endpoints are those of
+    an expand call without them."""
+    from benchmarks.classes import _parts
+    from packings.workers import expand, paths
+    from packings.workers.params import Params
+    from packings.workers.seeds import seed_cluster
+
+    params = Params()
+    before = expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps
+    cluster = seed_cluster(8, params)  # regular: 18 = 3n - 6 contacts, first-order rigid
+    split = _parts(cluster, params)
+    assert (expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps) == before
+    plain = split["plain"]
+    assert split["seconds"] > 0 and "stressed" not in split and plain["paths"] > 0 and plain["path_steps"] > 0
+    assert 0.0 < plain["steps"] + plain["endpoint"] <= plain["seconds"] <= split["seconds"]
+
+
 def test_the_classes_of_a_cluster():
     from benchmarks.classes import cluster_class
 
