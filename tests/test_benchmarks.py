@@ -158,8 +158,9 @@ def test_the_classes_benchmark_times_the_kernels_of_another_file_against_the_cur
 
 def test_the_classes_benchmark_splits_the_time_of_expand_between_the_paths_and_the_rest():
     """--parts at n = 10: a path keeps a self-stress exactly where the counts leave one. A regular cluster's single
-    breaks leave 3n - 7 independent contacts, so none of its paths does; a hypostatic cluster has more flexes than
-    stresses (f = 3n - 6 - m + s), so a set it leaves with one flex keeps a stress, and every path it follows does.
+    breaks leave 3n - 7 independent contacts, so none of its paths does. A hypostatic cluster has f = 3n - 6 - m + s
+    >= s + 1 flexes, and breaking B leaves f + |B| - r flexes and s - r stresses (r = rank W_B): a set with no
+    stress left has two flexes or more and is not one-dimensional, so every path it follows keeps a stress.
     The shares of each class add up to one."""
     rows = {r["class"]: r for r in benchmark("classes", "--n", "10", "--sample", "1", "--no-numpy", "--no-every",
                                              "--no-unheld", "--parts")["rows"]}
@@ -180,9 +181,9 @@ def test_the_classes_benchmark_splits_the_time_of_expand_between_the_paths_and_t
 
 
 def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
-    """The functions --parts wraps are the package's again after each call, and the call's endpoints are those of
-    an expand call without them."""
-    from benchmarks.classes import _parts
+    """Under the wrappers of --parts expand gives the same attempts, to the last bit, as without them; the paths'
+    parts add up to no more than the paths; and the functions wrapped are the package's again afterwards."""
+    from benchmarks.classes import _attempt_keys, _instrumented, _parts
     from packings.workers import expand, paths
     from packings.workers.params import Params
     from packings.workers.seeds import seed_cluster
@@ -190,10 +191,16 @@ def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
     params = Params()
     before = expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps
     cluster = seed_cluster(8, params)  # regular: 18 = 3n - 6 contacts, first-order rigid
+    split: dict = {}
+    with _instrumented(split):
+        timed = expand.expand(cluster, params)
+    assert (expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps) == before
+    assert _attempt_keys(timed) == _attempt_keys(expand.expand(cluster, params))
+    assert split["plain"]["paths"] == timed.paths_followed > 0 and "stressed" not in split
     split = _parts(cluster, params)
     assert (expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps) == before
     plain = split["plain"]
-    assert split["seconds"] > 0 and "stressed" not in split and plain["paths"] > 0 and plain["path_steps"] > 0
+    assert split["seconds"] > 0 and plain["path_steps"] > 0
     assert 0.0 < plain["steps"] + plain["endpoint"] <= plain["seconds"] <= split["seconds"]
 
 
