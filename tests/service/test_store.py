@@ -228,7 +228,8 @@ def test_the_write_back_computes_no_facts_while_it_holds_the_lock(run8, engine, 
         return real(c, rig)
 
     monkeypatch.setattr(store, "cluster_values", watched)
-    before = {row.id for row in S().execute(select(ClusterRow.id))}
+    with S() as s:  # closed before the write-back: an open SQLite session holds the write lock
+        before = set(s.execute(select(ClusterRow.id)).scalars())
     summaries = store.record_expansions(S, finished, "w")
     new = sum(x["new_clusters"] for x in summaries)
     assert new > 0 and len(during) >= new and not any(during)
