@@ -218,9 +218,12 @@ def test_the_write_back_computes_no_facts_while_it_holds_the_lock(run8, engine, 
 
     S, info = run8
     finished = _two_finished(S, info)
+    with S() as s:  # closed before the write-back: an open SQLite session holds the write lock
+        before = set(s.execute(select(ClusterRow.id)).scalars())
     in_transaction, during = [False], []
     event.listen(engine, "begin", lambda conn: in_transaction.__setitem__(0, True))
-    event.listen(engine, "commit", lambda conn: in_transaction.__setitem__(0, False))
+    for end in ("commit", "rollback"):
+        event.listen(engine, end, lambda conn: in_transaction.__setitem__(0, False))
     real = store.cluster_values
 
     def watched(c, rig):
@@ -228,8 +231,6 @@ def test_the_write_back_computes_no_facts_while_it_holds_the_lock(run8, engine, 
         return real(c, rig)
 
     monkeypatch.setattr(store, "cluster_values", watched)
-    with S() as s:  # closed before the write-back: an open SQLite session holds the write lock
-        before = set(s.execute(select(ClusterRow.id)).scalars())
     summaries = store.record_expansions(S, finished, "w")
     new = sum(x["new_clusters"] for x in summaries)
     assert new > 0 and len(during) >= new and not any(during)
