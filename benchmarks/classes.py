@@ -430,9 +430,9 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
             came_rows, took = given.get(keys[i], ((), 0))
             run_retraced += took
             results = {b: _time(members[i], params, b, against, came_rows) for b in backends}
-            m = members[i].m
+            scale = weight[members[i].m] / picked[members[i].m]  # each number of contacts by its own mean
             for b, (s, _) in results.items():
-                totals[b] += s * weight[m] / picked[m]
+                totals[b] += s * scale
             ex = results["numba"][1]
             subsets.append(ex.subsets_tried)
             not_1d += sum(1 for e in ex.endpoints if e.outcome == NOT_1D)
@@ -462,12 +462,12 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
                                   != [k for k in _attempt_keys(other) if k[0] not in kept])
             if parts:  # one more call, apart from the others: its wrappers cost a little
                 one = _parts(members[i], params, came_rows)
-                split["seconds"] += one["seconds"] * weight[m] / picked[m]
+                split["seconds"] += one["seconds"] * scale
                 for kind in ("stressed", "plain"):
                     for key, value in one.get(kind, {}).items():
                         split[kind][key] += value  # the sample's own paths: counts, ms a path
                         if key not in ("paths", "path_steps"):
-                            split["weighted"][(kind, key)] += value * weight[m] / picked[m]
+                            split["weighted"][(kind, key)] += value * scale
             if against is not None:
                 mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
                 against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
