@@ -694,7 +694,8 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-        sys.unraisablehook = previous_hook
+        if main_thread:  # off the main thread main set no hook, and one set meanwhile is not its to undo
+            sys.unraisablehook = previous_hook
 
 
 def _main(argv: list[str]) -> None:

@@ -97,3 +97,36 @@ def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command(where):
         assert r.returncode == status, (name, r.stdout, r.stderr)
         assert "ran to its end" not in r.stdout
         assert r.stderr.strip().splitlines() == [line], (name, r.stderr)
+
+
+# main called off the main thread (from a notebook's worker thread, say), by a command that sets the unraisable
+# hook as another thread might while it runs
+HOOK_OFF_THE_MAIN_THREAD = r"""
+import sys, threading
+
+from packings import cli
+
+
+def mine(unraisable):
+    pass
+
+
+@cli.cli.command("hook")
+def hook():
+    sys.unraisablehook = mine
+
+
+before = sys.unraisablehook
+thread = threading.Thread(target=cli.main, args=(["hook"],))
+thread.start()
+thread.join()
+print(sys.unraisablehook is mine, before is not mine)
+"""
+
+
+def test_main_off_the_main_thread_leaves_the_unraisable_hook_alone():
+    """Only in the main thread does main set its own unraisable hook (and put the previous one back when it
+    returns): elsewhere it neither sets one nor undoes one that was set while it ran."""
+    r = subprocess.run([sys.executable, "-c", HOOK_OFF_THE_MAIN_THREAD], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True", "True"]
