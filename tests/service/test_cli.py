@@ -111,8 +111,12 @@ def mine(unraisable):
     pass
 
 
+seen = []
+
+
 @cli.cli.command("hook")
 def hook():
+    seen.append(sys.unraisablehook)
     sys.unraisablehook = mine
 
 
@@ -120,7 +124,7 @@ before = sys.unraisablehook
 thread = threading.Thread(target=cli.main, args=(["hook"],))
 thread.start()
 thread.join()
-print(sys.unraisablehook is mine, before is not mine)
+print(seen == [before], sys.unraisablehook is mine)
 """
 
 
