@@ -44,6 +44,7 @@ def start_fork_server() -> bool:
     import multiprocessing
     from multiprocessing import forkserver
 
+    refuse_while_importing_main()
     import dask
 
     _load_distributed_defaults()
@@ -59,6 +60,29 @@ def start_fork_server() -> bool:
     forkserver.ensure_running()  # starts it (if need be) and returns; a worker's start waits for its preload
     dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
     return True
+
+
+#: what a worker process says when it is asked to start a local cluster of its own (:func:`refuse_while_importing_main`)
+UNGUARDED = ("packings: error: a worker process of a local cluster ran the script that starts it, which calls "
+             "packings.enumerate at its top level: call it under `if __name__ == \"__main__\":`")
+
+
+def refuse_while_importing_main() -> None:
+    """End this process with one line (:data:`UNGUARDED`, exit status 1) if it is a new process importing
+    the main module of the one that started it.
+
+    Every start method but fork has a new process (a local cluster's workers among them) import its
+    parent's main module before it runs: a script that calls ``packings.enumerate`` at its top level,
+    outside ``if __name__ == "__main__":``, calls it again in each worker as it starts.  There
+    multiprocessing would refuse to start the fork server with a traceback of its own in every worker,
+    each start of the cluster; this says why in one line instead, and the worker ends without writing
+    anything (its parent then reports that the local cluster failed to start).  Python marks a process
+    in that state as ``_inheriting``, which its own check reads too."""
+    import multiprocessing
+
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        print(UNGUARDED, file=sys.stderr, flush=True)
+        raise SystemExit(1)
 
 
 def _load_distributed_defaults() -> None:

@@ -152,6 +152,28 @@ def test_enumerate_runs_and_resumes(db_url):
         assert c.count(n=7) == 5 and c.runs()[0]["status"] == "complete"
 
 
+def test_a_script_that_enumerates_outside_the_main_guard_is_told_why_in_one_line(tmp_path):
+    """The workers of a local cluster import the script that starts them: one that calls enumerate at its
+    top level calls it again in each of them.  Each says so in one line, where multiprocessing printed a
+    traceback of its own in each, and nothing is written beyond what the script's own process did."""
+    from packings.dask_cluster import UNGUARDED
+
+    url = f"sqlite:///{tmp_path / 'unguarded.db'}"
+    script = tmp_path / "unguarded.py"
+    script.write_text(f"import packings\npackings.enumerate(7, {url!r}, workers=1, progress=False)\n")
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert r.returncode != 0
+    assert UNGUARDED in r.stderr.splitlines()
+    assert "bootstrapping phase" not in r.stderr and "_check_not_importing_main" not in r.stderr
+    assert r.stderr.count("Traceback") <= 1  # the script's own: the PackingsError it did not catch
+    assert "the local Dask cluster failed to start" in r.stderr.splitlines()[-1]
+    guarded = script.with_name("guarded.py")
+    guarded.write_text(f"import packings\nif __name__ == '__main__':\n"
+                       f"    print(packings.enumerate(7, {url!r}, workers=1, progress=False).total)\n")
+    r = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert (r.returncode, r.stdout.split()[-1:], UNGUARDED in r.stderr) == (0, ["5"], False), r.stderr
+
+
 def test_the_readme_example_runs(filled, tmp_path, monkeypatch):
     """The README's Python block, as written, on a database holding n = 7 and 8 (and one of n = 10)."""
     from pathlib import Path
