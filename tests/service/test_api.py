@@ -155,7 +155,7 @@ def test_enumerate_runs_and_resumes(db_url):
 def test_a_script_that_enumerates_outside_the_main_guard_is_told_why_in_one_line(tmp_path):
     """The workers of a local cluster import the script that starts them: one that calls enumerate at its
     top level calls it again in each of them.  Each says so in one line, where multiprocessing printed a
-    traceback of its own in each, and nothing is written beyond what the script's own process did."""
+    traceback of its own in each; the same database then serves a script that calls it under the guard."""
     from packings.dask_cluster import UNGUARDED
 
     url = f"sqlite:///{tmp_path / 'unguarded.db'}"
