@@ -106,6 +106,12 @@ def _load_distributed_defaults() -> None:
 
 #: setting this environment variable (True / False) decides whether local Dask workers profile their tasks
 PROFILE_ENV = "DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED"
+#: setting this environment variable sets how many entries each of Dask's own logs keeps in this process
+LOG_LENGTH_ENV = "DASK_DISTRIBUTED__ADMIN__LOW_LEVEL_LOG_LENGTH"
+#: what the logs keep otherwise: Dask's default (1,000) keeps, for each stream of messages between the
+#: client, the scheduler and a worker, the last 1,000 messages sent, every task's spec among them, so the
+#: coordinator's process grows with each task submitted until they are full (docs/performance.md)
+LOG_LENGTH = 100
 DASHBOARD_ADDRESS = "127.0.0.1:8787"  #: where a local cluster serves its dashboard (another port if taken)
 REVIVE_SECONDS = 15.0  #: how long a local worker slot may be without a process before it is replaced
 START_ATTEMPTS = 3  #: tries to start the local cluster (a worker process that dies as it starts fails the start)
@@ -155,6 +161,8 @@ class dask_client:
         # in the database: only Dask's critical messages are shown
         for name in ("distributed", "bokeh", "tornado"):
             logging.getLogger(name).setLevel(logging.CRITICAL)
+        if LOG_LENGTH_ENV not in os.environ:  # read as the Client, scheduler and their streams are made
+            dask.config.set({"distributed.admin.low-level-log-length": LOG_LENGTH})
         if self.scheduler:
             try:
                 self._client = Client(self.scheduler, timeout="10s")

@@ -554,6 +554,44 @@ def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
     assert list(seen.values()) == [expected]
 
 
+def _one(i: int) -> int:
+    return i
+
+
+@pytest.mark.parametrize("env", [None, "1000"])
+def test_the_coordinator_keeps_few_of_the_messages_it_sent(monkeypatch, env):
+    """Dask keeps, for each stream of messages (client to scheduler, scheduler to each worker and to the
+    client), the last ``distributed.admin.low-level-log-length`` messages it sent, each task's spec
+    among them: with Dask's 1,000 the coordinator's process grew with every task it submitted.  The
+    local cluster of ``packings enumerate`` and its Client keep :data:`LOG_LENGTH` of them, unless the
+    variable asks for another number."""
+    import dask
+
+    import packings.dask_cluster as dc
+
+    monkeypatch.delenv(dc.LOG_LENGTH_ENV, raising=False)
+    if env is not None:
+        monkeypatch.setenv(dc.LOG_LENGTH_ENV, env)
+    dask.config.refresh()
+    try:
+        with dc.dask_client(None, 1, True) as local:
+            client = local.client
+            for i in range(dc.LOG_LENGTH + 60):  # one at a time: a message (a batch) each way per task
+                assert client.submit(_one, i, key=f"one-{i}").result() == i
+            scheduler = local.cluster.scheduler
+            held = [len(client.scheduler_comm.recent_message_log),
+                    *(len(b.recent_message_log) for b in scheduler.stream_comms.values()),
+                    *(len(b.recent_message_log) for b in scheduler.client_comms.values())]
+            local.cluster.close()
+    finally:
+        monkeypatch.undo()
+        dask.config.refresh()
+    if env is None:
+        assert max(held) <= dc.LOG_LENGTH
+    else:
+        assert max(held) > dc.LOG_LENGTH + 50
+
+
 def _sigint_by_default() -> None:
     """In the child before exec: SIGINT back to its default action, for a terminal's Ctrl-C to reach
     it even when the tests run in the background (a shell starts background jobs with SIGINT ignored,
