@@ -534,23 +534,19 @@ def test_the_coordinator_never_loads_the_path_following_code(tmp_path):
 
 
 @pytest.mark.parametrize("env, expected", [(None, False), ("True", True)])
-def test_local_workers_do_not_profile_unless_asked(monkeypatch, env, expected):
+def test_local_workers_do_not_profile_unless_asked(fresh_dask_config, env, expected):
     """Dask's statistical profiler (a stack sample every 10 ms) costs a run about 8 %: the local
     cluster of ``packings enumerate`` starts its workers without it, unless the variable asks."""
     import dask
 
     import packings.dask_cluster
 
-    monkeypatch.delenv(packings.dask_cluster.PROFILE_ENV, raising=False)
+    fresh_dask_config.delenv(packings.dask_cluster.PROFILE_ENV, raising=False)
     if env is not None:
-        monkeypatch.setenv(packings.dask_cluster.PROFILE_ENV, env)
+        fresh_dask_config.setenv(packings.dask_cluster.PROFILE_ENV, env)
     dask.config.refresh()  # read the environment as a new process would
-    try:
-        with packings.dask_cluster.dask_client(None, 1, True) as local:
-            seen = local.client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
-    finally:
-        monkeypatch.undo()
-        dask.config.refresh()  # and leave no setting behind for other tests
+    with packings.dask_cluster.dask_client(None, 1, True) as local:
+        seen = local.client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
     assert list(seen.values()) == [expected]
 
 
@@ -559,7 +555,7 @@ def _one(i: int) -> int:
 
 
 @pytest.mark.parametrize("env", [None, "1000"])
-def test_the_coordinator_keeps_few_of_the_messages_it_sent(monkeypatch, env):
+def test_the_coordinator_keeps_few_of_the_messages_it_sent(fresh_dask_config, env):
     """Dask keeps, for each stream of messages (client to scheduler, scheduler to each worker and to the
     client), the last ``distributed.admin.low-level-log-length`` messages it sent, each task's spec
     among them: with Dask's 1,000 the coordinator's process grew with every task it submitted.  The
@@ -569,23 +565,18 @@ def test_the_coordinator_keeps_few_of_the_messages_it_sent(monkeypatch, env):
 
     import packings.dask_cluster as dc
 
-    monkeypatch.delenv(dc.LOG_LENGTH_ENV, raising=False)
+    fresh_dask_config.delenv(dc.LOG_LENGTH_ENV, raising=False)
     if env is not None:
-        monkeypatch.setenv(dc.LOG_LENGTH_ENV, env)
-    dask.config.refresh()
-    try:
-        with dc.dask_client(None, 1, True) as local:
-            client = local.client
-            for i in range(dc.LOG_LENGTH + 60):  # one at a time: a message (a batch) each way per task
-                assert client.submit(_one, i, key=f"one-{i}").result() == i
-            scheduler = local.cluster.scheduler
-            held = [len(client.scheduler_comm.recent_message_log),
-                    *(len(b.recent_message_log) for b in scheduler.stream_comms.values()),
-                    *(len(b.recent_message_log) for b in scheduler.client_comms.values())]
-            local.cluster.close()
-    finally:
-        monkeypatch.undo()
-        dask.config.refresh()
+        fresh_dask_config.setenv(dc.LOG_LENGTH_ENV, env)
+    dask.config.refresh()  # read the environment as a new process would
+    with dc.dask_client(None, 1, True) as local:
+        client = local.client
+        for i in range(dc.LOG_LENGTH + 60):  # one at a time: a message (a batch) each way per task
+            assert client.submit(_one, i, key=f"one-{i}").result() == i
+        scheduler = local.cluster.scheduler
+        held = [len(client.scheduler_comm.recent_message_log),
+                *(len(b.recent_message_log) for b in scheduler.stream_comms.values()),
+                *(len(b.recent_message_log) for b in scheduler.client_comms.values())]
     if env is None:
         assert max(held) <= dc.LOG_LENGTH
     else:
