@@ -45,6 +45,7 @@ def start_fork_server() -> bool:
     from multiprocessing import forkserver
 
     refuse_while_importing_main()
+    mark_unguarded()  # before the fork server starts: it and the workers forked from it inherit it
     import dask
 
     _load_distributed_defaults()
@@ -62,27 +63,67 @@ def start_fork_server() -> bool:
     return True
 
 
-#: what a worker process says when it is asked to start a local cluster of its own (:func:`refuse_while_importing_main`)
-UNGUARDED = ("packings: error: a worker process of a local cluster ran the script that starts it, which calls "
-             "packings.enumerate at its top level: call it under `if __name__ == \"__main__\":`")
+#: why the worker processes of a local cluster ended as they started (:func:`refuse_while_importing_main`)
+UNGUARDED = ("its worker processes ran the script that starts it, which calls packings.enumerate at its top "
+             "level: call it under `if __name__ == \"__main__\":`")
+#: the file a worker process that ran its parent's script creates, for its parent to say why in one line
+UNGUARDED_MARK_ENV = "PACKINGS_UNGUARDED_MARK"
 
 
 def refuse_while_importing_main() -> None:
-    """End this process with one line (:data:`UNGUARDED`, exit status 1) if it is a new process importing
-    the main module of the one that started it.
+    """End this process (exit status 1) if it is a new process importing the main module of the one that
+    started it.
 
     Every start method but fork has a new process (a local cluster's workers among them) import its
     parent's main module before it runs: a script that calls ``packings.enumerate`` at its top level,
     outside ``if __name__ == "__main__":``, calls it again in each worker as it starts.  There
     multiprocessing would refuse to start the fork server with a traceback of its own in every worker,
-    each start of the cluster; this says why in one line instead, and the worker ends without writing
-    anything (its parent then reports that the local cluster failed to start).  Python marks a process
-    in that state as ``_inheriting``, which its own check reads too."""
+    each start of the cluster.  Instead the worker ends without writing anything and without a word,
+    having created the file its parent named in :data:`UNGUARDED_MARK_ENV` (:func:`mark_unguarded`):
+    the parent, whose local cluster then fails to start, finds it and says why once
+    (:data:`UNGUARDED`), rather than each worker at each of its tries.  A parent that named no file
+    (not this version of packings) gets the reason from the worker, as one line.  Python marks a
+    process in that state as ``_inheriting``, which its own check reads too."""
     import multiprocessing
 
     if getattr(multiprocessing.current_process(), "_inheriting", False):
-        print(UNGUARDED, file=sys.stderr, flush=True)
+        mark = os.environ.get(UNGUARDED_MARK_ENV)
+        try:
+            if not mark:
+                raise OSError
+            Path(mark).touch()
+        except OSError:
+            print(f"packings: error: a worker process of a local cluster ended: {UNGUARDED}", file=sys.stderr,
+                  flush=True)
         raise SystemExit(1)
+
+
+def mark_unguarded() -> Path:
+    """The file that this process's new processes create if they run its script's call of
+    ``packings.enumerate`` again (:func:`refuse_while_importing_main`): one per process, named in its
+    environment, which they inherit (a fork server's from when it starts)."""
+    import tempfile
+
+    mark = Path(tempfile.gettempdir()) / f"packings-unguarded-{os.getpid()}"
+    if os.environ.get(UNGUARDED_MARK_ENV) != str(mark):  # not yet, or this process's parent's
+        try:
+            mark.unlink(missing_ok=True)  # an earlier process's with the same id
+        except OSError:
+            pass
+        os.environ[UNGUARDED_MARK_ENV] = str(mark)
+    return mark
+
+
+def _ran_unguarded() -> bool:
+    """Whether a new process of this one ran its script's call again; the file is taken away (said once)."""
+    mark = os.environ.get(UNGUARDED_MARK_ENV)
+    if not (mark and os.path.exists(mark)):
+        return False
+    try:
+        Path(mark).unlink(missing_ok=True)
+    except OSError:
+        pass
+    return True
 
 
 def _load_distributed_defaults() -> None:
@@ -193,6 +234,8 @@ class dask_client:
                                                 plugins=(LocalWorkerPlugin(), *self.plugins))
                     break
                 except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
+                    if _ran_unguarded():  # every try would end so
+                        raise SchedulerError(f"the local Dask cluster failed to start: {UNGUARDED}") from None
                     log.warning("the local Dask cluster failed to start (%s)%s", e,
                                 "; trying again" if attempt + 1 < START_ATTEMPTS else "")
                     if attempt + 1 == START_ATTEMPTS:

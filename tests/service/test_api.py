@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 
@@ -154,24 +155,56 @@ def test_enumerate_runs_and_resumes(db_url):
 
 def test_a_script_that_enumerates_outside_the_main_guard_is_told_why_in_one_line(tmp_path):
     """The workers of a local cluster import the script that starts them: one that calls enumerate at its
-    top level calls it again in each of them.  Each says so in one line, where multiprocessing printed a
-    traceback of its own in each; the same database then serves a script that calls it under the guard."""
+    top level calls it again in each of them.  The script is told why once, in the one line of its error,
+    where multiprocessing printed a traceback of its own in each worker at each try to start the cluster
+    (and then each worker said why, once a try); the file the workers mark it with is gone after.  The
+    same database then serves a script that calls it under the guard."""
     from packings.dask_cluster import UNGUARDED
 
     url = f"sqlite:///{tmp_path / 'unguarded.db'}"
     script = tmp_path / "unguarded.py"
-    script.write_text(f"import packings\npackings.enumerate(7, {url!r}, workers=1, progress=False)\n")
-    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    script.write_text(f"import packings\npackings.enumerate(7, {url!r}, workers=2, progress=False)\n")
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {**os.environ, "TMPDIR": str(tmp)}
+    env.pop("PACKINGS_UNGUARDED_MARK", None)
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                       env=env)
     assert r.returncode != 0
-    assert UNGUARDED in r.stderr.splitlines()
-    assert "bootstrapping phase" not in r.stderr and "_check_not_importing_main" not in r.stderr
+    last = r.stderr.splitlines()[-1]
+    assert "the local Dask cluster failed to start" in last and last.endswith(UNGUARDED), r.stderr
+    assert r.stderr.count("packings.enumerate at its top level") == 1, r.stderr
+    assert "trying again" not in r.stderr and "bootstrapping phase" not in r.stderr
     assert r.stderr.count("Traceback") <= 1  # the script's own: the PackingsError it did not catch
-    assert "the local Dask cluster failed to start" in r.stderr.splitlines()[-1]
+    assert list(tmp.glob("packings-unguarded-*")) == []
     guarded = script.with_name("guarded.py")
     guarded.write_text(f"import packings\nif __name__ == '__main__':\n"
                        f"    print(packings.enumerate(7, {url!r}, workers=1, progress=False).total)\n")
-    r = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    r = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                       env=env)
     assert (r.returncode, r.stdout.split()[-1:], UNGUARDED in r.stderr) == (0, ["5"], False), r.stderr
+    assert list(tmp.glob("packings-unguarded-*")) == []
+
+
+def test_a_worker_that_ran_its_parents_script_marks_the_file_its_parent_named(tmp_path, monkeypatch, capsys):
+    """A new process importing its parent's script ends at once: silently where the parent named a file
+    for it to create (its parent then says why), in one line where it named none."""
+    import multiprocessing
+
+    from packings import dask_cluster
+
+    monkeypatch.setattr(multiprocessing.current_process(), "_inheriting", True, raising=False)
+    mark = tmp_path / "mark"
+    monkeypatch.setenv(dask_cluster.UNGUARDED_MARK_ENV, str(mark))
+    with pytest.raises(SystemExit) as e:
+        dask_cluster.start_fork_server()
+    assert (e.value.code, mark.exists(), capsys.readouterr().err) == (1, True, "")
+    assert dask_cluster._ran_unguarded() and not mark.exists() and not dask_cluster._ran_unguarded()
+    monkeypatch.delenv(dask_cluster.UNGUARDED_MARK_ENV)
+    with pytest.raises(SystemExit) as e:
+        dask_cluster.start_fork_server()
+    err = capsys.readouterr().err
+    assert (e.value.code, err.count("\n"), err.strip().endswith(dask_cluster.UNGUARDED)) == (1, 1, True), err
 
 
 def test_the_readme_example_runs(filled, tmp_path, monkeypatch):
