@@ -294,25 +294,51 @@ def run_enumeration(
         register the database plugin again (a restarted scheduler knows none, and gives it to the
         workers that join it); if it cannot, stop, resumably."""
         since = time.monotonic()
-        window = float(getattr(client, "_timeout", 0) or 0)
-        log.warning("run %d: lost the Dask scheduler; trying to reach it again for %.0f s", info.id, window)
-        while client.status != "running":
-            waited = time.monotonic() - since
-            if client.status in ("closing", "closed") or waited > window + RECONNECT_MARGIN:
-                raise SchedulerError(f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
-                                     "run the same command to resume")
+        log.warning("run %d: lost the Dask scheduler; trying to reach it again for %.0f s", info.id, window())
+        while True:
+            gone_since(since)
+            if client.status == "running":
+                try:
+                    client.register_plugin(plugin)
+                    break
+                except OSError:  # lost again as it was asked (CommClosedError is one)
+                    pass
             time.sleep(0.2)
-        client.register_plugin(plugin)
         log.warning("run %d: reached the Dask scheduler again after %.1f s", info.id, time.monotonic() - since)
+
+    def window() -> float:
+        """How long the Client tries to reach its scheduler again once it lost it."""
+        return float(getattr(client, "_timeout", 0) or 0)
+
+    def gone_since(since: float) -> None:
+        """Stop, resumably, if the scheduler has been out of reach since ``since`` for longer than the
+        Client tries to reach it again (or the Client gave up)."""
+        waited = time.monotonic() - since
+        if client.status in ("closing", "closed") or waited > window() + RECONNECT_MARGIN:
+            raise SchedulerError(f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
+                                 "run the same command to resume")
+
+    def capacity_now() -> int:
+        """Tasks to keep in flight.  The connection can break as the scheduler is asked, before the Client
+        has noticed that it lost it (its status still "running"): then reach it again (the plugin given
+        again, as to a restarted scheduler) and ask again."""
+        since = time.monotonic()
+        if client.status != "running":
+            reconnect()
+        while True:
+            try:
+                return per_worker * threads()
+            except OSError:  # CommClosedError is one
+                gone_since(since)
+                time.sleep(0.2)
+                reconnect()
 
     def fill(force: bool = False) -> None:
         """Keep up to ``per_worker`` tasks per worker thread in flight: claim once at most half of them
         are left (one claim transaction per few results rather than per result), up to ``batch``
         expansions for each task wanted, and share what was claimed out among those tasks (among more,
         smaller ones when that was all that was pending: :func:`_task_count`)."""
-        if client.status != "running":
-            reconnect()
-        capacity = per_worker * threads()
+        capacity = capacity_now()
         if not force and len(flight) > capacity // 2:
             return
         tasks = capacity - len(flight)

@@ -421,6 +421,74 @@ def test_a_cluster_left_without_workers_stops_the_run_resumably(engine):
     assert result.status == "complete" and result.total == 52 and result.resumed
 
 
+def _broken_nthreads(client, monkeypatch, breaks):
+    """The coordinator's own questions for the worker threads (its main thread's: the watchdog asks too)
+    raise CommClosedError from the second on, as a connection that breaks as it is asked before the
+    Client notices that it lost its scheduler, for the calls ``breaks`` says (call number -> bool)."""
+    import threading
+
+    from distributed.comm.core import CommClosedError
+
+    real, calls = client.nthreads, []
+
+    def nthreads(*args, **kwargs):
+        if threading.current_thread() is threading.main_thread():
+            calls.append(len(calls) + 1)
+            if breaks(calls[-1]):
+                raise CommClosedError("in <TCP (closed)>: ConnectionResetError: [Errno 104] Connection reset by peer")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(client, "nthreads", nthreads)
+    return calls
+
+
+def test_a_connection_that_breaks_as_the_coordinator_asks_is_asked_again(engine, monkeypatch):
+    """The scheduler's connection breaks twice as the coordinator asks it for the worker threads, while
+    the Client still says it is running: the coordinator reaches it again and the run completes, where
+    the error ended the command with a traceback."""
+    from distributed import Client, LocalCluster
+
+    import packings.coordinator
+    from packings.coordinator import run_enumeration
+
+    monkeypatch.setattr(packings.coordinator, "CAPACITY_SECONDS", 0.0)  # asked at every fill
+    url = engine.url.render_as_string(hide_password=False)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        calls = _broken_nthreads(client, monkeypatch, lambda k: k in (2, 3))
+        result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
+    assert result.status == "complete" and result.total == 52 and result.errors == []
+    assert len(calls) > 3
+    assert all(e.status == DONE and e.attempts == 1 for e in _expansions(engine))
+
+
+def test_a_connection_that_stays_broken_stops_the_run_resumably(engine, monkeypatch):
+    """The connection breaks at every question from the second on, longer than the Client's window to
+    reach its scheduler again: the run stops with SchedulerError, its leases put back without an attempt
+    used, and a new coordinator completes it."""
+    from distributed import Client, LocalCluster
+
+    import packings.coordinator
+    from packings.coordinator import run_enumeration
+    from packings.errors import SchedulerError
+
+    monkeypatch.setattr(packings.coordinator, "CAPACITY_SECONDS", 0.0)
+    monkeypatch.setattr(packings.coordinator, "RECONNECT_MARGIN", 1.0)
+    url = engine.url.render_as_string(hide_password=False)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        client._timeout = 1.0
+        _broken_nthreads(client, monkeypatch, lambda k: k >= 2)
+        with pytest.raises(SchedulerError, match="could not reach it again"):
+            run_enumeration(engine, url, 9, Params(), client)
+    rows = _expansions(engine)
+    assert not any(e.status == LEASED for e in rows) and max(e.attempts for e in rows) <= 1
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
+    assert result.status == "complete" and result.total == 52 and result.resumed
+
+
 def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
     """A worker process killed while its nanny could not start it again (here: the nanny's start made
     to fail) leaves a slot without a worker for good; revive_workers gives it a new nanny and worker."""
