@@ -88,40 +88,40 @@ def refuse_while_importing_main() -> None:
 
     if getattr(multiprocessing.current_process(), "_inheriting", False):
         mark = os.environ.get(UNGUARDED_MARK_ENV)
-        try:
-            if not mark:
-                raise OSError
-            Path(mark).touch()
-        except OSError:
+        if mark:
+            try:
+                Path(mark).touch()
+            except OSError:
+                mark = None
+        if not mark:
             print(f"packings: error: a worker process of a local cluster ended: {UNGUARDED}", file=sys.stderr,
                   flush=True)
         raise SystemExit(1)
 
 
-def mark_unguarded() -> Path:
-    """The file that this process's new processes create if they run its script's call of
+def mark_unguarded() -> None:
+    """Name the file that this process's new processes create if they run its script's call of
     ``packings.enumerate`` again (:func:`refuse_while_importing_main`): one per process, named in its
     environment, which they inherit (a fork server's from when it starts)."""
     import tempfile
 
-    mark = Path(tempfile.gettempdir()) / f"packings-unguarded-{os.getpid()}"
-    if os.environ.get(UNGUARDED_MARK_ENV) != str(mark):  # not yet, or this process's parent's
-        try:
-            mark.unlink(missing_ok=True)  # an earlier process's with the same id
-        except OSError:
-            pass
-        os.environ[UNGUARDED_MARK_ENV] = str(mark)
-    return mark
+    mark = os.path.join(tempfile.gettempdir(), f"packings-unguarded-{os.getpid()}")
+    if os.environ.get(UNGUARDED_MARK_ENV) != mark:  # not yet, or this process's parent's
+        os.environ[UNGUARDED_MARK_ENV] = mark
+        _ran_unguarded()  # an earlier process's with the same id: taken away
 
 
 def _ran_unguarded() -> bool:
-    """Whether a new process of this one ran its script's call again; the file is taken away (said once)."""
+    """Whether the file this process named is there (a new process of it ran its script's call again);
+    it is taken away (said once)."""
     mark = os.environ.get(UNGUARDED_MARK_ENV)
-    if not (mark and os.path.exists(mark)):
+    if not mark:
         return False
     try:
-        Path(mark).unlink(missing_ok=True)
-    except OSError:
+        os.remove(mark)
+    except FileNotFoundError:
+        return False
+    except OSError:  # there, but another's to remove
         pass
     return True
 
