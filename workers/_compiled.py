@@ -1279,3 +1279,71 @@ def some_automorphism_aligns(ax, bx, adist, bdist, asorted, bsorted, autos, boun
         if aligned_max_error(ax, y) <= tol_d:
             return True
     return False
+
+
+@numba.njit(**_JIT)
+def floppy_without(coords, edges, spheres, triangles, guard):
+    """For each sphere s = spheres[q] of the cluster ``coords`` (n x 3) with contacts ``edges``: the flexes of
+    what is left without s, k - m > 0 (k = 3(n - 1) - 6 free coordinates, m its contacts), where the rank
+    guard ``guard`` certifies that its pinned rigidity matrix has full row rank (:func:`regular_flexes`), in
+    the frame of its contact triangle ``triangles[q]`` (its own labels: the spheres after s numbered one
+    lower); -1 elsewhere (no flex left, or not certified).
+
+    The frame is that of packings.workers.kernels.to_frame (a at the origin, b on +x, c in the xy-plane), in
+    plain arithmetic, so its coordinates may differ from to_frame's in the last bits: a caller that must
+    decide as the reference does passes a guard with room for that (packings.workers.kernels.floppy_without).
+    """
+    n = coords.shape[0]
+    r = n - 1
+    k = 3 * r - 6
+    out = np.full(spheres.size, -1, dtype=np.int64)
+    left = np.empty((edges.shape[0], 2), dtype=np.int64)
+    x = np.empty(3 * r)
+    mask = np.empty(3 * r)
+    free = np.empty(k, dtype=np.int64)
+    for q in range(spheres.size):
+        s = spheres[q]
+        m = 0
+        for e in range(edges.shape[0]):
+            i = edges[e, 0]
+            j = edges[e, 1]
+            if i != s and j != s:
+                left[m, 0] = i - (i > s)
+                left[m, 1] = j - (j > s)
+                m += 1
+        if m >= k:
+            continue
+        a = triangles[q, 0]
+        b = triangles[q, 1]
+        c = triangles[q, 2]
+        pa = a + (a >= s)
+        pb = b + (b >= s)
+        pc = c + (c >= s)
+        e1 = coords[pb] - coords[pa]
+        e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+        u = coords[pc] - coords[pa]
+        e2 = u - (u[0] * e1[0] + u[1] * e1[1] + u[2] * e1[2]) * e1
+        e2 /= np.sqrt(e2[0] * e2[0] + e2[1] * e2[1] + e2[2] * e2[2])
+        e3 = np.array([e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]])
+        for i in range(r):
+            p = i + (i >= s)
+            v0 = coords[p, 0] - coords[pa, 0]
+            v1 = coords[p, 1] - coords[pa, 1]
+            v2 = coords[p, 2] - coords[pa, 2]
+            x[3 * i] = v0 * e1[0] + v1 * e1[1] + v2 * e1[2]
+            x[3 * i + 1] = v0 * e2[0] + v1 * e2[1] + v2 * e2[2]
+            x[3 * i + 2] = v0 * e3[0] + v1 * e3[1] + v2 * e3[2]
+            mask[3 * i] = 1.0
+            mask[3 * i + 1] = 1.0
+            mask[3 * i + 2] = 1.0
+        for p in (3 * a, 3 * a + 1, 3 * a + 2, 3 * b + 1, 3 * b + 2, 3 * c + 2):
+            x[p] = 0.0
+            mask[p] = 0.0
+        f = 0
+        for p in range(3 * r):
+            if mask[p] == 1.0:
+                free[f] = p
+                f += 1
+        if regular_flexes(x, left[:m], free, mask, guard) > 0:
+            out[q] = k - m
+    return out

@@ -32,7 +32,9 @@ each of the cluster's own spheres: one sphere moved to another place.  At n = 11
 cluster no path reaches from the path clusters of 11 alone (docs/method.md, "Catalysis").  Most of
 these remainders are stored clusters again, and one glued cluster repeats many others: a remainder
 is decided only when its contact graph and sorted pair distances match no cluster seen before
-(stored, or decided earlier in the same pass: :class:`Seen`).
+(stored, or decided earlier in the same pass: :class:`Seen`).  Nearly all of those decided are floppy, with
+independent contacts: the compiled kernels certify them together, a glued cluster's at a time, where
+nothing else could decide otherwise (:func:`_floppy`), with the verdict :func:`remainder` would give.
 
 The remainder's coordinates are not projected again: deleting spheres deletes equations, so
 the parent's point still solves the remainder's.  Its contacts, measured again from the
@@ -56,11 +58,11 @@ import numpy as np
 
 from packings.workers import kernels
 from packings.workers.cluster import Cluster, contacts_from_coords, pair, pair_distances, triangles
-from packings.workers.identity import edges_certificate, graph_certificate
+from packings.workers.identity import adjacency_certificate, graph_certificate
 from packings.workers.outcomes import BELOW_MIN_CONTACTS, NO_TRIANGLE, RIGID
 from packings.workers.params import Params
 from packings.workers.paths import endpoint_rigidity, resolve_near_pairs
-from packings.workers.rigidity import Rigidity, contact_triangle
+from packings.workers.rigidity import Rigidity, contact_triangle, rigidity_without_stress
 from packings.workers.seeds import cap_positions
 
 NOT_RIGID = "not-rigid"  #: the rigidity test says floppy or undecided
@@ -94,6 +96,12 @@ def sub_cluster(parent: Cluster, kept) -> Cluster:
     # the shared pairs (cluster.pair), so that contacts kept in order need no sorting by Cluster
     contacts = tuple(pair(new[i], new[j]) for i, j in parent.contacts if i in new and j in new)
     return Cluster(parent.coords[list(kept)], contacts)
+
+
+def _without_sphere(parent: Cluster, s: int) -> Cluster:
+    """``sub_cluster`` of every sphere of ``parent`` but s, in order: the contacts renumbered stay sorted."""
+    return Cluster.of_normal(np.delete(parent.coords, s, axis=0),
+                             tuple(pair(i - (i > s), j - (j > s)) for i, j in parent.contacts if i != s and j != s))
 
 
 def remainder(parent: Cluster, deleted, params: Params) -> Remainder:
@@ -154,8 +162,8 @@ def glued(cluster: Cluster, params: Params) -> Iterator[tuple[tuple[int, int, in
             d = np.sqrt(((x - q) ** 2).sum(axis=1))
             if np.any(d < 1.0 - params.tol_a):
                 continue
-            new = tuple((int(i), cluster.n) for i in np.flatnonzero(d < 1.0 + params.tol_a))
-            yield tri, Cluster(np.vstack([x, q]), cluster.contacts + new)
+            new = tuple(pair(int(i), cluster.n) for i in np.flatnonzero(d < 1.0 + params.tol_a))
+            yield tri, Cluster.of_normal(np.vstack([x, q]), tuple(sorted(cluster.contacts + new)))
 
 
 #: digests placed together when the record's table grows (:meth:`Seen._grow`): the work arrays stay a few MiB
@@ -193,7 +201,14 @@ class Seen:
 
     def add_parts(self, certificate: bytes, sorted_distances: np.ndarray) -> bool:
         """:meth:`add` for a cluster given by its graph certificate and sorted pair distances."""
-        cells = np.rint(np.asarray(sorted_distances, np.float64) / self.bound).astype(np.int64)
+        return self.add_cells(certificate, self.cells(sorted_distances))
+
+    def cells(self, sorted_distances: np.ndarray) -> np.ndarray:
+        """The cells of the grid that sorted pair distances fall in (each row of a 2-d array one cluster's)."""
+        return np.rint(np.asarray(sorted_distances, np.float64) / self.bound).astype(np.int64)
+
+    def add_cells(self, certificate: bytes, cells: np.ndarray) -> bool:
+        """:meth:`add_parts` for a cluster given by its graph certificate and the :meth:`cells` of its distances."""
         h = hashlib.blake2b(certificate, digest_size=16)
         h.update(cells.tobytes())
         b = h.digest()
@@ -265,6 +280,16 @@ def _without(n: int, s: int) -> tuple[np.ndarray, np.ndarray]:
     return i[keep], j[keep]
 
 
+@functools.lru_cache(maxsize=None)
+def _without_each(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_without` of every sphere s of n, as row s of two (n x (n - 1)(n - 2)/2) index arrays."""
+    out = [_without(n, s) for s in range(n)]
+    rows, cols = np.stack([i for i, _ in out]), np.stack([j for _, j in out])
+    rows.setflags(write=False)
+    cols.setflags(write=False)
+    return rows, cols
+
+
 @dataclass(frozen=True)
 class Moved:
     """Sphere ``sphere`` of a cluster put on the contact triangle ``triangle`` (on its ``side``, 0 or 1, as
@@ -281,27 +306,99 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
     (:func:`glued`) and every sphere s of ``cluster``, the remainder without s, decided by the endpoint
     rule (:func:`remainder`) unless a sphere is left with fewer than three contacts or it is in ``seen``;
     every remainder decided is added to ``seen``.  The remainder's spheres are the cluster's without s,
-    in order, then the moved one."""
+    in order, then the moved one.
+
+    Nearly every remainder decided is floppy: its contacts are independent and fewer than its free
+    coordinates.  The compiled kernels certify that for all of a glued cluster's remainders at once, where
+    nothing else could decide otherwise (:func:`_floppy`); :func:`remainder` decides the others.  Each verdict
+    is the one :func:`remainder` gives (docs/method.md, "Moving one sphere")."""
     sides: dict[tuple[int, int, int], int] = {}
+    measured = contacts_from_coords(cluster.coords, params.tol_a) == cluster.contacts  # as _floppy needs
     for tri, parent in glued(cluster, params):
         side = sides[tri] = sides.get(tri, -1) + 1
         n = parent.n
-        degree = np.bincount(parent.edges().ravel(), minlength=n)
-        neighbours: list[list[int]] = [[] for _ in range(n)]
-        for i, j in parent.contacts:
-            neighbours[i].append(j)
-            neighbours[j].append(i)
+        edges = parent.edges()
+        adjacent = np.zeros((n, n), dtype=bool)
+        adjacent[edges[:, 0], edges[:, 1]] = True
+        adjacent[edges[:, 1], edges[:, 0]] = True
+        # row s: every sphere's contacts once s is deleted (s itself counted as enough)
+        left = adjacent.sum(axis=1) - adjacent[:cluster.n]
+        left[np.arange(cluster.n), np.arange(cluster.n)] = 3
+        movable = np.flatnonzero(left.min(axis=1) >= 3)  # the others are not rigid (remainder, step 2)
+        if not movable.size:
+            continue
         d = pair_distances(parent.coords)
-        for s in range(cluster.n):
-            left = degree.copy()
-            left[neighbours[s]] -= 1
-            left[s] = 3
-            if left.min() < 3:  # not rigid (remainder, step 2): nothing to decide
-                continue
-            # the remainder's graph and distances, without building it: spheres after s move down one
-            graph = edges_certificate(n - 1, ((i - (i > s), j - (j > s)) for i, j in parent.contacts
-                                              if i != s and j != s))
-            if not seen.add_parts(graph, np.sort(d[_without(n, s)])):
+        above: list[list[int]] = [[] for _ in range(n)]  # each sphere's neighbours with a larger number
+        for i, j in parent.contacts:
+            above[i].append(j)
+        # the remainders' graphs and distances, without building them: spheres after s move down one
+        rows, cols = _without_each(n)
+        cells = seen.cells(np.sort(d[rows[movable], cols[movable]], axis=1))
+        new = []
+        for q, s in enumerate(movable.tolist()):
+            graph = adjacency_certificate(n - 1, [[j - (j > s) for j in above[i] if j != s]
+                                                  for i in range(n) if i != s])
+            new.append((s, seen.add_cells(graph, cells[q])))
+        fresh = [s for s, f in new if f]
+        floppy = _floppy(parent, edges, adjacent, d, params, fresh) if fresh and measured else {}
+        for s, f in new:
+            if not f:
                 yield Moved(s, tri, side, None)
-                continue
-            yield Moved(s, tri, side, remainder(parent, (s,), params))
+            elif s in floppy:
+                yield Moved(s, tri, side, Remainder((s,), tuple(i for i in range(n) if i != s),
+                                                    _without_sphere(parent, s), NOT_RIGID,
+                                                    rigidity_without_stress(floppy[s])))
+            else:
+                yield Moved(s, tri, side, remainder(parent, (s,), params))
+
+
+#: :func:`_floppy` leaves to :func:`remainder` the remainders with a pair that is not a contact within this of
+#: 1 + tol_a0 (the distances it measures may differ from those :func:`remainder` measures in the last bits)
+NEAR_ROOM = 1e-9
+
+
+def _floppy(parent: Cluster, edges: np.ndarray, adjacent: np.ndarray, d: np.ndarray, params: Params,
+            spheres: list[int]) -> dict[int, int]:
+    """The flexes of those remainders of the glued cluster ``parent`` without one sphere of ``spheres`` that
+    :func:`remainder` calls floppy with no self-stress (its contacts certified independent,
+    :func:`packings.workers.kernels.regular_flexes`, and fewer than its free coordinates), where that is
+    certain from the parent alone; the others are left to :func:`remainder`.  ``edges``, ``adjacent`` and
+    ``d``: the parent's contacts, adjacency matrix and pair distances; the parent's contacts between the
+    spheres of the cluster it was glued onto are those measured (the caller checks that).
+
+    What :func:`remainder` would check first holds for each: the caller left out the remainders with a sphere
+    of fewer than three contacts, and deleting a sphere renumbers the others in order, so the contacts it
+    measures between two kept spheres are the parent's measured (:func:`_measured_last` for the glued one),
+    and its first contact triangle (:func:`packings.workers.rigidity.contact_triangle`) is the parent's first
+    that avoids the sphere, renumbered.  Decided here only where nothing else could decide: no pair that is
+    not a contact is within :data:`NEAR_ROOM` of 1 + tol_a0 (else resolve_near_pairs may close it), and
+    :func:`packings.workers.kernels.floppy_without` certifies the remainder with room for its own frame's
+    rounding."""
+    if not _measured_last(parent, params.tol_a):
+        return {}
+    near = (d < 1.0 + params.tol_a0 + NEAR_ROOM) & ~adjacent
+    np.fill_diagonal(near, False)
+    i, j = np.nonzero(np.triu(near))
+    first = contact_triangle(parent.contacts)
+    ask, triangles = [], []
+    for s in spheres:
+        tri = first
+        if tri is not None and s in tri:  # the first that avoids s: the first once s touches nothing
+            tri = contact_triangle(parent.contacts, forbidden=[c for c in parent.contacts if s in c])
+        if tri is not None and not ((i != s) & (j != s)).any():
+            ask.append(s)
+            triangles.append(tuple(t - (t > s) for t in tri))
+    if not ask:
+        return {}
+    flexes = kernels.floppy_without(parent.coords, edges, np.array(ask), np.array(triangles), params.tol_n)
+    return {s: int(f) for s, f in zip(ask, flexes.tolist()) if f > 0}
+
+
+def _measured_last(parent: Cluster, tol_a: float) -> bool:
+    """Whether the contacts of the last sphere of ``parent`` are those :func:`contacts_from_coords` measures:
+    its distances to the others computed as it computes them, pair by pair."""
+    x = parent.coords
+    last = x.shape[0] - 1
+    diff = x[:last] - x[last]
+    near = np.flatnonzero(np.sqrt(np.einsum("ij,ij->i", diff, diff)) < 1.0 + tol_a)
+    return near.tolist() == [i for i, j in parent.contacts if j == last]

@@ -116,6 +116,17 @@ class Cluster:
         object.__setattr__(self, "contacts", normalise_contacts(self.contacts))
 
     @classmethod
+    def of_normal(cls, coords: np.ndarray, contacts: tuple[Contact, ...]) -> "Cluster":
+        """The cluster of ``coords``, a new n x 3 float64 array of its own, and ``contacts``, already what
+        :func:`normalise_contacts` makes of them (sorted shared pairs :func:`pair`), taken as they are: for
+        the many clusters catalysis makes from one parent."""
+        c = object.__new__(cls)
+        coords.setflags(write=False)
+        object.__setattr__(c, "coords", coords)
+        object.__setattr__(c, "contacts", contacts)
+        return c
+
+    @classmethod
     def from_coords(cls, coords, params: Params = DEFAULT) -> "Cluster":
         """The cluster whose contacts are the pairs closer than 1 + tol_a."""
         x = np.asarray(coords, dtype=np.float64)

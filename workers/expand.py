@@ -602,6 +602,8 @@ def warm_up(apart: bool = True) -> float:
     kernels.project(x + params.ds * v, keep, free, extra=(v[free][None, :], np.array([v[free] @ x[free]])), **kw)
     kernels.project(x, edges, free, polish=True, **kw)
     kernels.regular_flexes(x, edges, free, params.tol_n)
+    left = contact_triangle([(i - 1, j - 1) for i, j in c.contacts if i and j])  # c without sphere 0
+    kernels.floppy_without(c.coords, edges, np.array([0]), np.array([left]), params.tol_n)
     for s in (1.0, -1.0):
         follow_path(x, keep, broken, s * v, free, params)
     same_geometry(c, Cluster(c.coords[::-1] + 1.0, tuple((c.n - 1 - j, c.n - 1 - i) for i, j in c.contacts)), params.tol_d)

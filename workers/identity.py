@@ -40,6 +40,7 @@ __all__ = [
     "certificate_hex",
     "graph_certificate",
     "edges_certificate",
+    "adjacency_certificate",
     "certificate_key",
     "canonical_labelling",
     "automorphisms",
@@ -102,6 +103,12 @@ def graph_certificate(cluster: Cluster) -> bytes:
 def edges_certificate(n: int, edges: Iterable[tuple[int, int]]) -> bytes:
     """:func:`graph_certificate` of the graph on n vertices with these edges (distinct pairs i < j)."""
     return pynauty.certificate(_contact_graph(n, edges))
+
+
+def adjacency_certificate(n: int, above: list[list[int]]) -> bytes:
+    """:func:`edges_certificate` of the graph on n vertices whose vertex i is joined to each of ``above[i]``
+    (distinct vertices, each larger than i)."""
+    return pynauty.certificate(_Graph(n, dict(enumerate(above))))
 
 
 def certificate_hex(cluster: Cluster) -> str:

@@ -480,6 +480,26 @@ def regular_flexes(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: fl
     return None if a < 0 else int(a)
 
 
+#: :func:`floppy_without` certifies with this many times the rank guard, so that what it certifies in its
+#: own arithmetic of the frame, the guard certifies in :func:`to_frame`'s (the two differ in the last bits)
+FLOPPY_GUARD_ROOM = 4.0
+
+
+def floppy_without(coords: np.ndarray, edges: np.ndarray, spheres: np.ndarray, triangles: np.ndarray,
+                   tol_n: float) -> np.ndarray:
+    """For each sphere s of ``spheres``: the flexes (> 0) of the cluster ``coords`` (n x 3, contacts ``edges``)
+    without s where :func:`regular_flexes` would certify them, pinned by its contact triangle ``triangles[q]``
+    (in its own labels: the spheres after s one lower) after :func:`to_frame`; -1 where that is not certain
+    (no flex left, or the rank not certified with room to spare, :data:`FLOPPY_GUARD_ROOM`).  Always -1 with
+    the numpy backend (the reference takes the SVD, as :func:`regular_flexes`)."""
+    spheres = as_kernel_array(spheres, np.int64, (-1,))
+    if _backend != "numba":
+        return np.full(spheres.size, -1, dtype=np.int64)
+    return _numba().floppy_without(_f64(coords).reshape(-1, 3), _i64(edges), spheres,
+                                   as_kernel_array(triangles, np.int64, (-1, 3)),
+                                   FLOPPY_GUARD_ROOM * guard_threshold(tol_n))
+
+
 @dataclass(frozen=True)
 class NullSpaces:
     """Singular values of R[:, free], its right null space V and left null space W.

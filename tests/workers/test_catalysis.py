@@ -14,7 +14,11 @@ from packings.workers.catalysis import (
     CONTACTS_DIFFER,
     FEW_CONTACTS,
     NOT_RIGID,
+    Moved,
     Seen,
+    _floppy,
+    _measured_last,
+    _without,
     glued,
     moved_remainders,
     remainder,
@@ -23,11 +27,11 @@ from packings.workers.catalysis import (
     rigid_remainders,
     sub_cluster,
 )
-from packings.workers.cluster import Cluster, contacts_from_coords
-from packings.workers.identity import certificate_key
+from packings.workers.cluster import Cluster, contacts_from_coords, pair_distances
+from packings.workers.identity import adjacency_certificate, certificate_key, edges_certificate, graph_certificate
 from packings.workers.outcomes import BELOW_MIN_CONTACTS, RIGID
 from packings.workers.params import Params
-from packings.workers.rigidity import rigidity
+from packings.workers.rigidity import rigidity, rigidity_without_stress
 from packings.workers.seeds import seed_cluster
 
 P = Params()
@@ -411,3 +415,135 @@ def test_moving_spheres_of_a_relabelled_rotated_reflected_cluster_finds_the_same
         return Counter(certificate_key(mv.remainder.cluster) for mv in moved_remainders(x, P, Seen(P.tol_d))
                        if mv.remainder is not None and mv.remainder.rigid)
     assert found(c) == found(other)
+
+
+def _moved_one_by_one(cluster: Cluster, seen: Seen) -> list[Moved]:
+    """moved_remainders as it was before the floppy remainders were certified together: each glued cluster's
+    spheres in turn, the remainder built and decided by :func:`remainder` from nothing it inherits."""
+    out, sides = [], {}
+    for tri, parent in glued(cluster, P):
+        side = sides[tri] = sides.get(tri, -1) + 1
+        degree = np.bincount(parent.edges().ravel(), minlength=parent.n)
+        for s in range(cluster.n):
+            left = degree.copy()
+            left[[j for i, j in parent.contacts if i == s] + [i for i, j in parent.contacts if j == s]] -= 1
+            left[s] = 3
+            if left.min() < 3:
+                continue
+            rest = [i for i in range(parent.n) if i != s]
+            if not seen.add_parts(graph_certificate(sub_cluster(parent, rest)),
+                                  np.sort(pair_distances(parent.coords)[_without(parent.n, s)])):
+                out.append(Moved(s, tri, side, None))
+                continue
+            out.append(Moved(s, tri, side, remainder(parent, (s,), P)))
+    return out
+
+
+def _as_compared(moved: list[Moved]) -> list[tuple]:
+    """Every field of each Moved and of its remainder, the coordinates as bytes."""
+    out = []
+    for mv in moved:
+        r = mv.remainder
+        out.append((mv.sphere, mv.triangle, mv.side) + (() if r is None else (
+            r.deleted, r.kept, r.outcome, r.rigidity, r.cluster.coords.tobytes(), r.cluster.contacts)))
+    return out
+
+
+def _clusters_to_move() -> dict[str, Cluster]:
+    """The test clusters of 10, the path clusters of 11 and 13 whose moved spheres give clusters no path reaches
+    (rigid remainders, singular ones), and two relabelled, rotated and reflected copies of the first."""
+    out = dict(N10)
+    out["n11_glued"] = _glued_n11()[0]
+    data = json.loads((DATA / "n13_glued.json").read_text())
+    out["n13_glued"] = Cluster(np.array(data["cluster"]["coords"]), tuple(map(tuple, data["cluster"]["contacts"])))
+    for seed, reflect in ((1, False), (2, True)):
+        out[f"n11_glued moved {seed}"] = moved(out["n11_glued"], np.random.default_rng(seed), reflect)[0]
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(_clusters_to_move()))
+def test_moved_remainders_decides_as_each_remainder_decided_alone(name):
+    """Moving each sphere (``moved_remainders``: floppy remainders certified together by the compiled kernels,
+    the others given what their parent already settled) gives, field by field and the coordinates bit for
+    bit, what building and deciding each remainder alone gives; so does a second pass over the same record."""
+    c = _clusters_to_move()[name]
+    ours, theirs = Seen(P.tol_d), Seen(P.tol_d)
+    for _ in range(2):
+        got, expected = list(moved_remainders(c, P, ours)), _moved_one_by_one(c, theirs)
+        assert _as_compared(got) == _as_compared(expected)
+        assert len(ours) == len(theirs)
+    decided = [mv.remainder for mv in _moved_one_by_one(c, Seen(P.tol_d)) if mv.remainder is not None]
+    assert decided and any(r.outcome == NOT_RIGID and r.rigidity.method == "no-stress" for r in decided)
+
+
+def test_a_cluster_whose_contacts_are_not_those_measured_is_decided_as_each_remainder_alone():
+    """Where the contacts given are not those measured (a contact left out), no remainder takes the shortcut:
+    each is decided as alone, ``contacts-differ``."""
+    c = N10["n10_m24_first-order"]
+    lost = Cluster(c.coords, c.contacts[1:])
+    got, expected = list(moved_remainders(lost, P, Seen(P.tol_d))), _moved_one_by_one(lost, Seen(P.tol_d))
+    assert _as_compared(got) == _as_compared(expected)
+    outcomes = Counter(mv.remainder.outcome for mv in got if mv.remainder is not None)
+    assert outcomes[CONTACTS_DIFFER] > 0 and outcomes[CONTACTS_DIFFER] == sum(outcomes.values())
+
+
+def _glued_parts(c: Cluster):
+    """The first glued cluster of ``c`` with its contacts, adjacency matrix and pair distances, as _floppy takes them."""
+    tri, parent = next(iter(glued(c, P)))
+    edges = parent.edges()
+    adjacent = np.zeros((parent.n, parent.n), dtype=bool)
+    adjacent[edges[:, 0], edges[:, 1]] = adjacent[edges[:, 1], edges[:, 0]] = True
+    return parent, edges, adjacent, pair_distances(parent.coords)
+
+
+def test_a_pair_near_touching_leaves_every_remainder_that_keeps_it_to_be_decided_alone():
+    """A pair that is not a contact within tol_a0 (and NEAR_ROOM) of touching: no remainder that keeps both its
+    spheres is certified floppy together (resolve_near_pairs may make it another cluster); the others are."""
+    parent, edges, adjacent, d = _glued_parts(N10["n10_m24_first-order"])
+    spheres = list(range(parent.n - 1))
+    far = _floppy(parent, edges, adjacent, d, P, spheres)
+    i = min(far)
+    j = int(np.flatnonzero(~adjacent[i] & (np.arange(parent.n) != i))[0])
+    d[i, j] = d[j, i] = 1.0 + P.tol_a0 / 2
+    near = _floppy(parent, edges, adjacent, d, P, spheres)
+    assert len(far) > 2 and i in near and set(near) == set(far) & {i, j}
+    assert all(near[s] == far[s] for s in near)
+
+
+def test_a_glued_sphere_whose_contacts_are_not_those_measured_leaves_its_remainders_to_be_decided_alone():
+    parent, edges, adjacent, d = _glued_parts(N10["n10_m24_first-order"])
+    assert _measured_last(parent, P.tol_a) and _floppy(parent, edges, adjacent, d, P, list(range(parent.n - 1)))
+    last = parent.n - 1
+    lost = Cluster(parent.coords, tuple(c for c in parent.contacts if c != [c for c in parent.contacts if last in c][0]))
+    assert not _measured_last(lost, P.tol_a)
+    assert _floppy(lost, lost.edges(), adjacent, d, P, list(range(parent.n - 1))) == {}
+
+
+@settings(max_examples=20, deadline=None, derandomize=True)
+@given(st.sampled_from(sorted(N10)), st.integers(0, 2**31 - 1), st.booleans())
+def test_what_moving_a_sphere_takes_from_the_glued_cluster_is_what_each_remainder_has(name, seed, reflect):
+    """For each glued cluster of a relabelled, rotated (reflected) test cluster of 10 and each remainder without
+    one sphere: the parent's measured contacts are its own exactly where the cluster's and the glued sphere's
+    are (_measured_last), and then the remainder's are too; its graph's certificate from the lists of larger
+    neighbours is nauty's of its contacts; and the flexes _floppy certifies (of the remainders where every
+    sphere keeps three contacts, as moved_remainders asks) are those the remainder, decided alone, finds floppy
+    with."""
+    c = moved(N10[name], np.random.default_rng(seed), reflect)[0]
+    cluster_measured = contacts_from_coords(c.coords, P.tol_a) == c.contacts
+    for tri, parent in glued(c, P):
+        edges = parent.edges()
+        adjacent = np.zeros((parent.n, parent.n), dtype=bool)
+        adjacent[edges[:, 0], edges[:, 1]] = adjacent[edges[:, 1], edges[:, 0]] = True
+        measured = contacts_from_coords(parent.coords, P.tol_a) == parent.contacts
+        assert (cluster_measured and _measured_last(parent, P.tol_a)) == measured
+        rest = {s: sub_cluster(parent, [i for i in range(parent.n) if i != s]) for s in range(c.n)}
+        enough = [s for s, r in rest.items() if np.bincount(r.edges().ravel(), minlength=r.n).min() >= 3]
+        floppy = _floppy(parent, edges, adjacent, pair_distances(parent.coords), P, enough)
+        assert set(floppy) <= set(enough)
+        for s, r in rest.items():
+            assert (contacts_from_coords(r.coords, P.tol_a) == r.contacts) == measured
+            above = [[j for i2, j in r.contacts if i2 == i] for i in range(r.n)]
+            assert adjacency_certificate(r.n, above) == edges_certificate(r.n, r.contacts)
+            if s in floppy:
+                alone = remainder(parent, (s,), P)
+                assert (alone.outcome, alone.rigidity) == (NOT_RIGID, rigidity_without_stress(floppy[s]))
