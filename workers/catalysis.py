@@ -100,7 +100,7 @@ def sub_cluster(parent: Cluster, kept) -> Cluster:
 
 def _without_sphere(parent: Cluster, s: int) -> Cluster:
     """``sub_cluster`` of every sphere of ``parent`` but s, in order: the contacts renumbered stay sorted."""
-    return Cluster.of_normal(np.delete(parent.coords, s, axis=0),
+    return Cluster.of_normal(np.concatenate((parent.coords[:s], parent.coords[s + 1:])),
                              tuple(pair(i - (i > s), j - (j > s)) for i, j in parent.contacts if i != s and j != s))
 
 
@@ -376,22 +376,56 @@ def _floppy(parent: Cluster, edges: np.ndarray, adjacent: np.ndarray, d: np.ndar
     rounding."""
     if not _measured_last(parent, params.tol_a):
         return {}
+    spheres = np.asarray(spheres, dtype=np.int64)
     near = (d < 1.0 + params.tol_a0 + NEAR_ROOM) & ~adjacent
     np.fill_diagonal(near, False)
-    i, j = np.nonzero(np.triu(near))
-    first = contact_triangle(parent.contacts)
-    ask, triangles = [], []
-    for s in spheres:
-        tri = first
-        if tri is not None and s in tri:  # the first that avoids s: the first once s touches nothing
-            tri = contact_triangle(parent.contacts, forbidden=[c for c in parent.contacts if s in c])
-        if tri is not None and not ((i != s) & (j != s)).any():
-            ask.append(s)
-            triangles.append(tuple(t - (t > s) for t in tri))
-    if not ask:
+    if near.any():  # keep the remainders that lose a sphere of every near pair
+        i, j = np.nonzero(np.triu(near))
+        spheres = spheres[((i[None, :] == spheres[:, None]) | (j[None, :] == spheres[:, None])).all(axis=1)]
+    triangles = first_triangles_without(adjacent, spheres)
+    ask = triangles[:, 0] >= 0
+    if not ask.any():
         return {}
-    flexes = kernels.floppy_without(parent.coords, edges, np.array(ask), np.array(triangles), params.tol_n)
-    return {s: int(f) for s, f in zip(ask, flexes.tolist()) if f > 0}
+    spheres, triangles = spheres[ask], triangles[ask]
+    triangles -= triangles > spheres[:, None]  # in the remainders' own labels
+    flexes = kernels.floppy_without(parent.coords, edges, spheres, triangles, params.tol_n)
+    return {s: f for s, f in zip(spheres.tolist(), flexes.tolist()) if f > 0}
+
+
+def first_triangles_without(adjacent: np.ndarray, spheres: np.ndarray) -> np.ndarray:
+    """For each sphere s of ``spheres``: :func:`packings.workers.rigidity.contact_triangle` of the contacts
+    (adjacency matrix ``adjacent``) without those of s, as a row (a, b, c) of sphere numbers of the whole;
+    (-1, -1, -1) where none is left.  That triangle is the first contact (a, b), a < b, in lexicographic order
+    with a common neighbour, c the least of those: the first triangle of all the contacts wherever it avoids s
+    (deleting s takes no common neighbour from an earlier contact, which has none)."""
+    a = adjacent.astype(np.int64)
+    first = _first_triangle(a)
+    out = np.tile(first, (len(spheres), 1))
+    for q, s in enumerate(np.asarray(spheres).tolist()):
+        if s in first:
+            left = a.copy()
+            left[s, :] = 0
+            left[:, s] = 0
+            out[q] = _first_triangle(left)
+    return out
+
+
+def _first_triangle(a: np.ndarray) -> tuple[int, int, int]:
+    """The first triangle of the contacts of the 0/1 adjacency matrix ``a`` (first_triangles_without)."""
+    n = len(a)
+    pairs = (a * (a @ a) > 0) & _above_diagonal(n)  # contacts i < j with a common neighbour
+    if not pairs.any():
+        return -1, -1, -1
+    i, j = divmod(int(np.argmax(pairs)), n)
+    return i, j, int(np.argmax(a[i] * a[j]))
+
+
+@functools.lru_cache(maxsize=None)
+def _above_diagonal(n: int) -> np.ndarray:
+    """The n x n mask of the entries (i, j) with i < j (read-only, shared)."""
+    out = np.triu(np.ones((n, n), dtype=bool), 1)
+    out.setflags(write=False)
+    return out
 
 
 def _measured_last(parent: Cluster, tol_a: float) -> bool:

@@ -19,6 +19,7 @@ from packings.workers.catalysis import (
     _floppy,
     _measured_last,
     _without,
+    first_triangles_without,
     glued,
     moved_remainders,
     remainder,
@@ -31,7 +32,7 @@ from packings.workers.cluster import Cluster, contacts_from_coords, pair_distanc
 from packings.workers.identity import adjacency_certificate, certificate_key, edges_certificate, graph_certificate
 from packings.workers.outcomes import BELOW_MIN_CONTACTS, RIGID
 from packings.workers.params import Params
-from packings.workers.rigidity import rigidity, rigidity_without_stress
+from packings.workers.rigidity import contact_triangle, rigidity, rigidity_without_stress
 from packings.workers.seeds import seed_cluster
 
 P = Params()
@@ -547,3 +548,19 @@ def test_what_moving_a_sphere_takes_from_the_glued_cluster_is_what_each_remainde
             if s in floppy:
                 alone = remainder(parent, (s,), P)
                 assert (alone.outcome, alone.rigidity) == (NOT_RIGID, rigidity_without_stress(floppy[s]))
+
+
+@settings(max_examples=200, deadline=None, derandomize=True)
+@given(st.integers(3, 14), st.data())
+def test_first_triangles_without_a_sphere_are_contact_triangles(n, data):
+    """first_triangles_without is contact_triangle of the contacts without those of the sphere, for any graph."""
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    contacts = sorted(data.draw(st.lists(st.sampled_from(pairs), unique=True)))
+    adjacent = np.zeros((n, n), dtype=bool)
+    for i, j in contacts:
+        adjacent[i, j] = adjacent[j, i] = True
+    spheres = np.arange(n)
+    got = first_triangles_without(adjacent, spheres)
+    for s in range(n):
+        expected = contact_triangle(contacts, forbidden=[c for c in contacts if s in c])
+        assert (None if got[s, 0] < 0 else tuple(got[s].tolist())) == expected
