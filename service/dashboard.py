@@ -301,7 +301,12 @@ _register()
 
 
 def dask_setup(scheduler) -> None:
-    """``dask scheduler --preload packings.dashboard``: watch ``$PACKINGS_DB`` and serve the JSON."""
+    """``dask scheduler --preload packings.dashboard``: watch ``$PACKINGS_DB`` and serve the JSON; keep what
+    the scheduler remembers of tasks long gone bounded (:class:`packings.plugin.TaskLeftovers`), also
+    once it is started again, before a coordinator gives it the plugin again."""
+    from packings.plugin import TaskLeftovers
+
+    scheduler.add_plugin(TaskLeftovers())
     url = os.environ.get("PACKINGS_DB")
     if url:
         watch(url)

@@ -244,6 +244,20 @@ class dask_client:
             if self.database:
                 packings.dashboard.watch(self.database)
             self._client = Client(self.cluster)
+        self._bound_leftovers()
+
+    def _bound_leftovers(self) -> None:
+        """Give the scheduler :class:`packings.plugin.TaskLeftovers`, which keeps what it remembers of the
+        run's tasks once they are gone bounded.  An existing scheduler that cannot load it (the package not
+        installed beside it) runs on: its memory grows by a few hundred bytes a task, which is said once."""
+        from packings.plugin import TaskLeftovers
+
+        try:
+            self._client.register_plugin(TaskLeftovers())
+        except Exception as e:  # noqa: BLE001 - the run goes on; only the scheduler's memory is at stake
+            log.warning("the Dask scheduler did not take packings' plugin for its memory (%s): it keeps a few "
+                        "hundred bytes of each task; install packings beside it, or start it with "
+                        "--preload packings.dashboard", str(e).splitlines()[0] if str(e) else type(e).__name__)
 
     def revive_workers(self) -> int:
         """Replace the local cluster's workers whose nanny gave up (a worker process killed while it

@@ -1,14 +1,15 @@
-"""The Dask worker plugin that gives each worker process its own database engine.
+"""The Dask plugins of a run: the worker plugin that gives each worker process its own database
+engine, and the scheduler plugin that keeps what Dask remembers of tasks long gone bounded.
 
-In a module of its own, which imports little: ``packings enumerate`` hands it to the local
-cluster's workers as they start, and so imports it before they can start.
+In a module of its own, which imports little: ``packings enumerate`` hands them to the local
+cluster as it starts, and so imports it before it can start.
 """
 
 from __future__ import annotations
 
 import gc
 
-from distributed import WorkerPlugin
+from distributed import SchedulerPlugin, WorkerPlugin
 from sqlalchemy import Engine
 
 from packings.db import advisory_key, display_url, make_engine, parse_url, sessions
@@ -34,6 +35,60 @@ def prepare_process() -> float:
     # passes, and out of its last one when the process exits (0.2-0.3 s: the cluster's close waits for it).
     gc.freeze()
     return seconds
+
+
+#: how many task keys Dask's ``key_split`` may remember in a process before its cache is emptied
+KEY_CACHE_LIMIT = 1_000
+
+
+def bound_key_cache() -> None:
+    """Empty the cache of ``dask.utils.key_split`` once it holds more than :data:`KEY_CACHE_LIMIT` keys.
+
+    Dask splits every task's key (into the prefix its panels show) in the scheduler, the Client and each
+    worker, through a cache of up to 100,000 keys that holds each key and its prefix (about 190 bytes a
+    key).  Each task of a run has a key of its own, never split again once the task is done, so the
+    cache only grows: by up to 19 MiB in each process over a run of 100,000 tasks.  Emptied, it costs
+    the keys of the tasks in flight one split each again (a few microseconds)."""
+    from dask.utils import key_split
+
+    if key_split.cache_info().currsize > KEY_CACHE_LIMIT:
+        key_split.cache_clear()
+
+
+def _distinct(items: list) -> list:
+    """``items`` without repeats (dicts: no set), in their order."""
+    out: list = []
+    for x in items:
+        if x not in out:
+            out.append(x)
+    return out
+
+
+class TaskLeftovers(SchedulerPlugin):
+    """What Dask's scheduler keeps of every task it was given, after the task is gone, kept bounded.
+
+    * Each submission adds its kind of collection (``{"type": "Future"}`` for each ``Client.submit``) to
+      the metadata of the span its tasks join (the default span, for all of a run's tasks), a list Dask
+      never shortens: one dict a task, for as long as the scheduler lives.  After each submission the
+      list of each span it touched keeps one entry of each kind.
+    * The cache of task keys (:func:`bound_key_cache`) in the scheduler's process.
+
+    ``packings enumerate`` registers it on its local cluster and on an existing scheduler (which then
+    needs the package installed); ``dask scheduler --preload packings.dashboard`` adds it too
+    (docs/performance.md)."""
+
+    name = "packings-task-leftovers"
+    idempotent = True
+
+    def update_graph(self, scheduler, *, tasks=(), **kwargs) -> None:
+        spans = {scheduler.tasks[k].group.span_id for k in tasks if k in scheduler.tasks}
+        found = getattr(scheduler.extensions.get("spans"), "spans", {})
+        for span_id in spans:
+            meta = getattr(found.get(span_id), "metadata", None) or {}
+            kinds = meta.get("collections")
+            if kinds is not None and len(kinds) > 1:
+                kinds[:] = _distinct(kinds)
+        bound_key_cache()
 
 
 class LocalWorkerPlugin(WorkerPlugin):
@@ -65,6 +120,10 @@ class DatabasePlugin(WorkerPlugin):
         self.sessions = sessions(self.engine)
         self.readers = sessions(self.engine, readonly=True)  # SQLite: reading a task takes no write lock
         self.warm_up_seconds = prepare_process()
+
+    def transition(self, key, start, finish, **kwargs) -> None:
+        if finish == "forgotten":  # the worker's cache of task keys, as the scheduler's (TaskLeftovers)
+            bound_key_cache()
 
     def teardown(self, worker) -> None:
         if self.engine is not None:

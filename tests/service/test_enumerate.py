@@ -583,6 +583,78 @@ def test_the_coordinator_keeps_few_of_the_messages_it_sent(fresh_dask_config, en
         assert max(held) > dc.LOG_LENGTH + 50
 
 
+def _kinds(scheduler) -> list[int]:
+    """How many collections Dask's scheduler recorded in the metadata of each of its spans (one each
+    submission of tasks that joined it)."""
+    return [len((span.metadata or {}).get("collections", ())) for span in scheduler.extensions["spans"].spans.values()]
+
+
+def test_the_scheduler_forgets_what_each_task_left_once_it_is_gone(fresh_dask_config, monkeypatch):
+    """Dask's scheduler adds the kind of collection of every submission (``{"type": "Future"}``) to the
+    metadata of the span its tasks join and never shortens that list, and splits each task's key through a
+    cache of up to 100,000 keys: both grew by a few hundred bytes with every task ``packings enumerate``
+    submitted.  The scheduler of ``dask_client`` has :class:`packings.plugin.TaskLeftovers`, which keeps one
+    entry of each kind and empties the cache past :data:`packings.plugin.KEY_CACHE_LIMIT`; without it both
+    grow.  Tasks are kept in flight, as the coordinator keeps them: they all join one span."""
+    from dask.utils import key_split
+
+    import packings.dask_cluster as dc
+    import packings.plugin
+
+    monkeypatch.setattr(packings.plugin, "KEY_CACHE_LIMIT", 20)  # the scheduler runs in this process
+    with dc.dask_client(None, 1, True) as local:
+        client, scheduler = local.client, local.cluster.scheduler
+        assert packings.plugin.TaskLeftovers.name in scheduler.plugins
+        key_split.cache_clear()
+        assert client.gather([client.submit(_one, i, key=f"left-{i}") for i in range(60)]) == list(range(60))
+        kinds, keys = _kinds(scheduler), key_split.cache_info().currsize
+        client.unregister_scheduler_plugin(packings.plugin.TaskLeftovers.name)
+        assert client.gather([client.submit(_one, i, key=f"right-{i}") for i in range(60)]) == list(range(60))
+        grown, grown_keys = _kinds(scheduler), key_split.cache_info().currsize
+    assert max(kinds) == 1 and keys <= 20 + 2
+    assert max(grown) >= 60 and grown_keys >= 60  # Dask's own behaviour, which the plugin bounds
+
+
+def test_a_worker_empties_its_cache_of_task_keys_as_tasks_are_forgotten(monkeypatch, tmp_path):
+    """A worker splits each task's key through the same cache as the scheduler: its database plugin empties
+    it, once past the limit, as the worker forgets a task."""
+    from dask.utils import key_split
+
+    import packings.plugin
+
+    monkeypatch.setattr(packings.plugin, "KEY_CACHE_LIMIT", 5)
+    plugin = packings.plugin.DatabasePlugin(f"sqlite:///{tmp_path / 'db.sqlite'}")
+    key_split.cache_clear()
+    for i in range(5):
+        key_split(f"kept-{i}")
+    plugin.transition("kept-0", "released", "forgotten")
+    assert key_split.cache_info().currsize == 5  # not past the limit: kept
+    key_split("kept-5")
+    plugin.transition("kept-5", "memory", "released")
+    assert key_split.cache_info().currsize == 6  # not forgotten yet
+    plugin.transition("kept-5", "released", "forgotten")
+    assert key_split.cache_info().currsize == 0
+
+
+def test_a_scheduler_started_with_the_preload_has_the_plugin_for_its_memory(monkeypatch):
+    """``dask scheduler --preload packings.dashboard`` (a scheduler of many machines, also when it is
+    started again) gives it :class:`packings.plugin.TaskLeftovers` itself."""
+    import packings.dashboard
+    import packings.plugin
+
+    added = {}
+
+    class Scheduler:
+        http_application = type("App", (), {"add_handlers": lambda *a: None})()
+
+        def add_plugin(self, plugin):
+            added[plugin.name] = plugin
+
+    monkeypatch.delenv("PACKINGS_DB", raising=False)
+    packings.dashboard.dask_setup(Scheduler())
+    assert isinstance(added.get(packings.plugin.TaskLeftovers.name), packings.plugin.TaskLeftovers)
+
+
 def _sigint_by_default() -> None:
     """In the child before exec: SIGINT back to its default action, for a terminal's Ctrl-C to reach
     it even when the tests run in the background (a shell starts background jobs with SIGINT ignored,
