@@ -611,7 +611,7 @@ def test_the_scheduler_forgets_what_each_task_left_once_it_is_gone(fresh_dask_co
         client.unregister_scheduler_plugin(packings.plugin.TaskLeftovers.name)
         assert client.gather([client.submit(_one, i, key=f"right-{i}") for i in range(60)]) == list(range(60))
         grown, grown_keys = _kinds(scheduler), key_split.cache_info().currsize
-    assert max(kinds) == 1 and keys <= 20 + 2
+    assert max(kinds) == 1 and keys < 30  # the limit, and the few keys split since the last submission
     assert max(grown) >= 60 and grown_keys >= 60  # Dask's own behaviour, which the plugin bounds
 
 
