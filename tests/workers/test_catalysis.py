@@ -34,6 +34,7 @@ from packings.workers.outcomes import BELOW_MIN_CONTACTS, RIGID
 from packings.workers.params import Params
 from packings.workers.rigidity import contact_triangle, rigidity, rigidity_without_stress
 from packings.workers.seeds import seed_cluster
+from tests.workers.motions import congruent_copy
 
 P = Params()
 DATA = Path(__file__).parent.parent / "data"
@@ -44,16 +45,6 @@ def octahedron() -> Cluster:
     s = 1 / np.sqrt(2.0)
     x = np.array([[s, 0, 0], [-s, 0, 0], [0, s, 0], [0, -s, 0], [0, 0, s], [0, 0, -s]])
     return Cluster.from_coords(x)
-
-
-def moved(c: Cluster, rng, reflect: bool) -> tuple[Cluster, np.ndarray]:
-    """``c`` relabelled (sphere i of ``c`` is sphere inv[i]), rotated, reflected if asked, translated."""
-    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
-    if reflect:
-        q = q @ np.diag([1.0, 1.0, -1.0])
-    perm = rng.permutation(c.n)
-    inv = np.argsort(perm)
-    return Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts]), inv
 
 
 def test_deleting_a_sphere_of_the_octahedron_leaves_a_square_pyramid_which_is_not_rigid():
@@ -161,7 +152,7 @@ def _certificates(parent: Cluster, k: int) -> Counter:
 def test_relabelling_rotating_and_reflecting_the_parent_changes_nothing(name, seed, reflect):
     """The same deleted sets (relabelled) are rigid, with the same certificates."""
     parent = N10[name]
-    other, inv = moved(parent, np.random.default_rng(seed), reflect)
+    other, inv = congruent_copy(parent, seed, reflect)
     a = {r.deleted: certificate_key(r.cluster) for r in rigid_remainders(parent, 1, P)}
     b = {r.deleted: certificate_key(r.cluster) for r in rigid_remainders(other, 1, P)}
     assert b == {(int(inv[d]),): cert for (d,), cert in a.items()}
@@ -303,7 +294,7 @@ def test_a_remainder_seen_is_not_decided_again():
 def test_a_cluster_relabelled_rotated_and_reflected_is_seen(name, seed, reflect):
     seen = Seen(P.tol_d)
     assert seen.add(N10[name])
-    assert not seen.add(moved(N10[name], np.random.default_rng(seed), reflect)[0])
+    assert not seen.add(congruent_copy(N10[name], seed, reflect)[0])
     assert all(seen.add(N10[other]) for other in sorted(N10) if other != name)
 
 
@@ -410,7 +401,7 @@ def test_two_geometries_of_one_graph_are_both_new():
 @given(st.integers(0, 2**31 - 1), st.booleans())
 def test_moving_spheres_of_a_relabelled_rotated_reflected_cluster_finds_the_same(seed, reflect):
     c, _ = _glued_n11()
-    other, _ = moved(c, np.random.default_rng(seed), reflect)
+    other, _ = congruent_copy(c, seed, reflect)
 
     def found(x):
         return Counter(certificate_key(mv.remainder.cluster) for mv in moved_remainders(x, P, Seen(P.tol_d))
@@ -458,7 +449,7 @@ def _clusters_to_move() -> dict[str, Cluster]:
     data = json.loads((DATA / "n13_glued.json").read_text())
     out["n13_glued"] = Cluster(np.array(data["cluster"]["coords"]), tuple(map(tuple, data["cluster"]["contacts"])))
     for seed, reflect in ((1, False), (2, True)):
-        out[f"n11_glued moved {seed}"] = moved(out["n11_glued"], np.random.default_rng(seed), reflect)[0]
+        out[f"n11_glued moved {seed}"] = congruent_copy(out["n11_glued"], seed, reflect)[0]
     return out
 
 
@@ -529,7 +520,7 @@ def test_what_moving_a_sphere_takes_from_the_glued_cluster_is_what_each_remainde
     neighbours is nauty's of its contacts; and the flexes _floppy certifies (of the remainders where every
     sphere keeps three contacts, as moved_remainders asks) are those the remainder, decided alone, finds floppy
     with."""
-    c = moved(N10[name], np.random.default_rng(seed), reflect)[0]
+    c = congruent_copy(N10[name], seed, reflect)[0]
     cluster_measured = contacts_from_coords(c.coords, P.tol_a) == c.contacts
     for tri, parent in glued(c, P):
         edges = parent.edges()

@@ -30,7 +30,7 @@ from packings.workers.params import Params
 from packings.workers.paths import RIGID, PROJECTION_FAILED, UNDECIDED_END, follow_path
 from packings.workers.rigidity import contact_triangle
 from packings.workers.seeds import seed_cluster
-from tests.workers.test_expand import _congruent_copy
+from tests.workers.motions import congruent_copy
 
 P = Params()
 ROOT = Path(__file__).parents[2]
@@ -802,7 +802,7 @@ def test_floppy_without_certifies_only_what_regular_flexes_certifies_after_to_fr
     (the SVD too), and it gives none where the pinned matrix has no flex; the numpy backend gives none."""
     from packings.workers.catalysis import sub_cluster
 
-    c, _ = _congruent_copy(Cluster.from_dict(FIXTURES[name]), seed, reflect)
+    c, _ = congruent_copy(Cluster.from_dict(FIXTURES[name]), seed, reflect)
     spheres, triangles, expected = [], [], []
     for s in range(c.n):
         r = sub_cluster(c, [i for i in range(c.n) if i != s])

@@ -12,6 +12,7 @@ from packings.workers.identity import certificate_hex
 from packings.workers.params import Params
 from packings.workers.paths import RIGID
 from packings.workers.seeds import seed_cluster
+from tests.workers.motions import congruent_copy
 
 P = Params()
 
@@ -53,18 +54,6 @@ def test_expand_is_pure():
             assert np.array_equal(x.cluster.coords, y.cluster.coords)
 
 
-def _congruent_copy(c: Cluster, seed: int, reflect: bool) -> tuple[Cluster, np.ndarray]:
-    """``c`` rotated (and reflected), translated and relabelled at random; and ``inv``: sphere i of ``c`` is
-    sphere ``inv[i]`` of the copy."""
-    rng = np.random.default_rng(seed)
-    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
-    if reflect:
-        q = q @ np.diag([1.0, 1.0, -1.0])
-    perm = rng.permutation(c.n)
-    inv = np.argsort(perm)
-    return Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts]), inv
-
-
 def _same_distinct_clusters(a, b) -> bool:
     return Counter(certificate_hex(a.endpoints[i].cluster) for i in a.distinct()) == \
         Counter(certificate_hex(b.endpoints[i].cluster) for i in b.distinct())
@@ -74,7 +63,7 @@ def _same_distinct_clusters(a, b) -> bool:
 @given(st.integers(0, 2**31 - 1), st.booleans())
 def test_expand_invariant_under_rotation_reflection_relabelling(seed, reflect):
     c = seed_cluster(7)
-    a, b = expand(c, P), expand(_congruent_copy(c, seed, reflect)[0], P)
+    a, b = expand(c, P), expand(congruent_copy(c, seed, reflect)[0], P)
     assert _endpoint_keys(a) == _endpoint_keys(b)
     assert _same_distinct_clusters(a, b)  # the same distinct clusters among the endpoints
 
@@ -482,7 +471,7 @@ def test_the_held_subsets_are_the_same_after_rotation_reflection_relabelling(see
     from packings.workers.expand import HELD
 
     c, p = _ground_state_12()
-    moved, inv = _congruent_copy(c, seed, reflect)
+    moved, inv = congruent_copy(c, seed, reflect)
     relabel = {(i, j): tuple(sorted((int(inv[i]), int(inv[j])))) for i, j in c.contacts}
     a, b = expand(c, p), expand(moved, p)
     held_a = {tuple(sorted(relabel[e] for e in x.broken)) for x in a.endpoints if x.outcome == HELD}

@@ -15,6 +15,7 @@ from packings.workers.params import Params
 from packings.workers.rigidity import (FIRST_ORDER, FLOPPY, PRESTRESS, UNDECIDED, FirstTriangles, contact_triangle,
                                        prestress_test, rigidity, sdp_margin)
 from packings.workers.seeds import seed_cluster
+from tests.workers.motions import congruent_copy
 
 P = Params()
 FIXTURES = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
@@ -164,20 +165,11 @@ def test_hypostatic_cluster_minus_a_contact_is_not_rigid():
         assert r.flexes >= 2
 
 
-def _random_motion(rng, c, reflect):
-    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
-    if reflect:
-        q = q @ np.diag([1.0, 1.0, -1.0])
-    perm = rng.permutation(c.n)
-    inv = np.argsort(perm)
-    return Cluster(c.coords[perm] @ q.T + rng.standard_normal(3), [(inv[i], inv[j]) for i, j in c.contacts])
-
-
 @settings(max_examples=15, deadline=None, derandomize=True)
 @given(st.sampled_from(sorted(FIXTURES)), st.integers(0, 2**31 - 1), st.booleans())
 def test_rigidity_invariant_under_rotation_reflection_relabelling(name, seed, reflect):
     c = fixture(name)
-    moved = _random_motion(np.random.default_rng(seed), c, reflect)
+    moved = congruent_copy(c, seed, reflect)[0]
     a, b = rigidity(c.coords, c.contacts, P), rigidity(moved.coords, moved.contacts, P)
     assert (a.rigid, a.kind, a.flexes, a.stresses) == (b.rigid, b.kind, b.flexes, b.stresses)
     # the margin's size depends on which triangle is pinned (it scales the flexes); its sign does not
