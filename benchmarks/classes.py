@@ -44,7 +44,8 @@ With ``--parts`` each class's time is split (:func:`_parts`): the paths that kee
 they start, by their stepping loop, first step and endpoint, the other paths, and the rest of expand
 (deciding the subsets).  Also printed per class: the subsets of contacts tried per cluster (least
 and most), the share of them whose set is not one-dimensional, and how many
-sampled clusters gave the same endpoints with both backends.  Ratios measured in one run are what compare; absolute times
+sampled clusters gave the same endpoints, and how many reached the same distinct clusters, with both
+backends.  Ratios measured in one run are what compare; absolute times
 depend on the machine's load.
 """
 
@@ -378,6 +379,13 @@ def _path_outcomes(endpoints) -> Counter:
     return Counter((e.broken, e.outcome) for e in endpoints if e.direction != 0)
 
 
+def _reached(ex) -> Counter:
+    """The distinct clusters an expansion reached, by their certificates."""
+    from packings.workers.identity import certificate_hex
+
+    return Counter(certificate_hex(ex.endpoints[j].cluster) for j in ex.distinct())
+
+
 def _stratified(members, sample: int, rng) -> list[int]:
     """Indices of a seeded sample of ``members``, drawn apart for each number of contacts: in proportion to
     how many clusters have it, at least one each (so about ``sample`` in all, more where a class has many
@@ -407,7 +415,6 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
     import numpy as np
 
     from packings.workers.expand import HELD, NOT_1D
-    from packings.workers.identity import certificate_hex
 
     backends = (["numba", "svd"] + ([AGAINST] if against is not None else []) + (["numpy"] if numpy else [])
                 + (["every"] if every else []) + (["unheld"] if unheld else []))
@@ -424,6 +431,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         picked = Counter(members[i].m for i in pick)
         totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
         subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
+        same_reached = 0
         retraced = run_retraced = held = unheld_differ = 0
         split = {"seconds": 0.0, "weighted": Counter(), "stressed": Counter(), "plain": Counter()}
         for i in pick:
@@ -439,6 +447,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
             if numpy:
                 a, b = results["numba"][1], results["numpy"][1]
                 same += [e.outcome for e in a.endpoints] == [e.outcome for e in b.endpoints]
+                same_reached += _reached(a) == _reached(b)
             # deciding subsets by the first-order counts decides every subset the same way; a path it
             # follows starts along the same tangent only to rounding (and sign: the direction labels may
             # be swapped), so a marginal one may end otherwise
@@ -457,8 +466,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
                 other = results["unheld"][1]
                 kept = {e.broken for e in ex.endpoints if e.outcome == HELD}
                 held += len(kept)
-                reached = [Counter(certificate_hex(x.endpoints[j].cluster) for j in x.distinct()) for x in (ex, other)]
-                unheld_differ += (reached[0] != reached[1] or [k for k in _attempt_keys(ex) if k[0] not in kept]
+                unheld_differ += (_reached(ex) != _reached(other) or [k for k in _attempt_keys(ex) if k[0] not in kept]
                                   != [k for k in _attempt_keys(other) if k[0] not in kept])
             if parts:  # one more call, apart from the others: its wrappers cost a little
                 one = _parts(members[i], params, came_rows)
@@ -495,6 +503,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
             row["parts"] = _parts_row(split, len(members), len(pick))
         if numpy:
             row["same_endpoints"] = same
+            row["same_clusters_reached"] = same_reached
             row["ratio"] = row["mean_ms_numpy"] / row["mean_ms_numba"]
         rows.append(row)
     for b in backends:
@@ -582,7 +591,7 @@ def run(args: argparse.Namespace) -> int:
     if args.unheld:
         head += f"{'unheld ms':>10}{'unheld/':>8}{'held':>8}{'differ':>7}"
     if args.numpy:
-        head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}"
+        head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}{'same cl':>8}"
     print(head)
     for r in rows:
         line = (f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
@@ -602,7 +611,8 @@ def run(args: argparse.Namespace) -> int:
                      f"{r['unheld_clusters_differing']:>7}")
         if args.numpy:
             line += (f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
-                     f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}")
+                     f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}"
+                     f"{str(r['same_clusters_reached']) + '/' + str(r['sampled']):>8}")
         print(line)
     print("(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
           "times the class's clusters; retraced: paths taken from the other end, per cluster"
@@ -617,7 +627,9 @@ def run(args: argparse.Namespace) -> int:
              "every path gave" if args.every else "")
           + ("; unheld: the paths of subsets with a contact the rest holds followed too, unheld/ = unheld / ms each, "
              "held: subsets held, differ: clusters whose other attempts or clusters reached differ" if args.unheld
-             else "") + ")")
+             else "")
+          + ("; same: sampled clusters whose attempts all end as with numpy, same cl: whose distinct clusters "
+             "reached are the same (certificates) as with numpy" if args.numpy else "") + ")")
     if args.parts:
         _print_parts(rows)
     differ = sum(r["svd_paths_differing"] for r in rows)
