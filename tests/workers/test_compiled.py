@@ -31,6 +31,7 @@ from packings.workers.paths import RIGID, PROJECTION_FAILED, UNDECIDED_END, foll
 from packings.workers.rigidity import contact_triangle
 from packings.workers.seeds import seed_cluster
 from tests.workers.motions import congruent_copy
+from tests.workers.test_identity import random_orthogonal
 
 P = Params()
 ROOT = Path(__file__).parents[2]
@@ -166,14 +167,6 @@ def test_the_compiled_loop_defers_to_the_svd_where_the_guard_fails(monkeypatch):
 # --------------------------------------------------------------------------- (b) kernels on random inputs
 
 
-def _random_rotation(rng):
-    q, r = np.linalg.qr(rng.standard_normal((3, 3)))
-    q = q * np.sign(np.diag(r))
-    if np.linalg.det(q) < 0:
-        q[:, 0] *= -1
-    return q
-
-
 @st.composite
 def random_graphs(draw):
     n = draw(st.integers(2, 14))
@@ -205,7 +198,7 @@ def test_compiled_kernels_are_invariant_under_rotation_and_relabelling(graph):
     n, edges, rng = graph
     x = rng.standard_normal(3 * n)
     y = rng.standard_normal(3 * n)
-    q = _random_rotation(rng)
+    q = random_orthogonal(rng, False)
     shift = rng.standard_normal(3)
     xr = (x.reshape(-1, 3) @ q.T + shift).ravel()
     yr = (y.reshape(-1, 3) @ q.T).ravel()
