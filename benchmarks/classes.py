@@ -42,7 +42,10 @@ of subsets with a contact the rest holds at its length too (``unheld``: the code
 ``held``), with the clusters whose other attempts or distinct clusters reached then differ counted.
 With ``--parts`` each class's time is split (:func:`_parts`): the paths that keep a self-stress where
 they start, by their stepping loop, first step and endpoint, the other paths, and the rest of expand
-(deciding the subsets).  Also printed per class: the subsets of contacts tried per cluster (least
+(deciding the subsets), with the dimension test's probes of the subsets apart; and the non-regular
+classes' share is given again as it would be with those stressed paths and probes free, and with the
+singular and hypostatic classes free besides (:func:`floors`): how far making those parts cheaper can
+take it.  Also printed per class: the subsets of contacts tried per cluster (least
 and most), the share of them whose set is not one-dimensional, and how many
 sampled clusters gave the same endpoints, and how many reached the same distinct clusters, with both
 backends.  Ratios measured in one run are what compare; absolute times
@@ -96,7 +99,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--parts", action="store_true",
                         help="also split each class's time in expand (one more call per cluster, as a run makes it): "
                              "the paths whose set keeps a self-stress (their steps, first step and endpoint), the "
-                             "other paths, and the rest (deciding the subsets)")
+                             "other paths, and the rest (deciding the subsets; its probes apart), and the "
+                             "non-regular share were the stressed paths and probes free")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -305,16 +309,18 @@ def _instrumented(split: dict):
     path ("stressed": the contacts it keeps have a self-stress where it starts, the SVD of their pinned rigidity
     matrix counting a singular value below tol_n, so that each step of the compiled loop fails the rank guard
     wherever the stress persists; "plain": the others) the count, the seconds of whole paths, of each part and
-    the steps taken; and under "overhead" the seconds spent telling the kinds apart, which the caller takes off.
-    The functions wrapped are put back when the block ends."""
+    the steps taken; under "probes" the calls and seconds of the dimension test's probes outside the paths (those
+    that decide the subsets; a path's first step counts its own); and under "overhead" the seconds spent telling
+    the kinds apart, which the caller takes off.  The functions wrapped are put back when the block ends."""
     import numpy as np
 
-    from packings.workers import expand, kernels, paths
+    from packings.workers import dimension, expand, kernels, paths
 
     compiled = paths._compiled
-    saved = expand.PathStart.follow, paths._endpoint, paths._svd_tangent, compiled.follow_steps
-    follow, endpoint, first_step, steps = saved
+    saved = expand.PathStart.follow, paths._endpoint, paths._svd_tangent, compiled.follow_steps, dimension._probe
+    follow, endpoint, first_step, steps, probe = saved
     inside = Counter()
+    probes = split.setdefault("probes", {"calls": 0, "seconds": 0.0})
 
     def timed(f, part):
         def call(*args, **kwargs):
@@ -325,10 +331,24 @@ def _instrumented(split: dict):
                 inside[part] += time.perf_counter() - t0
         return call
 
+    def timed_probe(*args, **kwargs):
+        if inside["following"]:
+            return probe(*args, **kwargs)
+        t0 = time.perf_counter()
+        try:
+            return probe(*args, **kwargs)
+        finally:
+            probes["calls"] += 1
+            probes["seconds"] += time.perf_counter() - t0
+
     def timed_follow(start, params):
         inside.clear()
+        inside["following"] = 1
         t0 = time.perf_counter()
-        end = follow(start, params)
+        try:
+            end = follow(start, params)
+        finally:
+            inside["following"] = 0
         seconds = time.perf_counter() - t0
         t1 = time.perf_counter()
         ns = kernels.null_spaces(start.x, np.asarray(start.keep).reshape(-1, 2), start.free, params.tol_n)
@@ -345,16 +365,17 @@ def _instrumented(split: dict):
     expand.PathStart.follow = timed_follow
     paths._endpoint, paths._svd_tangent = timed(endpoint, "endpoint"), timed(first_step, "first_step")
     compiled.follow_steps = timed(steps, "steps")
+    dimension._probe = timed_probe
     try:
         yield
     finally:
-        expand.PathStart.follow, paths._endpoint, paths._svd_tangent, compiled.follow_steps = saved
+        expand.PathStart.follow, paths._endpoint, paths._svd_tangent, compiled.follow_steps, dimension._probe = saved
 
 
 def _parts(cluster, params, came: tuple = ()) -> dict:
     """One expand call of ``cluster`` as a run makes it, its time split by :func:`_instrumented`: "seconds" the
     whole call less the time spent telling the kinds of path apart, "stressed" and "plain" the paths of each kind
-    (absent where there is none)."""
+    (absent where there is none), "probes" the probes that decided subsets."""
     from packings.workers import kernels
     from packings.workers.expand import arrivals, expand
 
@@ -433,7 +454,7 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
         subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
         same_reached = 0
         retraced = run_retraced = held = unheld_differ = 0
-        split = {"seconds": 0.0, "weighted": Counter(), "stressed": Counter(), "plain": Counter()}
+        split = {"seconds": 0.0, "weighted": Counter(), "stressed": Counter(), "plain": Counter(), "probes": Counter()}
         for i in pick:
             came_rows, took = given.get(keys[i], ((), 0))
             run_retraced += took
@@ -471,10 +492,10 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
             if parts:  # one more call, apart from the others: its wrappers cost a little
                 one = _parts(members[i], params, came_rows)
                 split["seconds"] += one["seconds"] * scale
-                for kind in ("stressed", "plain"):
+                for kind in ("stressed", "plain", "probes"):
                     for key, value in one.get(kind, {}).items():
-                        split[kind][key] += value  # the sample's own paths: counts, ms a path
-                        if key not in ("paths", "path_steps"):
+                        split[kind][key] += value  # the sample's own paths and probes: counts, ms each
+                        if key not in ("paths", "path_steps", "calls"):
                             split["weighted"][(kind, key)] += value * scale
             if against is not None:
                 mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
@@ -517,7 +538,8 @@ def _parts_row(split: dict, clusters: int, sampled: int) -> dict:
     """A class's "parts": ``ms_each`` the mean time of its instrumented expand calls (each number of contacts by
     its own mean, as the class's time), and for each kind of path its ``share`` of that time, its parts' shares
     (:data:`PATH_PARTS`), the paths ``per_cluster``, ``ms_per_path`` and ``steps_per_path`` of the sample; the
-    ``rest_share``, what deciding the subsets (and everything else expand does) takes."""
+    ``rest_share``, what deciding the subsets (and everything else expand does) takes, and of it ``probes``: the
+    ``share`` of the dimension test's probes that decide subsets, their calls ``per_cluster`` and ``ms_each``."""
     whole = split["seconds"] or 1.0
     row = {"ms_each": 1e3 * split["seconds"] / clusters}
     rest = 1.0
@@ -530,7 +552,31 @@ def _parts_row(split: dict, clusters: int, sampled: int) -> dict:
                      "ms_per_path": 1e3 * mine["seconds"] / mine["paths"] if mine["paths"] else 0.0,
                      "steps_per_path": mine["path_steps"] / mine["paths"] if mine["paths"] else 0.0}
     row["rest_share"] = rest
+    mine = split["probes"]
+    row["probes"] = {"share": split["weighted"][("probes", "seconds")] / whole,
+                     "per_cluster": mine["calls"] / sampled,
+                     "ms_each": 1e3 * mine["seconds"] / mine["calls"] if mine["calls"] else 0.0}
     return row
+
+
+def floors(rows: list[dict], seconds: str) -> dict:
+    """What --parts says of the non-regular classes' share of ``expand`` (the classes' time ``seconds``: a row's
+    ``run_s`` or ``total_s_numba``), were the dearest parts of their work free: ``share`` as it is; ``free``
+    with every class's stressed paths and subset-deciding probes taking no time (each class's time times the share
+    its parts leave); ``hyperstatic_only`` with that and the singular and hypostatic classes taking no time at
+    all, what the hyperstatic class's plain paths and the rest of its subsets cost beside the regular class."""
+    left = {r["class"]: r[seconds] * (1.0 - r["parts"]["stressed"]["share"] - r["parts"]["probes"]["share"])
+            for r in rows}
+    whole = {r["class"]: r[seconds] for r in rows}
+
+    def share(times: dict, others) -> float:
+        total = sum(times.values())
+        return sum(times[c] for c in others if c in times) / total if total else 0.0
+
+    irregular = ("singular", "hypostatic", "hyperstatic")
+    hyper = {c: t for c, t in left.items() if c in ("regular", "hyperstatic")}
+    return {"seconds": seconds, "share": share(whole, irregular), "free": share(left, irregular),
+            "hyperstatic_only": share(hyper, irregular)}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -570,6 +616,8 @@ def run(args: argparse.Namespace) -> int:
               "arrivals": mode, "run": run_id, "max_break": args.max_break, "min_contacts": args.min_contacts,
               "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
               "rows": rows}
+    if args.parts:
+        result["floors"] = floors(rows, "run_s" if run_id is not None else "total_s_numba")
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -631,7 +679,7 @@ def run(args: argparse.Namespace) -> int:
           + ("; same: sampled clusters whose attempts all end as with numpy, same cl: whose distinct clusters "
              "reached are the same (certificates) as with numpy" if args.numpy else "") + ")")
     if args.parts:
-        _print_parts(rows)
+        _print_parts(rows, result["floors"])
     differ = sum(r["svd_paths_differing"] for r in rows)
     if differ:
         print(f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "
@@ -639,21 +687,27 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_parts(rows: list[dict]) -> None:
-    """The table of --parts: where each class's time in expand goes."""
+def _print_parts(rows: list[dict], floor: dict) -> None:
+    """The table of --parts: where each class's time in expand goes, and the floors of the non-regular share."""
     print()
     print(f"{'class':<12}{'ms each':>9}{'stressed':>10}{'each':>7}{'ms':>7}{'steps':>7}{'loop':>7}"
-          f"{'first':>7}{'end':>7}{'plain':>8}{'each':>7}{'ms':>7}{'rest':>7}")
+          f"{'first':>7}{'end':>7}{'plain':>8}{'each':>7}{'ms':>7}{'rest':>7}{'probes':>8}{'each':>7}{'ms':>7}")
     for r in rows:
         p = r["parts"]
-        st, pl = p["stressed"], p["plain"]
+        st, pl, pr = p["stressed"], p["plain"], p["probes"]
         print(f"{r['class']:<12}{p['ms_each']:>9.1f}{st['share']:>10.0%}{st['per_cluster']:>7.1f}"
               f"{st['ms_per_path']:>7.2f}"
               f"{st['steps_per_path']:>7.0f}{st['steps_share']:>7.0%}{st['first_step_share']:>7.0%}"
               f"{st['endpoint_share']:>7.0%}{pl['share']:>8.0%}{pl['per_cluster']:>7.1f}{pl['ms_per_path']:>7.2f}"
-              f"{p['rest_share']:>7.0%}")
+              f"{p['rest_share']:>7.0%}{pr['share']:>8.0%}{pr['per_cluster']:>7.0f}{pr['ms_each']:>7.2f}")
     print("(--parts: one more expand call per sampled cluster, timed by parts; stressed: the paths whose contacts "
           "kept have a self-stress where they start, their share of the class's time, paths per cluster (each), ms "
           "and steps a path, and the shares of the class's time in their stepping loop (loop), their first step "
           "where Python decides it (first) and their endpoints (end); plain: the other paths; rest: deciding the "
-          "subsets and the rest of expand)")
+          "subsets and the rest of expand; probes: of the rest, the dimension test's probes that decide subsets, "
+          "their share, calls per cluster (each) and ms a call)")
+    whose = "the run's" if floor["seconds"] == "run_s" else "the sample's"
+    print(f"non-regular classes' share of {whose} time in expand: {floor['share']:.1%}; with every stressed path "
+          f"and every probe deciding a subset free, {floor['free']:.1%}; with that and the singular and hypostatic "
+          f"classes free altogether (the hyperstatic class's plain paths and the rest of its subsets beside the "
+          f"regular class), {floor['hyperstatic_only']:.1%}")

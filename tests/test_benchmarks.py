@@ -163,9 +163,11 @@ def test_the_classes_benchmark_splits_the_time_of_expand_between_the_paths_and_t
     breaks leave 3n - 7 independent contacts, so none of its paths does. A hypostatic cluster has f = 3n - 6 - m + s
     >= s + 1 flexes, and breaking B leaves f + |B| - r flexes and s - r stresses (r = rank W_B): a set with no
     stress left has two flexes or more and is not one-dimensional, so every path it follows keeps a stress.
-    The shares of each class add up to one."""
-    rows = {r["class"]: r for r in benchmark("classes", "--n", "10", "--sample", "1", "--no-numpy", "--no-every",
-                                             "--no-unheld", "--parts")["rows"]}
+    The shares of each class add up to one; the probes that decide subsets are part of the rest, none in a regular
+    cluster (every set its single breaks leave has full row rank), some in a hypostatic one (sets with a stress and
+    several flexes). The floors of the non-regular share: each below the share as measured and the next below it."""
+    result = benchmark("classes", "--n", "10", "--sample", "1", "--no-numpy", "--no-every", "--no-unheld", "--parts")
+    rows = {r["class"]: r for r in result["rows"]}
     assert set(rows) == {"regular", "singular", "hypostatic", "hyperstatic"}
     regular, hypostatic = rows["regular"]["parts"], rows["hypostatic"]["parts"]
     assert regular["stressed"]["per_cluster"] == 0 and regular["plain"]["per_cluster"] > 0
@@ -178,8 +180,31 @@ def test_the_classes_benchmark_splits_the_time_of_expand_between_the_paths_and_t
         for kind in ("stressed", "plain"):
             parts = sum(p[kind][f"{part}_share"] for part in ("steps", "first_step", "endpoint"))
             assert 0.0 <= parts <= p[kind]["share"] + 1e-9
+        assert 0.0 <= p["probes"]["share"] < p["rest_share"]
+    assert regular["probes"]["per_cluster"] == 0 and regular["probes"]["share"] == 0.0
+    assert hypostatic["probes"]["per_cluster"] > 0 and hypostatic["probes"]["ms_each"] > 0
+    floors = result["floors"]
+    assert floors["seconds"] == "total_s_numba"  # no run stored: the sample's own times
+    assert 0.0 < floors["hyperstatic_only"] < floors["free"] < floors["share"] < 1.0
     [row] = benchmark("classes", "--n", "8", "--sample", "1", "--no-numpy", "--no-every", "--no-unheld")["rows"]
     assert "parts" not in row
+
+
+def test_the_floors_of_the_non_regular_share():
+    """floors() takes each class's stressed paths and probes off its time, then the singular and hypostatic
+    classes altogether: worked by hand on made-up times."""
+    from benchmarks.classes import floors
+
+    def row(name, seconds, stressed, probes):
+        return {"class": name, "run_s": seconds, "parts": {"stressed": {"share": stressed}, "probes": {"share": probes}}}
+
+    rows = [row("regular", 60.0, 0.0, 0.0), row("singular", 20.0, 0.5, 0.25), row("hypostatic", 10.0, 0.5, 0.3),
+            row("hyperstatic", 30.0, 0.2, 0.1)]
+    f = floors(rows, "run_s")
+    assert f["share"] == 60.0 / 120.0
+    left = 20.0 * 0.25 + 10.0 * 0.2 + 30.0 * 0.7  # 28
+    assert abs(f["free"] - left / (60.0 + left)) < 1e-12
+    assert abs(f["hyperstatic_only"] - 21.0 / 81.0) < 1e-12
 
 
 def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
@@ -190,17 +215,23 @@ def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
     from packings.workers.params import Params
     from packings.workers.seeds import seed_cluster
 
+    from packings.workers import dimension
+
+    def wrapped():
+        return expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps, \
+            dimension._probe
+
     params = Params()
-    before = expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps
+    before = wrapped()
     cluster = seed_cluster(8, params)  # regular: 18 = 3n - 6 contacts, first-order rigid
     split: dict = {}
     with _instrumented(split):
         timed = expand.expand(cluster, params)
-    assert (expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps) == before
+    assert wrapped() == before
     assert _attempt_keys(timed) == _attempt_keys(expand.expand(cluster, params))
     assert split["plain"]["paths"] == timed.paths_followed > 0 and "stressed" not in split
     split = _parts(cluster, params)
-    assert (expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps) == before
+    assert wrapped() == before
     plain = split["plain"]
     assert split["seconds"] > 0 and plain["path_steps"] > 0
     assert 0.0 < plain["steps"] + plain["endpoint"] <= plain["seconds"] <= split["seconds"]
