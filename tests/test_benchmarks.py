@@ -212,10 +212,9 @@ def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
     parts add up to no more than the paths; and the functions wrapped are the package's again afterwards."""
     from benchmarks.classes import _attempt_keys, _instrumented, _parts
     from packings.workers import expand, paths
+    from packings.workers import dimension
     from packings.workers.params import Params
     from packings.workers.seeds import seed_cluster
-
-    from packings.workers import dimension
 
     def wrapped():
         return expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps, \
@@ -235,6 +234,34 @@ def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
     plain = split["plain"]
     assert split["seconds"] > 0 and plain["path_steps"] > 0
     assert 0.0 < plain["steps"] + plain["endpoint"] <= plain["seconds"] <= split["seconds"]
+
+
+def test_the_probes_of_parts_are_those_that_decide_subsets(monkeypatch):
+    """--parts counts a probe of the dimension test as deciding a subset only outside a path: at the hypostatic
+    n = 10 cluster, whose paths' first steps probe too, the probes it counts are exactly those made outside
+    follow_path (told apart here by the call stack), and some are made inside."""
+    import inspect
+
+    from benchmarks.classes import _instrumented
+    from packings.workers import dimension, expand
+    from packings.workers.cluster import Cluster
+    from packings.workers.params import Params
+
+    fixtures = json.loads((ROOT / "tests" / "data" / "clusters_n10.json").read_text())
+    cluster = Cluster.from_dict(fixtures["n10_m23_prestress"])
+    made = Counter()
+    probe = dimension._probe
+
+    def counted(*args, **kwargs):
+        made["in a path" if any(f.function == "follow_path" for f in inspect.stack(0)) else "deciding"] += 1
+        return probe(*args, **kwargs)
+
+    monkeypatch.setattr(dimension, "_probe", counted)
+    split: dict = {}
+    with _instrumented(split):
+        expand.expand(cluster, Params())
+    assert split["probes"]["calls"] == made["deciding"] > 0 and made["in a path"] > 0
+    assert split["probes"]["seconds"] > 0
 
 
 def test_the_classes_of_a_cluster():
