@@ -321,6 +321,7 @@ def _instrumented(split: dict):
     follow, endpoint, first_step, steps, probe = saved
     inside = Counter()
     probes = split.setdefault("probes", {"calls": 0, "seconds": 0.0})
+    following = False  # inside a path: its probes are its first step's
 
     def timed(f, part):
         def call(*args, **kwargs):
@@ -332,7 +333,7 @@ def _instrumented(split: dict):
         return call
 
     def timed_probe(*args, **kwargs):
-        if inside["following"]:
+        if following:
             return probe(*args, **kwargs)
         t0 = time.perf_counter()
         try:
@@ -342,13 +343,14 @@ def _instrumented(split: dict):
             probes["seconds"] += time.perf_counter() - t0
 
     def timed_follow(start, params):
+        nonlocal following
         inside.clear()
-        inside["following"] = 1
+        following = True
         t0 = time.perf_counter()
         try:
             end = follow(start, params)
         finally:
-            inside["following"] = 0
+            following = False
         seconds = time.perf_counter() - t0
         t1 = time.perf_counter()
         ns = kernels.null_spaces(start.x, np.asarray(start.keep).reshape(-1, 2), start.free, params.tol_n)
