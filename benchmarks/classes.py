@@ -575,7 +575,7 @@ def floors(rows: list[dict], seconds: str) -> dict:
         total = sum(times.values())
         return sum(times[c] for c in others if c in times) / total if total else 0.0
 
-    irregular = ("singular", "hypostatic", "hyperstatic")
+    irregular = CLASSES[1:]  # all but regular
     hyper = {c: t for c, t in left.items() if c in ("regular", "hyperstatic")}
     return {"seconds": seconds, "share": share(whole, irregular), "free": share(left, irregular),
             "hyperstatic_only": share(hyper, irregular)}
