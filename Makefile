@@ -7,7 +7,7 @@ N ?= 10
 
 .PHONY: install run test test-fast clean
 
-SOURCES := pyproject.toml $(wildcard service/*.py service/*.json workers/*.py alembic/*.py alembic/*.mako alembic/versions/*.py)
+SOURCES := pyproject.toml $(wildcard packings/*.py service/*.py service/*.json workers/*.py alembic/*.py alembic/*.mako alembic/versions/*.py)
 
 # Installed as a user installs it, from the wheel (never editable): the tests
 # run the code and the migrations the wheel carries.  Reinstalled when a source

@@ -1,4 +1,4 @@
-"""Alembic environment: migrations for the packings schema (packings.models).
+"""Alembic environment: migrations for the packings schema (packings.service.models).
 
 ``packings db upgrade`` passes an open connection in ``config.attributes``;
 the ``alembic`` command (with the repository's ``alembic.ini``, whose logging
@@ -16,8 +16,8 @@ from logging.config import fileConfig
 
 from alembic import context
 
-from packings.db import make_engine
-from packings.models import Base
+from packings.service.db import make_engine
+from packings.service.models import Base
 
 config = context.config
 target_metadata = Base.metadata

@@ -136,7 +136,7 @@ def _the_run(url: str, n: int, params) -> tuple[int, dict[str, tuple[int, float]
     from sqlalchemy import select
 
     import packings
-    from packings.models import COMPLETE, ClusterRow, ExpansionRow, Run
+    from packings.service.models import COMPLETE, ClusterRow, ExpansionRow, Run
 
     with packings.connect(url) as cat, cat.session() as s:
         runs = [rid for rid, text in s.execute(select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE)
@@ -160,7 +160,7 @@ def _the_run(url: str, n: int, params) -> tuple[int, dict[str, tuple[int, float]
 def _loaded(rows) -> dict[int, dt.datetime]:
     """When each expansion's task was read, about, from rows (cluster id, worker, finished_at, seconds) of
     a run's expansions: a Dask task reads its expansions at once, expands them in turn and writes them back
-    in one transaction (``packings.tasks.expand_task``), so those a worker finished within milliseconds of
+    in one transaction (``packings.service.tasks.expand_task``), so those a worker finished within milliseconds of
     each other are one task, read about their expand calls' time before the first was written."""
     out: dict[int, dt.datetime] = {}
     task: list = []
@@ -185,14 +185,14 @@ _ONE_WRITE = dt.timedelta(milliseconds=3)
 
 
 def arrivals_of(url: str, run_id: int, mode: str, ids) -> dict[int, tuple[tuple[tuple, ...], int]]:
-    """For each stored cluster id of ``ids``: the rows of :attr:`packings.store.Task.arrivals`, those run
+    """For each stored cluster id of ``ids``: the rows of :attr:`packings.service.store.Task.arrivals`, those run
     ``run_id`` had stored, about, when its task read the cluster (``mode`` "run": the transitions to it whose
     source's expansion was written before then, :func:`_loaded`), or every one stored (``mode`` "all"); and
     the paths the run took from the other end expanding it (``paths_retraced`` of ``expansions.outcomes``)."""
     from sqlalchemy import select
 
     import packings
-    from packings.models import ExpansionRow, Transition
+    from packings.service.models import ExpansionRow, Transition
 
     ids = sorted(set(ids))
     out: dict[int, list] = {cid: [] for cid in ids}
@@ -285,7 +285,7 @@ def kernels_from(module):
 def _time(cluster, params, variant: str, against=None, came: tuple = ()):
     """(seconds, expansion) of one expand call as ``variant`` (:data:`VARIANTS`; :data:`AGAINST` with the
     kernels module ``against``), given the rows ``came`` of the paths that arrived at ``cluster``, as a
-    worker calls it (``packings.tasks.expand``; the ``svd`` variant, deciding no subset by the
+    worker calls it (``packings.service.tasks.expand``; the ``svd`` variant, deciding no subset by the
     cluster's own SVD, takes none from the other end)."""
     from packings.workers import kernels
     from packings.workers.expand import arrivals, expand

@@ -85,7 +85,7 @@ class _PeakRSS(threading.Thread):
 
 
 def _packings() -> list[str]:
-    return [sys.executable, "-m", "packings.cli"]
+    return [sys.executable, "-m", "packings.service.cli"]
 
 
 def run_one(n: int, k: int, directory: Path) -> dict:

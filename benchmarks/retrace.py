@@ -32,7 +32,7 @@ def count(url: str, n: int) -> dict:
     from sqlalchemy import func, select
 
     import packings
-    from packings.models import COMPLETE, ClusterRow, ExpansionRow, Run, Transition, core_cluster
+    from packings.service.models import COMPLETE, ClusterRow, ExpansionRow, Run, Transition, core_cluster
     from packings.workers.identity import symmetries
     from packings.workers.outcomes import RIGID
     from packings.workers.params import Params

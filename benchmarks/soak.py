@@ -72,7 +72,7 @@ def postgresql_database(admin_url: str, prefix: str):
     """A new, empty PostgreSQL database (its URL) made through ``admin_url``, dropped on leaving."""
     from sqlalchemy import create_engine, text
 
-    from packings.db import parse_url
+    from packings.service.db import parse_url
 
     name = f"{prefix}_{uuid.uuid4().hex[:12]}"
     admin = create_engine(parse_url(admin_url), isolation_level="AUTOCOMMIT")
@@ -98,13 +98,13 @@ def fresh_database(backend: str):
 
 
 def _command(n: int, url: str, workers: int) -> list[str]:
-    return [sys.executable, "-m", "packings.cli", "enumerate", str(n), "--db", url, "--workers", str(workers), "--quiet"]
+    return [sys.executable, "-m", "packings.service.cli", "enumerate", str(n), "--db", url, "--workers", str(workers), "--quiet"]
 
 
 def _done(url: str) -> int:
     from sqlalchemy import text
 
-    from packings.db import make_engine
+    from packings.service.db import make_engine
 
     engine = make_engine(url)
     try:
@@ -182,7 +182,7 @@ def inspect(url: str, n: int) -> dict:
     """What the database holds after a run: its clusters' certificates and the fault counts."""
     from sqlalchemy import text
 
-    from packings.db import make_engine
+    from packings.service.db import make_engine
 
     engine = make_engine(url)
     with engine.connect() as c:

@@ -7,10 +7,10 @@ catalogue, :func:`enumerate` runs or resumes a run.
         print(row.id, row.lattice, row.min_gap, row.coords.shape)
     atoms = cat.get(1).to_atoms()
 
-The command line (:mod:`packings.cli`) is a thin layer over this module: the
-selection language is :mod:`packings.selection`'s, the facts of a cluster are
-:mod:`packings.export`'s, and the errors a user can cause are
-:mod:`packings.errors`' (one line each), whichever way the catalogue is used.
+The command line (:mod:`packings.service.cli`) is a thin layer over this module: the
+selection language is :mod:`packings.service.selection`'s, the facts of a cluster are
+:mod:`packings.service.export`'s, and the errors a user can cause are
+:mod:`packings.service.errors`' (one line each), whichever way the catalogue is used.
 
 Loading this module is light (no SQLAlchemy, numpy or Dask until a function
 runs): ``import packings`` must stay cheap for every Dask worker.
@@ -23,13 +23,13 @@ import os
 import sys
 from typing import TYPE_CHECKING, Any, Callable, Iterator
 
-from packings.dask_cluster import DASHBOARD_ADDRESS
-from packings.errors import NotFound, UsageError
+from packings.service.dask_cluster import DASHBOARD_ADDRESS
+from packings.service.errors import NotFound, UsageError
 
 if TYPE_CHECKING:
     import numpy as np
 
-    from packings.coordinator import RunResult
+    from packings.service.coordinator import RunResult
 
 MAX_N = 24  #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
 
@@ -48,7 +48,7 @@ def resolve_url(url: str | None) -> str:
     """The database URL to use: ``url``, else ``$PACKINGS_DB``, else ``sqlite:///packings.db``; a bare
     file name ending in .db is a SQLite file, and a relative SQLite path is made absolute (workers may
     run in another directory)."""
-    from packings.db import absolute, default_url, parse_url
+    from packings.service.db import absolute, default_url, parse_url
 
     return absolute(parse_url(url or default_url())).render_as_string(hide_password=False)
 
@@ -59,7 +59,7 @@ def resolve_url(url: str | None) -> str:
 class Row:
     """One stored cluster.
 
-    Its facts (:data:`packings.export.FACTS`: ``id``, ``n``, ``embedding``,
+    Its facts (:data:`packings.service.export.FACTS`: ``id``, ``n``, ``embedding``,
     ``lattice``, ``min_gap``, ``singular``, ...) are attributes and the dict
     :attr:`facts`.  ``coords`` is the ``(n, 3)`` float64 array of the centres
     (unit: the sphere diameter), bit for bit as stored; ``contacts`` is the
@@ -74,10 +74,10 @@ class Row:
 
     @classmethod
     def from_model(cls, c) -> Row:
-        """The row of a :class:`packings.models.ClusterRow`."""
+        """The row of a :class:`packings.service.models.ClusterRow`."""
         import numpy as np
 
-        from packings.export import facts
+        from packings.service.export import facts
 
         coords = np.frombuffer(c.coords, dtype="<f8").reshape(c.n, 3).astype(np.float64)
         contacts = np.array(json.loads(c.contact_list), dtype=np.int64).reshape(-1, 2)
@@ -121,7 +121,7 @@ class Row:
             from ase import Atoms
         except ImportError:
             raise ImportError("Row.to_atoms() needs ASE, which is not installed: pip install ase") from None
-        from packings.export import ase_info
+        from packings.service.export import ase_info
 
         info = ase_info(self.facts)
         info["contact_pairs"] = self.contacts.copy()
@@ -137,7 +137,7 @@ def connect(url: str | None = None, *, create: bool = False) -> Catalogue:
 
     A database that is missing or empty is refused unless ``create`` (then an empty
     catalogue is made), and one with another schema is refused with the command that
-    migrates it: :class:`packings.errors.PackingsError`, one line, nothing written.
+    migrates it: :class:`packings.service.errors.PackingsError`, one line, nothing written.
     """
     return Catalogue(url, create=create)
 
@@ -150,9 +150,9 @@ def _value_text(v: Any) -> str:
 
 def selection_query(selection: str | None, equalities: dict | None = None, **kw):
     """The SELECT of a selection and ``key=value`` equalities, with ``sort``/``limit`` as
-    :func:`packings.selection.query`; a bad one raises :class:`packings.errors.UsageError` (no database
+    :func:`packings.service.selection.query`; a bad one raises :class:`packings.service.errors.UsageError` (no database
     is needed to check it)."""
-    from packings.selection import parse, parse_term, query
+    from packings.service.selection import parse, parse_term, query
 
     terms = parse(selection) + [parse_term(f"{k}={_value_text(v)}") for k, v in (equalities or {}).items()]
     return query(terms, **kw)
@@ -164,13 +164,13 @@ class Catalogue:
     writes to it."""
 
     def __init__(self, url: str | None = None, *, create: bool = False):
-        from packings.db import open_database
+        from packings.service.db import open_database
 
         self.url = resolve_url(url)
         self.engine = open_database(self.url, create=create)
 
     def __repr__(self) -> str:
-        from packings.db import display_url
+        from packings.service.db import display_url
 
         return f"<packings catalogue {display_url(self.engine.url)}>"
 
@@ -186,8 +186,8 @@ class Catalogue:
 
     def session(self):
         """A read-only SQLAlchemy session on the database, for queries of your own (the tables are
-        :mod:`packings.models`'; ``with cat.session() as s: ...``)."""
-        from packings.db import sessions
+        :mod:`packings.service.models`'; ``with cat.session() as s: ...``)."""
+        from packings.service.db import sessions
 
         return sessions(self.engine, readonly=True)()
 
@@ -196,7 +196,7 @@ class Catalogue:
         """The clusters that match ``selection`` (the command line's language, e.g. ``"n=10,contacts<24,
         singular"``) and every ``key=value`` given, as :class:`Row` objects, ordered by ``sort`` (a key,
         ``-key`` for descending; default n, contacts, id), at most ``limit`` of them (None: all).  A bad
-        selection raises :class:`packings.errors.UsageError` here, not when the rows are read."""
+        selection raises :class:`packings.service.errors.UsageError` here, not when the rows are read."""
         if limit is not None and limit < 0:
             raise UsageError(f"limit must be at least 0 (got {limit})")
         q = selection_query(selection, equalities, sort=sort, limit=limit)
@@ -216,7 +216,7 @@ class Catalogue:
             return s.execute(select(func.count()).select_from(q.order_by(None).subquery())).scalar_one()
 
     def get(self, id: int) -> Row:
-        """Cluster ``id``; :class:`packings.errors.NotFound` (a KeyError) if there is none."""
+        """Cluster ``id``; :class:`packings.service.errors.NotFound` (a KeyError) if there is none."""
         rows = list(self.select(f"id={int(id)}"))
         if not rows:
             raise NotFound(f"no cluster with id {id}")
@@ -225,7 +225,7 @@ class Catalogue:
     def links(self, id: int) -> dict:
         """What the database holds about cluster ``id`` besides its row: the paths leaving it (by
         outcome), the paths reaching it and from how many clusters, and the runs whose frontier holds it."""
-        from packings.selection import links
+        from packings.service.selection import links
 
         self.get(id)
         with self.session() as s:
@@ -238,7 +238,7 @@ class Catalogue:
         reached, None if none is stored) and ``steps``."""
         from sqlalchemy import select
 
-        from packings.models import Transition as T
+        from packings.service.models import Transition as T
 
         self.get(id)
         where = T.target_id == int(id) if reaching else T.source_id == int(id)
@@ -250,8 +250,8 @@ class Catalogue:
     def stats(self, n: int | None = None) -> list[dict]:
         """What the catalogue holds, one dict per n (all n, or only ``n``): what ``packings stats --json``
         prints."""
-        from packings.stats import stats
-        from packings.store import counts_by_n
+        from packings.service.stats import stats
+        from packings.service.store import counts_by_n
 
         with self.session() as s:
             return stats(s, n, counts_by_n(s))
@@ -259,8 +259,8 @@ class Catalogue:
     def fit(self) -> dict | None:
         """The fit of the totals to b·(n−5)!, the n held only by runs restricted by --min-contacts and those
         no full run has completed left out (None if no n is left)."""
-        from packings.stats import fit_all
-        from packings.store import counts_by_n, incomplete_ns
+        from packings.service.stats import fit_all
+        from packings.service.store import counts_by_n, incomplete_ns
 
         with self.session() as s:
             return fit_all(counts_by_n(s), *incomplete_ns(s))
@@ -272,8 +272,8 @@ class Catalogue:
         of one expansion alone lost again (each an attempt)."""
         from sqlalchemy import select
 
-        from packings import store
-        from packings.models import Run
+        from packings.service import store
+        from packings.service.models import Run
 
         out = []
         with self.session() as s:
@@ -312,12 +312,12 @@ def _progress_bar(show: bool) -> Callable:
 
 
 def _refuse_busy_run(engine, n: int, params) -> None:
-    """Raise :class:`packings.owners.RunBusy` if a live coordinator holds the run for (n, params).  A
+    """Raise :class:`packings.service.owners.RunBusy` if a live coordinator holds the run for (n, params).  A
     text query on the runs table: neither the models nor the store are loaded before the cluster
     starts (the store's import alone takes half a second)."""
     from sqlalchemy import DateTime, Integer, String, column, text
 
-    from packings.owners import busy
+    from packings.service.owners import busy
 
     q = text("SELECT id, coordinator, heartbeat_at FROM runs WHERE n = :n AND params = :params").columns(
         column("id", Integer), column("coordinator", String), column("heartbeat_at", DateTime))
@@ -349,23 +349,23 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     """Enumerate the rigid clusters of ``n`` spheres into the database at ``url`` (as :func:`connect`;
     created if need be), or resume the run with the same n and parameters, and return its result:
     ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,
-    ``resumed``, ``errors`` (:class:`packings.coordinator.RunResult`).
+    ``resumed``, ``errors`` (:class:`packings.service.coordinator.RunResult`).
 
     The work runs on a new local Dask cluster of ``workers`` processes (default: one per core), or on
     the existing one whose scheduler is at ``scheduler`` (e.g. ``"tcp://host:8786"``).  ``max_break``
     caps the number of contacts broken at once (default: none); ``min_contacts`` keeps only clusters
     with at least that many contacts.  ``progress`` shows a progress bar on standard error.  A local
-    cluster serves its Dask dashboard, with the run's own page (``/packings``, :mod:`packings.dashboard`),
+    cluster serves its Dask dashboard, with the run's own page (``/packings``, :mod:`packings.service.dashboard`),
     at ``dashboard_address`` (another port if that one is taken).
 
     With ``glued``, once the paths are done, a catalysis pass moves one sphere of every stored cluster
-    of n onto each of its contact triangles (:func:`packings.catalysis.catalyse`, as ``packings catalyse
+    of n onto each of its contact triangles (:func:`packings.service.catalysis.catalyse`, as ``packings catalyse
     N --glued``) and adds the rigid remainders no path reached; the run then expands them, and a pass over
     the clusters stored since follows, until one adds nothing (``catalysis``: the passes' reports).  A
     pass that ran to its end is recorded: the same call again makes none, unless clusters were stored
     since.
     """
-    from packings.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
+    from packings.service.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
     from packings.workers.params import Params
 
     check_n(n)
@@ -396,7 +396,7 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
         except ValueError as e:
             raise UsageError(str(e)) from None
     url = resolve_url(url)
-    from packings.db import open_database, preflight
+    from packings.service.db import open_database, preflight
 
     # a bad URL, server or schema, or a run that another live coordinator holds, is reported before any
     # Dask cluster starts
@@ -404,7 +404,7 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     if compiling:  # said, rather than a silent minute
         print("packings: compiling the numerical kernels, once for this installation (about a minute on two "
               "cores; later runs load them in a second)", file=sys.stderr, flush=True)
-    from packings.plugin import DatabasePlugin
+    from packings.service.plugin import DatabasePlugin
 
     # a local cluster starts in the background, its workers warming up with the database plugin, while the
     # database is opened here; .client waits for it
@@ -414,7 +414,7 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
             dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
         engine = open_database(url, create=True)
         try:
-            from packings.coordinator import run_enumeration
+            from packings.service.coordinator import run_enumeration
 
             if scheduler and engine.dialect.name == "sqlite":
                 print("packings: warning: SQLite with a scheduler works only if every worker sees this file "
@@ -447,13 +447,13 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
 
 def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool, before=None):
     """A glued catalysis pass into ``run_id`` over the clusters of n stored since the passes before it
-    (:func:`packings.catalysis.covered`), on ``client``'s workers; its report, or None if there are none.
+    (:func:`packings.service.catalysis.covered`), on ``client``'s workers; its report, or None if there are none.
     ``before()`` is called first when there is a pass to make (``packings enumerate`` gives its local
     workers fresh processes there, so that a pass's record of the remainders seen is not added on top of
     what the paths left in them)."""
-    from packings.catalysis import catalyse, count_stored, covered
-    from packings.db import sessions
-    from packings.plugin import plugin_name
+    from packings.service.catalysis import catalyse, count_stored, covered
+    from packings.service.db import sessions
+    from packings.service.plugin import plugin_name
 
     Session_ = sessions(engine)
     after = covered(Session_, run_id)

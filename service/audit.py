@@ -35,9 +35,9 @@ from dataclasses import asdict, dataclass, field
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session
 
-from packings.export import table
-from packings.models import ClusterRow, Run, core_cluster
-from packings.store import stored_with
+from packings.service.export import table
+from packings.service.models import ClusterRow, Run, core_cluster
+from packings.service.store import stored_with
 from packings.workers.audit import RIGID, near_pairs, what_adding_gives
 from packings.workers.exact import exact_cluster, not_told_apart
 from packings.workers.identity import certificate_key, find_match, geometry_distance

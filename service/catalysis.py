@@ -26,7 +26,7 @@ decided as a remainder is, and the rigid ones not yet stored are stored with ``f
 'close-packed'`` and no source.  The fragments are listed and decided in this process.
 
 Writes are batched: one transaction per batch of parents, taking the certificate locks
-(:func:`packings.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
+(:func:`packings.service.store.lock_certificates`) as a write-back does, so catalysis may run while the run is
 being enumerated, and an interrupted catalysis keeps what it committed (running it again finds those
 stored: it is idempotent).
 """
@@ -43,8 +43,8 @@ import numpy as np
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import sessionmaker
 
-from packings import store
-from packings.models import (
+from packings.service import store
+from packings.service.models import (
     FOUND_CATALYSIS,
     FOUND_CLOSE_PACKED,
     PASS_DELETED,
@@ -55,7 +55,7 @@ from packings.models import (
     Run,
     core_cluster,
 )
-from packings.owners import process_name, utcnow
+from packings.service.owners import process_name, utcnow
 from packings.workers.fragments import close_packed
 from packings.workers.cluster import Cluster
 from packings.workers.identity import certificate_key
@@ -144,7 +144,7 @@ def parents_stored(Session_: sessionmaker, source: int) -> int:
 
 def run_for(Session_: sessionmaker, n: int, params: Params) -> int:
     """The id of the run of (n, params): the stored one, or a new one created and seeded by
-    :func:`packings.store.start_run` (as ``packings enumerate`` would) and let go at once."""
+    :func:`packings.service.store.start_run` (as ``packings enumerate`` would) and let go at once."""
     pj = params.to_json()
     with Session_() as s:
         run_id = s.execute(select(Run.id).where(Run.n == n, Run.params == pj)).scalar_one_or_none()
@@ -295,7 +295,7 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
     stores are moved in their turn.  ``on_progress(parents done, parents)`` after each batch.  Raises
     :class:`NoParents` when no cluster of n + spheres (with ``glued``: of n) is stored.
 
-    With a Dask ``client`` (whose workers have the :class:`packings.plugin.DatabasePlugin` named ``plugin``),
+    With a Dask ``client`` (whose workers have the :class:`packings.service.plugin.DatabasePlugin` named ``plugin``),
     each batch of parents is decided and stored by a task on a worker (:func:`catalysis_task`), a few
     per worker at a time; with ``glued`` each worker process keeps
     its own record of what it has seen (the stored clusters, then what it decided), so that a remainder

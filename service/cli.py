@@ -16,9 +16,9 @@ import threading
 
 import click
 
-from packings.api import check_n, pass_bar, resolve_url
-from packings.dask_cluster import DASHBOARD_ADDRESS
-from packings.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
+from packings.service.api import check_n, pass_bar, resolve_url
+from packings.service.dask_cluster import DASHBOARD_ADDRESS
+from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
 from packings.workers.params import Params
 
 # What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
@@ -36,7 +36,7 @@ dashboard_option = click.option(
 
 
 def open_db(db_url: str | None, create: bool = False, migrate: bool = False):
-    from packings.db import open_database
+    from packings.service.db import open_database
 
     return open_database(resolve_url(db_url), create=create, migrate=migrate)
 
@@ -107,7 +107,7 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     With --glued, catalysis passes follow the paths (a pass that ran to its
     end is not made again; one over the clusters stored since is).
     """
-    from packings import api
+    from packings.service import api
 
     try:
         result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
@@ -116,8 +116,8 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     except KeyboardInterrupt as e:  # the run put its leases back: one line (click would print a newline first)
         raise _stopped(e) from None
     url = resolve_url(db_url)
-    from packings.db import display_url, parse_url
-    from packings.paper import against_paper, verdict
+    from packings.service.db import display_url, parse_url
+    from packings.service.paper import against_paper, verdict
 
     against = against_paper(n, result.by_contacts, min_contacts)
     gc.freeze()  # what is left is freed by the exit: skip the collector's last pass over it (0.2-0.3 s)
@@ -128,7 +128,7 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
                                "total_seconds": round(result.total_seconds, 2), "paper": against,
                                **({"catalysis": [r.to_dict() for r in result.catalysis]} if glued else {})}))
     else:
-        from packings.catalysis import format_report
+        from packings.service.catalysis import format_report
 
         click.echo(format_counts(n, result.by_contacts))
         said = verdict(n, against, result.status == "complete", min_contacts)
@@ -153,8 +153,8 @@ def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
     """One line on catalysis, which may find clusters no path reaches: from the stored clusters of n + 1
     spheres when there are some, else (a run not restricted, with no glued pass yet) by moving a sphere
     of each cluster of n."""
-    from packings.catalysis import count_stored, covered
-    from packings.db import make_engine, sessions
+    from packings.service.catalysis import count_stored, covered
+    from packings.service.db import make_engine, sessions
 
     engine = make_engine(url)
     try:
@@ -217,13 +217,13 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     if n_workers is not None and scheduler is not None:
         raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
     params = Params(max_break=max_break, min_contacts=min_contacts)
-    from packings.dask_cluster import dask_client, start_fork_server
+    from packings.service.dask_cluster import dask_client, start_fork_server
 
     if scheduler is None:
         start_fork_server()  # the local cluster's workers load what they need while the database is opened
-    from packings.catalysis import NoParents, catalyse, parents_stored
-    from packings.db import sessions
-    from packings.plugin import DatabasePlugin
+    from packings.service.catalysis import NoParents, catalyse, parents_stored
+    from packings.service.db import sessions
+    from packings.service.plugin import DatabasePlugin
 
     url = resolve_url(db_url)
     engine = open_db(db_url)
@@ -256,7 +256,7 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
 
 def _echo_report(report, n: int, as_json: bool) -> None:
     """A catalysis report as JSON, or as text with what to run next."""
-    from packings.catalysis import format_report
+    from packings.service.catalysis import format_report
 
     if as_json:
         click.echo(json.dumps(report.to_dict()))
@@ -268,8 +268,8 @@ def _echo_report(report, n: int, as_json: bool) -> None:
 
 def _close_packed(n: int, m: int, db_url: str | None, params: Params, as_json: bool, quiet: bool) -> None:
     """``packings catalyse N --close-packed M``: the close-packed fragments, decided and stored."""
-    from packings.catalysis import close_packed_pass
-    from packings.db import sessions
+    from packings.service.catalysis import close_packed_pass
+    from packings.service.db import sessions
 
     engine = open_db(db_url)
     bar, progress = pass_bar(f"fragments of {n}", "fragment", quiet or as_json)
@@ -295,7 +295,7 @@ def db_group() -> None:
 @db_option
 def db_upgrade(db_url: str | None) -> None:
     """Create the schema, or migrate it to this code's version."""
-    from packings.db import current_revision, display_url, head_revision
+    from packings.service.db import current_revision, display_url, head_revision
 
     engine = open_db(db_url, create=True, migrate=True)
     click.echo(f"{display_url(engine.url)}: schema {current_revision(engine)} (this code: {head_revision()})")
@@ -318,8 +318,8 @@ def db_backfill(db_url: str | None, recompute: bool) -> None:
 def _backfill(engine, recompute: bool) -> None:
     from tqdm import tqdm
 
-    from packings import store
-    from packings.db import sessions
+    from packings.service import store
+    from packings.service.db import sessions
 
     Session_ = sessions(engine)
     with Session_() as s:
@@ -335,7 +335,7 @@ def _backfill(engine, recompute: bool) -> None:
 @db_option
 def db_version(db_url: str | None) -> None:
     """Print the database's schema version and this code's."""
-    from packings.db import connect_error, current_revision, head_revision, make_engine
+    from packings.service.db import connect_error, current_revision, head_revision, make_engine
 
     engine = make_engine(resolve_url(db_url))
     try:
@@ -381,7 +381,7 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     contacts; fragments by lattice; adjacency matrices with several
     geometries; the smallest gaps; paths and circular paths; the fit of the
     totals to b·(n−5)!."""
-    from packings.stats import format_fit, format_stats
+    from packings.service.stats import format_fit, format_stats
 
     with _catalogue(db_url) as cat:
         rows, fit = cat.stats(n), cat.fit()
@@ -404,8 +404,8 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     adding the pair gives (a stored cluster: a near copy of it); (b) pre-stress margins within a factor
     of 10 of tol_psd; (c) two geometries of one contact graph within 100 tol_d.  A clean catalogue has
     (a) and (c) empty.  Exits 0 whatever it finds (it is a report)."""
-    from packings.audit import audit, format_audit
-    from packings.db import sessions
+    from packings.service.audit import audit, format_audit
+    from packings.service.db import sessions
 
     engine = open_db(db_url)
     try:
@@ -418,7 +418,7 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
 # --------------------------------------------------------------------------- queries: select, show, export
 
-from packings import export as _export  # noqa: E402 - the query commands' formats
+from packings.service import export as _export  # noqa: E402 - the query commands' formats
 
 _SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
                    "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
@@ -427,10 +427,10 @@ _SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: 
 
 class _SelectionCommand(click.Command):
     """A command taking a SELECTION, whose help ends with the selection's keys (built when the help is
-    shown: they come from packings.selection, which loads SQLAlchemy)."""
+    shown: they come from packings.service.selection, which loads SQLAlchemy)."""
 
     def format_epilog(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
-        from packings.selection import describe_keys
+        from packings.service.selection import describe_keys
 
         self.epilog = _SELECTION_HELP + describe_keys()
         super().format_epilog(ctx, formatter)
@@ -440,14 +440,14 @@ _TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "str
 
 def _check_selection(selection: str | None, **kw) -> None:
     """A bad selection or sort key is reported before the database is opened."""
-    from packings.api import selection_query
+    from packings.service.api import selection_query
 
     selection_query(selection, **kw)
 
 
 def _catalogue(db_url: str | None):
-    """The catalogue at ``--db`` (:func:`packings.api.connect`), to use in a ``with``."""
-    from packings.api import connect
+    """The catalogue at ``--db`` (:func:`packings.service.api.connect`), to use in a ``with``."""
+    from packings.service.api import connect
 
     return connect(db_url)
 
@@ -569,7 +569,7 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
 
 
 def _exact(row) -> dict | None:
-    """:meth:`packings.api.Row.exact` as a dict (None for a cluster with a flex)."""
+    """:meth:`packings.service.api.Row.exact` as a dict (None for a cluster with a flex)."""
     from dataclasses import asdict
 
     e = row.exact()
@@ -610,17 +610,17 @@ def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | Non
     click.echo(f"wrote {written} clusters ({fmt}) to {output}")
 
 
-from packings.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws
+from packings.service.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws
 
 cli.add_command(_plot)
 
 
 def _database_error(e: Exception) -> str | None:
-    """The one line for a database's error (packings.db.DatabaseError: one a user can fix; SQLAlchemy's:
+    """The one line for a database's error (packings.service.db.DatabaseError: one a user can fix; SQLAlchemy's:
     e.g. the server went away mid-command, and transactions rolled back), None for any other error."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from packings.db import DatabaseError, first_line
+    from packings.service.db import DatabaseError, first_line
 
     if isinstance(e, DatabaseError):
         return str(e)

@@ -22,7 +22,7 @@ Failures are of two kinds:
 Everything needed to resume is in the database: a coordinator that is killed
 leaves leases behind, and the next one (the same command) puts them back to
 pending when it starts, their attempts not used up.  What was recovered is
-logged (logger ``packings.coordinator``).
+logged (logger ``packings.service.coordinator``).
 """
 
 from __future__ import annotations
@@ -41,13 +41,13 @@ from distributed.comm.core import CommClosedError
 from distributed.scheduler import KilledWorker
 from sqlalchemy import Engine, select
 
-from packings import store
-from packings.db import sessions
-from packings.errors import SchedulerError, StorageError
-from packings.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
-from packings.owners import process_name
-from packings.plugin import DatabasePlugin
-from packings.tasks import ExpansionsFailed, error_line, expand_task, summary
+from packings.service import store
+from packings.service.db import sessions
+from packings.service.errors import SchedulerError, StorageError
+from packings.service.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
+from packings.service.owners import process_name
+from packings.service.plugin import DatabasePlugin
+from packings.service.tasks import ExpansionsFailed, error_line, expand_task, summary
 from packings.workers.params import Params
 
 log = logging.getLogger(__name__)
@@ -102,7 +102,7 @@ class RunResult:
     resumed: bool
     errors: list[str] = field(default_factory=list)
     total_seconds: float = 0.0  #: the run's time over all its coordinators (``seconds``: this one's)
-    #: with ``glued`` (:func:`packings.api.enumerate`): the reports of the glued catalysis passes made, in order
+    #: with ``glued`` (:func:`packings.service.api.enumerate`): the reports of the glued catalysis passes made, in order
     catalysis: list = field(default_factory=list)
 
     @property
@@ -264,10 +264,10 @@ def run_enumeration(
     """Create or resume the run for (n, params) and drive it to the end.
 
     ``url`` is the database URL the workers use (they open their own engine
-    through :class:`packings.plugin.DatabasePlugin`).  ``per_worker`` tasks per
+    through :class:`packings.service.plugin.DatabasePlugin`).  ``per_worker`` tasks per
     worker thread are kept in flight, of up to ``batch`` expansions each.  After
     ``workerless_timeout`` seconds without a Dask worker the run stops with
-    :class:`packings.errors.SchedulerError` (None: it waits for workers to join); ``revive`` is called
+    :class:`packings.service.errors.SchedulerError` (None: it waits for workers to join); ``revive`` is called
     every few seconds to replace lost workers (a local cluster's).
     """
     Session_ = sessions(engine)
@@ -290,7 +290,7 @@ def run_enumeration(
 
     def reconnect() -> None:
         """The Client lost its scheduler (an existing cluster's, gone or restarting): wait while it tries
-        to reach it again, for its own window (:data:`packings.dask_cluster.RECONNECT_SECONDS`), then
+        to reach it again, for its own window (:data:`packings.service.dask_cluster.RECONNECT_SECONDS`), then
         register the database plugin again (a restarted scheduler knows none, and gives it to the
         workers that join it); if it cannot, stop, resumably."""
         since = time.monotonic()

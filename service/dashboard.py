@@ -5,7 +5,7 @@ Importing this module adds the page (``/packings``, a Bokeh document) and its da
 ``packings enumerate`` imports it before it starts its local cluster, and a scheduler
 of many machines loads it as a preload::
 
-    PACKINGS_DB=postgresql://user@db-host/packings dask scheduler --preload packings.dashboard
+    PACKINGS_DB=postgresql://user@db-host/packings dask scheduler --preload packings.service.dashboard
 
 What the page shows comes from a thread that reads the database every
 :data:`POLL_SECONDS` (never the scheduler's event loop, which a query would stall)
@@ -100,7 +100,7 @@ class Watcher(threading.Thread):
                 self._looked.wait()
 
     def read(self) -> dict:
-        from packings.db import make_engine, sessions
+        from packings.service.db import make_engine, sessions
 
         if self._engine is None:
             self._engine = make_engine(self.url)
@@ -125,11 +125,11 @@ def read_run(s) -> dict:
     """The snapshot of the run being driven (one session's reads)."""
     from sqlalchemy import func, select
 
-    from packings import store
-    from packings.models import FAILED, ExpansionRow, Run
-    from packings.owners import coordinator_alive
-    from packings.paper import paper_totals
-    from packings.tasks import summary
+    from packings.service import store
+    from packings.service.models import FAILED, ExpansionRow, Run
+    from packings.service.owners import coordinator_alive
+    from packings.service.paper import paper_totals
+    from packings.service.tasks import summary
 
     runs = s.execute(select(Run).order_by(Run.started_at.desc(), Run.id.desc())).scalars().all()
     run = next((r for r in runs if coordinator_alive(r.coordinator, r.heartbeat_at)), None)
@@ -301,15 +301,15 @@ _register()
 
 
 def dask_setup(scheduler) -> None:
-    """``dask scheduler --preload packings.dashboard``: watch ``$PACKINGS_DB`` and serve the JSON; keep what
-    the scheduler remembers of tasks long gone bounded (:class:`packings.plugin.TaskLeftovers`), also
+    """``dask scheduler --preload packings.service.dashboard``: watch ``$PACKINGS_DB`` and serve the JSON; keep what
+    the scheduler remembers of tasks long gone bounded (:class:`packings.service.plugin.TaskLeftovers`), also
     once it is started again, before a coordinator gives it the plugin again."""
-    from packings.plugin import TaskLeftovers
+    from packings.service.plugin import TaskLeftovers
 
     scheduler.add_plugin(TaskLeftovers())
     url = os.environ.get("PACKINGS_DB")
     if url:
         watch(url)
     else:
-        log.warning("packings.dashboard: PACKINGS_DB is not set; the packings page shows nothing")
+        log.warning("packings.service.dashboard: PACKINGS_DB is not set; the packings page shows nothing")
     serve_json(scheduler)

@@ -16,10 +16,10 @@ import time
 import warnings
 from pathlib import Path
 
-from packings.errors import SchedulerError
+from packings.service.errors import SchedulerError
 
 #: the modules that the fork server of a local cluster's workers loads before it forks them
-FORK_SERVER_PRELOAD = ("distributed", "packings.preload")
+FORK_SERVER_PRELOAD = ("distributed", "packings.service.preload")
 #: setting this environment variable (spawn, fork, forkserver) chooses how Dask starts local workers
 METHOD_ENV = "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD"
 
@@ -28,7 +28,7 @@ def start_fork_server() -> bool:
     """Start the process that a local cluster's worker processes are forked from; returns whether they
     will be (it may have been started already: then this does nothing more).
 
-    It starts at once and loads, in the background, what every worker needs (:mod:`packings.preload`:
+    It starts at once and loads, in the background, what every worker needs (:mod:`packings.service.preload`:
     Dask, SQLAlchemy, the numerical code, the compiled kernels, warmed up) once, while this process
     checks and opens the database and starts the scheduler.  Each worker forked from it joins within a
     few hundredths of a second of being asked for, where a worker spawned afresh (Dask's default)
@@ -195,7 +195,7 @@ class dask_client:
         import dask
         from distributed import Client, LocalCluster
 
-        from packings.plugin import LocalWorkerPlugin
+        from packings.service.plugin import LocalWorkerPlugin
 
         # Dask's own logs of a failed or lost task ("Compute Failed" with the whole error, "marked as
         # failed because workers died") would repeat what the coordinator logs in one line and keeps
@@ -212,7 +212,7 @@ class dask_client:
                                      f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
             # A Client that loses its scheduler tries to connect again for as long as its timeout, then
             # closes: 10 s to connect at first (one that does not answer is said at once), then the
-            # reconnection window (packings.coordinator waits for it and goes on)
+            # reconnection window (packings.service.coordinator waits for it and goes on)
             self._client._timeout = self.reconnect_seconds
         else:
             k = self.n_workers or os.cpu_count() or 1
@@ -222,7 +222,7 @@ class dask_client:
                 dask.config.set({"distributed.worker.profile.enabled": False})
             start_fork_server()  # if `packings enumerate` has not yet
             # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
-            import packings.dashboard  # its page joins the dashboard of the scheduler started now
+            import packings.service.dashboard  # its page joins the dashboard of the scheduler started now
 
             # a busy port: Dask takes another and warns; the address taken is said once, by .wait()
             warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
@@ -240,24 +240,24 @@ class dask_client:
                                 "; trying again" if attempt + 1 < START_ATTEMPTS else "")
                     if attempt + 1 == START_ATTEMPTS:
                         raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
-            packings.dashboard.serve_json(self.cluster.scheduler)
+            packings.service.dashboard.serve_json(self.cluster.scheduler)
             if self.database:
-                packings.dashboard.watch(self.database)
+                packings.service.dashboard.watch(self.database)
             self._client = Client(self.cluster)
         self._bound_leftovers()
 
     def _bound_leftovers(self) -> None:
-        """Give the scheduler :class:`packings.plugin.TaskLeftovers`, which keeps what it remembers of the
+        """Give the scheduler :class:`packings.service.plugin.TaskLeftovers`, which keeps what it remembers of the
         run's tasks once they are gone bounded.  An existing scheduler that cannot load it (the package not
         installed beside it) runs on: its memory grows by a few hundred bytes a task, which is said once."""
-        from packings.plugin import TaskLeftovers
+        from packings.service.plugin import TaskLeftovers
 
         try:
             self._client.register_plugin(TaskLeftovers())
         except Exception as e:  # noqa: BLE001 - the run goes on; only the scheduler's memory is at stake
             log.warning("the Dask scheduler did not take packings' plugin for its memory (%s): it keeps a few "
                         "hundred bytes of each task; install packings beside it, or start it with "
-                        "--preload packings.dashboard", str(e).splitlines()[0] if str(e) else type(e).__name__)
+                        "--preload packings.service.dashboard", str(e).splitlines()[0] if str(e) else type(e).__name__)
 
     def revive_workers(self) -> int:
         """Replace the local cluster's workers whose nanny gave up (a worker process killed while it

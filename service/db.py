@@ -29,7 +29,7 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError, NoSuchModuleError, OperationalError, SQLAlchemyError
 from sqlalchemy.orm import Session, sessionmaker
 
-from packings.errors import PackingsError
+from packings.service.errors import PackingsError
 
 DEFAULT_URL = "sqlite:///packings.db"
 SQLITE_BUSY_TIMEOUT_MS = 120_000
@@ -237,7 +237,7 @@ def advisory_key(*parts) -> int:
 def migrations_dir() -> Path:
     """The Alembic migrations shipped inside the package (``packings/migrations``; the
     repository's ``alembic/`` folder, which ``pyproject.toml`` maps there)."""
-    path = Path(str(resources.files("packings") / "migrations"))
+    path = Path(str(resources.files("packings.service"))).parent / "migrations"
     if not (path / "env.py").is_file():
         raise DatabaseError(f"the package's migrations are missing ({path}); reinstall packings from its wheel")
     return path

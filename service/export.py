@@ -1,6 +1,6 @@
 """Clusters as text: records, JSON, CSV, XYZ and extended XYZ.
 
-Pure functions from cluster rows (:class:`packings.models.ClusterRow`) to records
+Pure functions from cluster rows (:class:`packings.service.models.ClusterRow`) to records
 (plain dicts) and from records to text chunks, plus :func:`write_atomic`.
 
 * Coordinates are the exact float64 values of the ``coords`` blob, written with

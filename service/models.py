@@ -40,7 +40,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, query_expression
 
-from packings.owners import utcnow
+from packings.service.owners import utcnow
 from packings.workers.cluster import Cluster as CoreCluster
 
 # Expansion statuses.
@@ -121,7 +121,7 @@ class ClusterRow(Base):
                                                   nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     #: not a column: the number of stored clusters sharing this one's contact graph, filled in by
-    #: packings.selection.query (None when the row was loaded another way)
+    #: packings.service.selection.query (None when the row was loaded another way)
     geometries: Mapped[int | None] = query_expression()
 
     __table_args__ = (
@@ -201,7 +201,7 @@ class ExpansionRow(Base):
 
 
 class CatalysisPass(Base):
-    """A catalysis pass that ran to its end (:func:`packings.catalysis.catalyse`): which run its finds went
+    """A catalysis pass that ran to its end (:func:`packings.service.catalysis.catalyse`): which run its finds went
     to, how its parents were made, and the largest parent id it read.  ``packings enumerate N --glued``
     takes as the parents of its next pass only the clusters stored after that id."""
 

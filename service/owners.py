@@ -8,7 +8,7 @@ import datetime as dt
 import os
 import socket
 
-from packings.errors import PackingsError
+from packings.service.errors import PackingsError
 
 #: a coordinator on another host whose heartbeat is older than this is taken to be gone
 HEARTBEAT_STALE_SECONDS = 120

@@ -20,7 +20,7 @@ SOURCE = "Holmes-Cerfon, SIAM Review 58(2) 2016"
 
 @functools.cache
 def _table() -> dict:
-    return json.loads(resources.files("packings").joinpath("paper_counts.json").read_text(encoding="utf-8"))
+    return json.loads(resources.files("packings.service").joinpath("paper_counts.json").read_text(encoding="utf-8"))
 
 
 def by_contacts(n: int) -> dict[int, int] | None:

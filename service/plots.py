@@ -34,8 +34,8 @@ from typing import Sequence
 
 import click
 
-from packings.fit import fit_factorial, predicted
-from packings.paper import paper_tables, paper_totals
+from packings.service.fit import fit_factorial, predicted
+from packings.service.paper import paper_tables, paper_totals
 
 SIZE, DPI = (6.4, 4.8), 150  #: a figure's default size in inches, and its dots per inch
 FORMATS = ("png", "pdf", "svg")  #: what a figure can be written as, by the file name's suffix
@@ -86,7 +86,7 @@ def save(fig, path: str | os.PathLike) -> Path:
     """Write ``fig`` in the format of ``path``'s suffix (:func:`figure_format`), at the figure's own size
     and dots per inch, to a temporary file beside ``path``, then rename it over ``path``; on any failure
     nothing is left."""
-    from packings.export import replace_file
+    from packings.service.export import replace_file
 
     fmt = figure_format(path)
     return replace_file(path, lambda f: fig.savefig(f, format=fmt, dpi=fig.dpi), binary=True)
@@ -145,13 +145,13 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
                 ax=None, size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
     """The number of clusters against n (log scale, one marker per n, the count
     written above it) with the fitted curve b·(n − 5)! of
-    :func:`packings.fit.fit_factorial` (b in the legend).  ``restricted``: {n:
+    :func:`packings.service.fit.fit_factorial` (b in the legend).  ``restricted``: {n:
     fewest contacts kept} for the n whose totals count only the clusters with
     that many contacts or more (runs restricted by ``--min-contacts``): drawn
     hollow, marked "≥ M contacts", and left out of the fit.  ``partial``: the n
-    whose totals are not complete (:func:`packings.store.incomplete_ns`): drawn
+    whose totals are not complete (:func:`packings.service.store.incomplete_ns`): drawn
     hollow in grey, marked "partial", and left out of the fit.  ``paper``: {n: the
-    paper's count} to compare (:func:`packings.paper.paper_totals`), drawn as
+    paper's count} to compare (:func:`packings.service.paper.paper_totals`), drawn as
     crosses at the n plotted.  Returns the figure."""
     import numpy as np
 
@@ -246,7 +246,7 @@ def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | 
     M} for the n whose clusters were counted only from M contacts up (as in
     :func:`plot_counts`): their legend says "≥ M"; ``partial``: the n whose counts are not
     complete, "partial" in the legend.  ``paper``: {n: the paper's counts by
-    number of contacts} to compare (:func:`packings.paper.paper_tables`), drawn as crosses
+    number of contacts} to compare (:func:`packings.service.paper.paper_tables`), drawn as crosses
     in the colour of their n, for the n drawn.  Returns the figure."""
     series = {int(n): {int(m): int(c) for m, c in d.items() if c and c > 0} for n, d in by_n.items()}
     series = {n: d for n, d in series.items() if d}
@@ -693,9 +693,9 @@ def _reading(db_url: str | None):
     prints for them), so the group reports them alike on its own."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from packings.api import connect
-    from packings.db import first_line
-    from packings.errors import PackingsError
+    from packings.service.api import connect
+    from packings.service.db import first_line
+    from packings.service.errors import PackingsError
 
     try:
         with connect(db_url) as cat, cat.session() as s:
@@ -708,7 +708,7 @@ def _reading(db_url: str | None):
 
 def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
     """{n: {contacts: clusters}} of the stored clusters (only ``ns`` if given)."""
-    from packings.store import counts_by_n
+    from packings.service.store import counts_by_n
 
     if ns is None:
         return counts_by_n(s)
@@ -720,7 +720,7 @@ def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
 
 def _incomplete(s) -> tuple[dict[int, int], set[int]]:
     """{n: M} of the n held only by runs restricted by --min-contacts, and the n whose counts are partial."""
-    from packings.store import incomplete_ns
+    from packings.service.store import incomplete_ns
 
     return incomplete_ns(s)
 
@@ -729,7 +729,7 @@ def load_gaps(s, ns: set[int] | None) -> dict[int, list[float]]:
     """{n: [min_gap, ...]} of the stored clusters that have one (only ``ns`` if given)."""
     from sqlalchemy import select
 
-    from packings.models import ClusterRow
+    from packings.service.models import ClusterRow
 
     q = select(ClusterRow.n, ClusterRow.min_gap).where(ClusterRow.min_gap.is_not(None))
     if ns is not None:
@@ -832,7 +832,7 @@ def cluster_cmd(cluster_ids: tuple[int, ...], db_url: str | None, color_by: str,
     and the closest pair of spheres not in contact dashed, with its gap.  Clusters with one contact
     graph (the geometries of one graph, say) are turned to lie alike on a common contact triangle
     and seen from the same view."""
-    from packings.models import ClusterRow
+    from packings.service.models import ClusterRow
 
     path = _output_file(output, "cluster-" + "-".join(map(str, cluster_ids)) + ".png")
     rows = []

@@ -12,7 +12,7 @@ import gc
 from distributed import SchedulerPlugin, WorkerPlugin
 from sqlalchemy import Engine
 
-from packings.db import advisory_key, display_url, make_engine, parse_url, sessions
+from packings.service.db import advisory_key, display_url, make_engine, parse_url, sessions
 
 
 def plugin_name(url: str) -> str:
@@ -23,11 +23,11 @@ def plugin_name(url: str) -> str:
 def prepare_process() -> float:
     """Import the tasks' modules and warm the compiled kernels up in this process; returns the warm-up's
     seconds (a few milliseconds where it was done already, e.g. in a worker forked from the fork server
-    that ran it: :mod:`packings.preload`).
+    that ran it: :mod:`packings.service.preload`).
 
     Pays the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
     """
-    import packings.tasks  # noqa: F401 - the tasks' module
+    import packings.service.tasks  # noqa: F401 - the tasks' module
     from packings.workers.expand import warm_up  # the tasks import it when they first run
 
     seconds = warm_up()
@@ -74,7 +74,7 @@ class TaskLeftovers(SchedulerPlugin):
     * The cache of task keys (:func:`bound_key_cache`) in the scheduler's process.
 
     ``packings enumerate`` registers it on its local cluster and on an existing scheduler (which then
-    needs the package installed); ``dask scheduler --preload packings.dashboard`` adds it too
+    needs the package installed); ``dask scheduler --preload packings.service.dashboard`` adds it too
     (docs/performance.md)."""
 
     name = "packings-task-leftovers"

@@ -29,8 +29,8 @@ from typing import Any, Callable, NamedTuple
 from sqlalchemy import ColumnElement, Select, and_, case, false, func, not_, select, true
 from sqlalchemy.orm import Session, aliased, with_expression
 
-from packings.errors import UsageError
-from packings.models import ClusterRow, ExpansionRow, Run, Transition
+from packings.service.errors import UsageError
+from packings.service.models import ClusterRow, ExpansionRow, Run, Transition
 from packings.workers.classify import LATTICES
 from packings.workers.outcomes import CIRCULAR
 

@@ -13,11 +13,11 @@ import math
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased
 
-from packings.export import table
-from packings.fit import fit_factorial
-from packings.models import ClusterRow, Transition
-from packings.paper import against_paper, verdict
-from packings.store import NOT_CLOSE_PACKED, counts_by_n, incomplete_ns
+from packings.service.export import table
+from packings.service.fit import fit_factorial
+from packings.service.models import ClusterRow, Transition
+from packings.service.paper import against_paper, verdict
+from packings.service.store import NOT_CLOSE_PACKED, counts_by_n, incomplete_ns
 from packings.workers.outcomes import CIRCULAR
 
 #: how many of the smallest gaps are listed
@@ -169,7 +169,7 @@ def format_stats(d: dict) -> str:
 
 def fit_all(every: dict[int, dict[int, int]], restricted=(), partial=()) -> dict | None:
     """The fit of the totals of ``counts_by_n`` to b·(n−5)!, leaving out the ``restricted`` n (counts of
-    runs restricted by --min-contacts: :func:`packings.store.incomplete_ns`) and the ``partial`` ones
+    runs restricted by --min-contacts: :func:`packings.service.store.incomplete_ns`) and the ``partial`` ones
     (no full run complete)."""
     return fit_factorial({k: sum(v.values()) for k, v in every.items() if k not in restricted and k not in partial})
 

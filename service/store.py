@@ -36,9 +36,9 @@ import numpy as np
 from sqlalchemy import Connection, bindparam, case, func, insert, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
-from packings.db import READONLY, insert_many, transaction_locks
-from packings.owners import busy, coordinator_alive
-from packings.models import (
+from packings.service.db import READONLY, insert_many, transaction_locks
+from packings.service.owners import busy, coordinator_alive
+from packings.service.models import (
     COMPLETE,
     DONE,
     FAILED,
@@ -160,7 +160,7 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
 
 def lock_certificates(session: Session | Connection, keys) -> None:
     """Serialise the writers of each (n, certificate) in ``keys`` to the end of the transaction
-    (:func:`packings.db.transaction_locks`)."""
+    (:func:`packings.service.db.transaction_locks`)."""
     transaction_locks(session, [("cluster", n, cert) for n, cert in keys])
 
 
@@ -262,7 +262,7 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
     A new run is seeded with one rigid cluster (packings.workers.seeds).  Resuming puts
     back to pending every expansion leased by a coordinator that is gone, without using up an
     attempt (:attr:`RunInfo.recovered` says how many).
-    Raises :class:`packings.owners.RunBusy` if a live coordinator holds the run.
+    Raises :class:`packings.service.owners.RunBusy` if a live coordinator holds the run.
     """
     pj = params.to_json()
     with Session_.begin() as s:
@@ -634,7 +634,7 @@ def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int],
 def insert_transitions(conn: Connection, rows: Iterable[tuple]) -> None:
     """Insert transitions, each a tuple of :data:`TRANSITION_COLUMNS`' values (a write-back inserts a
     few dozen a cluster, and up to hundreds of thousands for one with many contacts:
-    :func:`packings.db.insert_many`)."""
+    :func:`packings.service.db.insert_many`)."""
     insert_many(conn, _T, TRANSITION_COLUMNS, rows)
 
 

@@ -1,11 +1,11 @@
 """The Dask side: one task per few expansions, run with the database engine that
-:class:`packings.plugin.DatabasePlugin` gives each worker process.
+:class:`packings.service.plugin.DatabasePlugin` gives each worker process.
 
 A task receives only a few (expansion id, lease token) pairs and the name of
 the plugin holding the engine; it reads their clusters and the run's
 parameters from the database (one read-only query), runs
 :func:`packings.workers.expand.expand` on each, and writes the results back with
-:func:`packings.store.record_expansions` (one transaction for the task, each
+:func:`packings.service.store.record_expansions` (one transaction for the task, each
 expansion guarded by its own lease token).  Engines are never pickled into
 tasks.
 """
@@ -17,14 +17,14 @@ import traceback
 
 from distributed import get_worker
 
-from packings import store
-from packings.owners import process_name
+from packings.service import store
+from packings.service.owners import process_name
 
 
 def expand(cluster, params, arrivals=()):
     """:func:`packings.workers.expand.expand`, imported when first called: the coordinator imports this module (to
     submit its tasks) and never expands, so it never loads the path-following code and numba.  ``arrivals``:
-    the rows of :attr:`packings.store.Task.arrivals`, whose paths are taken from the end they arrived at."""
+    the rows of :attr:`packings.service.store.Task.arrivals`, whose paths are taken from the end they arrived at."""
     from packings.workers.expand import arrivals as by_contact
     from packings.workers.expand import expand as expand_cluster
 
@@ -51,7 +51,7 @@ def stale(expansion_id: int) -> dict:
 
 
 def run_loaded(task: store.Task, token: str) -> store.Finished:
-    """:func:`packings.workers.expand.expand` of a task already read (:func:`packings.store.load_tasks`), timed."""
+    """:func:`packings.workers.expand.expand` of a task already read (:func:`packings.service.store.load_tasks`), timed."""
     t0 = time.perf_counter()
     ex = expand(task.cluster, task.params, task.arrivals)
     return store.Finished(task, token, ex, time.perf_counter() - t0)
@@ -95,7 +95,7 @@ def summary(error: str) -> str:
 def expand_task(expansions: list[tuple[int, str]], plugin: str) -> list[dict]:
     """The Dask task: expand each (expansion id, lease token) in turn, with this worker's engine (all
     read in one query first), and write them back together in one transaction
-    (:func:`packings.store.record_expansions`; a stale lease's expansion is left out of it).  One whose
+    (:func:`packings.service.store.record_expansions`; a stale lease's expansion is left out of it).  One whose
     expansion fails does not stop the others; if any failed (or the write-back did, and so all of
     them), the task raises :class:`ExpansionsFailed` at the end, naming them."""
     w = get_worker()

@@ -22,7 +22,7 @@ def benchmark(*args: str) -> dict:
 
 def enumerate_into(url: str, n: int, *args: str) -> subprocess.CompletedProcess:
     """``packings enumerate n`` into the database ``url`` on one worker, which must succeed."""
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", str(n), *args, "--db", url, "--workers", "1"],
+    r = subprocess.run([sys.executable, "-m", "packings.service.cli", "enumerate", str(n), *args, "--db", url, "--workers", "1"],
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     return r

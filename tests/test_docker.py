@@ -184,7 +184,7 @@ def parsed(args: list[str]) -> dict:
         command = entry_points(group="dask_cli")[args[1]].load()
     else:
         assert args[0] == "packings", args
-        from packings.cli import cli
+        from packings.service.cli import cli
 
         command = cli.commands[args[1]]
     try:
@@ -197,7 +197,7 @@ def test_commands_parse_to_the_intended_settings(compose):
     services = compose["services"]
     p = parsed(argv(services["scheduler"]))
     assert (p["host"], p["dashboard_address"], p["port"]) == ("0.0.0.0", ":8787", None)  # port None: 8786
-    assert p["preload"] == ("packings.dashboard",) and services["scheduler"]["environment"]["PACKINGS_DB"]
+    assert p["preload"] == ("packings.service.dashboard",) and services["scheduler"]["environment"]["PACKINGS_DB"]
     import importlib
 
     assert hasattr(importlib.import_module(p["preload"][0]), "dask_setup")  # a module the scheduler can preload

@@ -1,4 +1,5 @@
-"""The installed package's import graph: the numerics (packings.workers) import nothing of the service,
+"""The installed package's layout and import graph: a repository folder's file ``F/X.py`` is the module
+``packings.F.X`` (docs/architecture.md), the numerics (packings.workers) import nothing of the service,
 of a database or of Dask, and no module imports, directly or through others, one that imports it back.
 
 Every import statement counts, at module level or inside a function: a function's import runs too.
@@ -7,11 +8,15 @@ Every import statement counts, at module level or inside a function: a function'
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
-import packings
+import packings.service
 
-PACKAGE = Path(packings.__file__).resolve().parent
+# the installed package (in a checkout, packings/__init__.py may be the checkout's: its subpackages are not)
+PACKAGE = Path(packings.service.__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]
 SERVICE_ONLY = ("sqlalchemy", "alembic", "dask", "distributed", "psycopg", "click", "tqdm", "matplotlib")
 
 
@@ -36,7 +41,7 @@ def imports(path: Path) -> set[str]:
             if node.level:
                 base = ".".join(here[: len(here) - node.level + 1] + ([base] if base else []))
             out.add(base)
-            out.update(f"{base}.{a.name}" for a in node.names)  # `from packings import store`
+            out.update(f"{base}.{a.name}" for a in node.names)  # `from packings.service import store`
     return out
 
 
@@ -47,8 +52,36 @@ def graph() -> dict[str, set[str]]:
 
 def test_the_package_has_the_modules_it_should():
     g = graph()
-    assert {"packings", "packings.api", "packings.cli", "packings.workers", "packings.workers.paths"} <= set(g)
+    assert {"packings", "packings.service.api", "packings.service.cli", "packings.workers", "packings.workers.paths"} <= set(g)
     assert (PACKAGE / "migrations" / "env.py").is_file()
+
+
+def test_a_files_path_is_its_import_name():
+    """The one rule: service/X.py is packings.service.X and workers/X.py is packings.workers.X, in the
+    installed package as in the repository."""
+    for folder in ("service", "workers"):
+        here = {p.name for p in (ROOT / folder).glob("*.py")}
+        installed = {p.name for p in (PACKAGE / folder).glob("*.py")}
+        assert here and here == installed, (folder, here ^ installed)
+    assert {p.name for p in (PACKAGE / "migrations" / "versions").glob("*.py")} == {
+        p.name for p in (ROOT / "alembic" / "versions").glob("*.py")
+    }
+    assert (ROOT / "packings" / "__init__.py").read_text() == (PACKAGE / "__init__.py").read_text()
+
+
+def test_importing_the_numerics_loads_nothing_of_the_service():
+    """A process that imports the numerics (a worker's kernels, a benchmark) gets no database, no Dask
+    and no module of the service: the package's face loads them only when its names are used."""
+    code = (
+        "import sys, packings.workers.expand, packings.workers.catalysis\n"
+        "heavy = sorted(m for m in sys.modules if m.split('.')[0] in {heavy!r} or m.startswith('packings.service'))\n"
+        "print(heavy)\n"
+        "import packings\n"
+        "print(packings.connect.__module__, packings.PackingsError.__module__)\n"
+    ).replace("{heavy!r}", repr(set(SERVICE_ONLY)))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=PACKAGE.parent)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == ["[]", "packings.service.api packings.service.errors"]
 
 
 def test_the_numerics_import_nothing_of_the_service():
@@ -64,7 +97,7 @@ def test_the_numerics_import_nothing_of_the_service():
 def test_the_import_graph_has_no_loop():
     g = graph()
     # the package's __init__ re-exports the API; a submodule importing `packings` itself is not a loop of code
-    g = {m: deps - {"packings", "packings.workers"} for m, deps in g.items()}
+    g = {m: deps - {"packings", "packings.service", "packings.workers"} for m, deps in g.items()}
     state: dict[str, int] = {}
     stack: list[str] = []
 

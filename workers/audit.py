@@ -6,7 +6,7 @@ near contact left out (docs/method.md, "The endpoint").  Genuine clusters can
 have small gaps too (at n = 13 down to about 6e-5), so each near pair is tested:
 the cluster is projected onto its contacts and the pair(s), and the result, if it
 is rigid, is looked up among the stored clusters by the caller
-(:mod:`packings.audit`).
+(:mod:`packings.service.audit`).
 
 Whether a cluster stands for an exact one is :mod:`packings.workers.exact`'s
 question (docs/method.md, "Exact clusters").
@@ -80,7 +80,7 @@ def with_contacts_added(cluster: Cluster, pairs, params: Params) -> Added:
     adjacency with tol_a and projection onto every contact, an overlapping point returned as
     it is), but with no bound on how far the spheres move, so that the audit can say how far
     the cluster it stands for is; the endpoint rule accepts it only within tol_a0
-    (``moved``, compared by :mod:`packings.audit`).  An overlap (a pair closer than
+    (``moved``, compared by :mod:`packings.service.audit`).  An overlap (a pair closer than
     1 - tol_a) is rejected, and the rest is given the rigidity test.
     """
     pairs = tuple(sorted((min(int(i), int(j)), max(int(i), int(j))) for i, j in pairs))

@@ -192,7 +192,7 @@ class Seen:
         self.bound = 4.0 * tol_d
         self._keys = np.zeros((1 << 10, 2), np.uint64)  #: digests, two words each (0, 0: an empty slot)
         self._count = 0
-        self._lock = threading.Lock()  # a worker's threads share one record (packings.catalysis)
+        self._lock = threading.Lock()  # a worker's threads share one record (packings.service.catalysis)
 
     def add(self, cluster: Cluster) -> bool:
         """Remember ``cluster``; False if it was seen already."""

@@ -6,7 +6,7 @@ Create Date: 2026-11-23 10:00:00
 
 found_by is 'seed' (the starting cluster of a run), 'path' (the endpoint of a path from
 source_id, the cluster whose expansion found it) or 'catalysis' (a remainder of source_id, a
-cluster of more spheres, after deleting spheres: packings.catalysis).
+cluster of more spheres, after deleting spheres: packings.service.catalysis).
 
 Rows stored before this revision are backfilled from the expansions and transitions: the
 cluster of a run's first expansion, if that run stored it, is the run's seed ('seed', no source;

@@ -7,7 +7,7 @@ Create Date: 2026-11-23 16:00:00
 retries counts the times an expansion was put back to pending because its task was lost with
 its worker (or its coordinator was), without using up an attempt; isolated_failures the times
 its task, run alone after such a fault, was lost again, which counts as an attempt
-(packings.coordinator).  Existing rows start at 0.
+(packings.service.coordinator).  Existing rows start at 0.
 """
 from typing import Sequence, Union
 

@@ -21,7 +21,7 @@ _pg_problem: list[str] = []
 def _pg_admin_engine():
     from sqlalchemy import create_engine
 
-    from packings.db import parse_url
+    from packings.service.db import parse_url
 
     return create_engine(parse_url(PG_ADMIN), isolation_level="AUTOCOMMIT")
 
@@ -82,7 +82,7 @@ def db_url(request):
 @pytest.fixture
 def engine(db_url):
     """An open engine on a fresh database at the schema's head."""
-    from packings.db import open_database
+    from packings.service.db import open_database
 
     eng = open_database(db_url, create=True)
     yield eng
@@ -92,9 +92,9 @@ def engine(db_url):
 def fill_database(engine, n: int, params=None, owner: str = "test:0:inline") -> int:
     """Run the whole enumeration of n in this process (no Dask), through the
     same store functions the service uses; returns the run id."""
-    from packings import store
-    from packings.db import sessions
-    from packings.tasks import run_expansion
+    from packings.service import store
+    from packings.service.db import sessions
+    from packings.service.tasks import run_expansion
     from packings.workers.params import Params
 
     Session_ = sessions(engine)

@@ -31,7 +31,7 @@ def filled_catalog(*ns: int):
 
     @pytest.fixture(scope="module", params=["sqlite", "postgresql"])
     def catalog(request, tmp_path_factory):
-        from packings.db import open_database
+        from packings.service.db import open_database
 
         if request.param == "sqlite":
             database = nullcontext(f"sqlite:///{tmp_path_factory.mktemp('catalog') / 'packings.db'}")

@@ -14,12 +14,12 @@ import pytest
 from sqlalchemy import text
 
 import packings
-from packings.errors import NotFound, PackingsError, UsageError
+from packings.service.errors import NotFound, PackingsError, UsageError
 from tests.service.conftest import fill_database
 
 
 def cli_json(url: str, *args: str):
-    r = subprocess.run([sys.executable, "-m", "packings.cli", *args, "--db", url, "--json"], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "packings.service.cli", *args, "--db", url, "--json"], capture_output=True,
                        text=True, timeout=300, check=True)
     return json.loads(r.stdout)
 
@@ -159,7 +159,7 @@ def test_a_script_that_enumerates_outside_the_main_guard_is_told_why_in_one_line
     where multiprocessing printed a traceback of its own in each worker at each try to start the cluster
     (and then each worker said why, once a try); the file the workers mark it with is gone after.  The
     same database then serves a script that calls it under the guard."""
-    from packings.dask_cluster import UNGUARDED
+    from packings.service.dask_cluster import UNGUARDED
 
     url = f"sqlite:///{tmp_path / 'unguarded.db'}"
     script = tmp_path / "unguarded.py"
@@ -191,7 +191,7 @@ def test_a_worker_that_ran_its_parents_script_marks_the_file_its_parent_named(tm
     for it to create (its parent then says why), in one line where it named none."""
     import multiprocessing
 
-    from packings import dask_cluster
+    from packings.service import dask_cluster
 
     monkeypatch.setattr(multiprocessing.current_process(), "_inheriting", True, raising=False)
     mark = tmp_path / "mark"
@@ -227,9 +227,9 @@ def test_a_run_held_by_a_live_coordinator_is_refused_before_anything_starts(engi
     import os
     import socket
 
-    import packings.dask_cluster
-    from packings import store
-    from packings.db import sessions
+    import packings.service.dask_cluster
+    from packings.service import store
+    from packings.service.db import sessions
     from packings.workers.params import Params
 
     url = engine.url.render_as_string(hide_password=False)
@@ -238,10 +238,10 @@ def test_a_run_held_by_a_live_coordinator_is_refused_before_anything_starts(engi
     def no_dask(*args, **kw):
         raise AssertionError("a Dask cluster was started")
 
-    monkeypatch.setattr(packings.dask_cluster, "dask_client", no_dask)
+    monkeypatch.setattr(packings.service.dask_cluster, "dask_client", no_dask)
     with pytest.raises(PackingsError, match="being driven by coordinator"):
         packings.enumerate(8, url, workers=1, progress=False)
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "8", "--db", url], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "packings.service.cli", "enumerate", "8", "--db", url], capture_output=True,
                        text=True, timeout=300)
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "being driven by coordinator" in r.stderr
@@ -251,8 +251,8 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
     import os
     import socket
 
-    from packings import store
-    from packings.db import sessions
+    from packings.service import store
+    from packings.service.db import sessions
     from packings.workers.params import Params
 
     url = engine.url.render_as_string(hide_password=False)
@@ -263,7 +263,7 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
         assert cat.runs()[0]["status"] == "interrupted"
         assert cat.stats(7)[0]["complete"] is False
         assert cat.fit() is None and cat.stats(7)[0]["fit"] is None  # a partial count is never fitted
-    text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
+    text = subprocess.run([sys.executable, "-m", "packings.service.cli", "stats", "--db", url], capture_output=True,
                           text=True, timeout=300, check=True).stdout
     assert "n = 7: 1 rigid clusters so far (partial" in text
     store.start_run(S, 7, Params(), f"{socket.gethostname()}:{os.getpid()}:live")  # taken over by a live one
@@ -289,7 +289,7 @@ def test_a_complete_run_capped_by_max_break_is_partial(engine):
         assert [r["status"] for r in cat.runs()] == ["complete", "complete"]
         assert [(d["n"], d["complete"]) for d in cat.stats()] == [(7, True), (8, False)]
         assert cat.fit()["ns"] == [7] and cat.stats(8)[0]["fit"]["predicted"] == pytest.approx(6 * cat.fit()["b"])
-    text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
+    text = subprocess.run([sys.executable, "-m", "packings.service.cli", "stats", "--db", url], capture_output=True,
                           text=True, timeout=300, check=True).stdout
     assert "(partial: no full run of n = 8 is complete)" in text
 
@@ -297,8 +297,8 @@ def test_a_complete_run_capped_by_max_break_is_partial(engine):
 def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_fit(engine, tmp_path):
     """n = 7 and 8 in full, n = 9 only from a run restricted by --min-contacts: stats, the fit and the
     counts figure keep n = 9 apart."""
-    from packings.plots import plot_counts
-    from packings.stats import fit_all
+    from packings.service.plots import plot_counts
+    from packings.service.stats import fit_all
     from packings.workers.params import Params
 
     fill_database(engine, 7)
@@ -312,7 +312,7 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
     assert stats[9]["total"] == 52 and not stats[9]["complete"]
     assert fit["ns"] == [7, 8] and fit == fit_all({7: {15: 5}, 8: {18: 13}})
     assert stats[8]["fit"]["b"] == stats[9]["fit"]["b"] == fit["b"]
-    text = subprocess.run([sys.executable, "-m", "packings.cli", "stats", "--db", url], capture_output=True,
+    text = subprocess.run([sys.executable, "-m", "packings.service.cli", "stats", "--db", url], capture_output=True,
                           text=True, timeout=300, check=True).stdout
     assert "n = 9: 52 rigid clusters with at least 21 contacts (runs restricted by --min-contacts" in text
     assert "as the paper at every number of contacts, with at least 21 contacts: 52 (" in text
@@ -329,7 +329,7 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
 
 
 def test_a_restricted_run_with_no_seed_that_has_enough_contacts_is_refused_in_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "packings.cli", "enumerate", "10", "--min-contacts", "26", "--db",
+    r = subprocess.run([sys.executable, "-m", "packings.service.cli", "enumerate", "10", "--min-contacts", "26", "--db",
                         f"sqlite:///{tmp_path / 'x.db'}"], capture_output=True, text=True, timeout=300)
     assert r.returncode != 0 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [

@@ -1,4 +1,4 @@
-"""``packings audit`` (packings.audit) on both backends: a clean catalogue, a junk near copy, close
+"""``packings audit`` (packings.service.audit) on both backends: a clean catalogue, a junk near copy, close
 geometries of one contact graph, small pre-stress margins."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from packings.audit import audit, format_audit
-from packings.db import sessions
+from packings.service.audit import audit, format_audit
+from packings.service.db import sessions
 from tests.service.querydb import filled_catalog
 from tests.service.test_query_cli import ok, one_line_error, run
 from tests.workers.test_audit import near_misses, two_geometries
@@ -28,7 +28,7 @@ def url(engine) -> str:
 
 def store(engine, clusters, rig=None) -> list[int]:
     """Store clusters as a finished expansion does (store.insert_or_match), with their rigidity (or ``rig``)."""
-    from packings import store as st
+    from packings.service import store as st
 
     ids = []
     with sessions(engine).begin() as s:
@@ -172,7 +172,7 @@ def test_a_regular_cluster_far_from_any_exact_one_and_a_copy_within_the_radius_a
 def test_small_prestress_margins_against_the_runs_tol_psd(engine):
     """List (b) holds the pre-stress clusters whose stored margin is below 10 tol_psd, tol_psd read from
     the run of that n; first-order rigid clusters are never in it."""
-    from packings import store as st
+    from packings.service import store as st
 
     real = real_of(near_misses()[0]["cluster"])
     small, large = (Rigidity(True, PRESTRESS, 1, 1, "single-flex", margin) for margin in (5e-5, 2e-4))

@@ -1,4 +1,4 @@
-"""Catalysis in the database (packings.catalysis) and `packings catalyse`."""
+"""Catalysis in the database (packings.service.catalysis) and `packings catalyse`."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 from sqlalchemy import func, select, text
 
-from packings import store
-from packings.catalysis import NoParents, catalyse, close_packed_pass, count_stored, covered
-from packings.db import sessions
-from packings.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PASS_DELETED, PASS_GLUED,
+from packings.service import store
+from packings.service.catalysis import NoParents, catalyse, close_packed_pass, count_stored, covered
+from packings.service.db import sessions
+from packings.service.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PASS_DELETED, PASS_GLUED,
                              PENDING, RUNNING, CatalysisPass, ClusterRow, ExpansionRow, Run)
 from tests.service.conftest import fill_database
 from tests.service.test_db import cli, one_line_error
@@ -331,7 +331,7 @@ def _dask_pass(engine, n: int, batch: int = 200, **kw):
     """A pass of catalysis on a Dask cluster of two worker threads (of this process) with the database plugin."""
     from distributed import Client, LocalCluster
 
-    from packings.plugin import DatabasePlugin
+    from packings.service.plugin import DatabasePlugin
 
     plugin = DatabasePlugin(url_of(engine))
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
@@ -381,7 +381,7 @@ def test_a_task_carries_the_parents_ids_alone_and_stores_what_it_found(engine, m
     """A pass on Dask workers submits each batch as a list of cluster ids (the scheduler and the coordinator
     never hold the parents' coordinates), and the task stores the lost cluster of 11 itself: nothing is
     stored outside a worker."""
-    import packings.catalysis as catalysis_module
+    import packings.service.catalysis as catalysis_module
     from distributed import Client, get_worker
 
     data, S, pid = _glued_parent_of_11(engine)
@@ -418,9 +418,9 @@ def test_the_coordinator_of_a_pass_on_worker_processes_loads_no_numerical_code(e
         "import json, sys\n"
         "def main():\n"
         "    from distributed import Client, LocalCluster\n"
-        "    from packings.catalysis import catalyse\n"
-        "    from packings.db import make_engine, sessions\n"
-        "    from packings.plugin import DatabasePlugin\n"
+        "    from packings.service.catalysis import catalyse\n"
+        "    from packings.service.db import make_engine, sessions\n"
+        "    from packings.service.plugin import DatabasePlugin\n"
         "    from packings.workers.params import Params\n"
         "    url = sys.argv[1]\n"
         "    plugin = DatabasePlugin(url)\n"
@@ -450,7 +450,7 @@ def test_enumerate_glued_gives_each_pass_fresh_local_workers(engine, monkeypatch
     """packings.enumerate(..., glued=True) replaces its local workers before each pass it makes (not before
     the paths, nor when no pass is due), and the catalogue is the same."""
     import packings
-    import packings.dask_cluster as dc
+    import packings.service.dask_cluster as dc
 
     run7 = _complete_after_the_seed(engine, 7)
     calls, real = [], dc.dask_client.fresh_workers

@@ -8,7 +8,7 @@ import pytest
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True, timeout=600,
+    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=600,
                           cwd=cwd)
 
 
@@ -53,7 +53,7 @@ import os, signal, sys, time
 
 import click
 
-from packings import cli
+from packings.service import cli
 
 
 def signal_and_spin():
@@ -104,7 +104,7 @@ def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command(where):
 HOOK_OFF_THE_MAIN_THREAD = r"""
 import sys, threading
 
-from packings import cli
+from packings.service import cli
 
 
 def mine(unraisable):

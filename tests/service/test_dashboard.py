@@ -15,9 +15,9 @@ import pytest
 from sqlalchemy import text
 
 from benchmarks.screenshot import render
-from packings import dashboard
-from packings.dashboard import Watcher
-from packings.db import make_engine
+from packings.service import dashboard
+from packings.service.dashboard import Watcher
+from packings.service.db import make_engine
 from tests.service.test_enumerate import _free_port, done_count, packings, wait_for
 
 
@@ -41,7 +41,7 @@ def _database_now(url: str) -> dict:
 def test_the_page_shows_the_run_as_the_database_has_it(db_url):
     port = _free_port()
     # n = 11, not 10: n = 10's run ends about two seconds after it starts, before the page is read
-    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "11", "--db", db_url, "--workers", "2",
+    proc = subprocess.Popen([sys.executable, "-m", "packings.service.cli", "enumerate", "11", "--db", db_url, "--workers", "2",
                              "--dashboard-address", f"127.0.0.1:{port}"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -83,7 +83,7 @@ def test_the_page_draws_in_a_browser(sqlite_url):
     """Headless Chromium draws the page during a run: the run's numbers, and no script error.  n = 11, which
     lasts long enough (n = 10 can end, and its dashboard with it, before the browser has loaded the page)."""
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "11", "--db", sqlite_url,
+    proc = subprocess.Popen([sys.executable, "-m", "packings.service.cli", "enumerate", "11", "--db", sqlite_url,
                              "--workers", "2", "--quiet", "--dashboard-address", f"127.0.0.1:{port}"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
@@ -199,7 +199,7 @@ def test_the_json_without_a_database_says_so(monkeypatch):
 def test_the_header_gives_the_papers_count_from_the_fewest_contacts_a_run_keeps(engine):
     """A run restricted by --min-contacts is shown beside the paper's count of clusters with that many contacts
     or more; an n the paper does not count has no such count."""
-    from packings.db import sessions
+    from packings.service.db import sessions
     from packings.workers.params import Params
     from tests.service.conftest import fill_database
 

@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
-from packings.db import DatabaseError, current_revision, head_revision, make_engine, migrate, open_database, parse_url
-from packings.models import Base
+from packings.service.db import DatabaseError, current_revision, head_revision, make_engine, migrate, open_database, parse_url
+from packings.service.models import Base
 
 
 def cli(*args, cwd=None, env=None):
-    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True,
                           timeout=600, cwd=cwd, env=env)
 
 
@@ -81,7 +81,7 @@ def test_older_and_unknown_schemas_are_refused_with_the_fix(engine):
     line = one_line_error(r)
     assert "does not know" in line and "upgrade packings" in line
     # pretend the database is at a revision older than head
-    import packings.db as db
+    import packings.service.db as db
 
     real = db.known_revisions
     db.known_revisions = lambda: real() | {"ffffffff"}
@@ -149,8 +149,8 @@ def test_sqlite_readers_do_not_wait_for_a_writer(sqlite_url):
     """Writers begin IMMEDIATE (one at a time); readonly sessions begin DEFERRED and read a snapshot."""
     import threading
 
-    from packings.db import sessions
-    from packings.models import Run
+    from packings.service.db import sessions
+    from packings.service.models import Run
 
     eng = open_database(sqlite_url, create=True)
     writer = sessions(eng)
@@ -180,8 +180,8 @@ def test_sqlite_readers_do_not_wait_for_a_writer(sqlite_url):
 def test_a_readonly_session_reads_one_snapshot(db_url):
     """Every read of a readonly session sees the database as at its first read, whatever writers commit
     meanwhile (the dashboard counts clusters and expansions in separate statements)."""
-    from packings.db import sessions
-    from packings.models import Run
+    from packings.service.db import sessions
+    from packings.service.models import Run
 
     eng = open_database(db_url, create=True)
     with sessions(eng, readonly=True)() as r:
@@ -200,10 +200,10 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     Either way the connection's busy timeout is the configured one afterwards."""
     import threading
 
-    import packings.db
+    import packings.service.db
     from sqlalchemy.exc import OperationalError
 
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     eng = open_database(sqlite_url, create=True)
     holder = make_engine(sqlite_url)
@@ -224,7 +224,7 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     with S.begin() as s:
         s.execute(text("SELECT 1"))
         order.append("writer begins")
-        assert s.execute(text("PRAGMA busy_timeout")).scalar() == packings.db.SQLITE_BUSY_TIMEOUT_MS
+        assert s.execute(text("PRAGMA busy_timeout")).scalar() == packings.service.db.SQLITE_BUSY_TIMEOUT_MS
     t.join(30)
     assert order == ["holder commits", "writer begins"]
 
@@ -403,7 +403,7 @@ def test_alembic_sql_mode_honours_the_database_given():
 def test_revision_0005_renumbers_the_stored_geometries_by_shape(engine):
     """A database whose geometries of one contact graph were numbered in the order found (before 0005)
     is renumbered in embedding order by the upgrade, whatever the old numbers; a downgrade leaves them."""
-    from packings.db import sessions
+    from packings.service.db import sessions
     from tests.service.test_store import _embeddings, _store_chains
 
     S = sessions(engine)

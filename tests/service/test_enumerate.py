@@ -17,19 +17,19 @@ import pytest
 from sqlalchemy import func, select
 
 from benchmarks.soak import worker_processes
-from packings.db import make_engine, sessions
-from packings.models import LEASED, PENDING, ClusterRow, ExpansionRow
+from packings.service.db import make_engine, sessions
+from packings.service.models import LEASED, PENDING, ClusterRow, ExpansionRow
 from packings.workers.identity import ClusterIndex
 from packings.workers.params import Params
 
 
 def packings(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True,
                           timeout=1800, **kw)
 
 
 def start(*args):
-    return subprocess.Popen([sys.executable, "-m", "packings.cli", *args], stdout=subprocess.PIPE,
+    return subprocess.Popen([sys.executable, "-m", "packings.service.cli", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
 
 
@@ -232,7 +232,7 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
     address = f"tcp://127.0.0.1:{port}"
     # the scheduler serves the packings page of the database it is told (README: many machines)
     procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", f"127.0.0.1:{dash}", "--preload", "packings.dashboard"],
+                               "--dashboard-address", f"127.0.0.1:{dash}", "--preload", "packings.service.dashboard"],
                               stderr=subprocess.DEVNULL, env={**os.environ, "PACKINGS_DB": db_url})]
     try:
         _wait_until_listening(port)  # as an operator starts the scheduler before pointing anything at it
@@ -273,13 +273,13 @@ def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatc
     """A task that always fails is tried max_attempts times, then the run ends incomplete with its error."""
     from distributed import Client, LocalCluster
 
-    import packings.tasks
-    from packings.coordinator import run_enumeration
+    import packings.service.tasks
+    from packings.service.coordinator import run_enumeration
 
     def broken(cluster, params, arrivals=()):
         raise FloatingPointError("injected failure")
 
-    monkeypatch.setattr(packings.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
+    monkeypatch.setattr(packings.service.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
@@ -300,17 +300,17 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
     marked failed; the others of its task are written back, and the run reaches everything else."""
     from distributed import Client, LocalCluster
 
-    import packings.coordinator
-    import packings.tasks
-    from packings.coordinator import run_enumeration
+    import packings.service.coordinator
+    import packings.service.tasks
+    from packings.service.coordinator import run_enumeration
     from packings.workers.explore import explore
     from packings.workers.identity import same_geometry
 
     params = Params()
     victim = explore(8).clusters[3]
-    real_expand, real_task = packings.tasks.expand, packings.coordinator.expand_task
+    real_expand, real_task = packings.service.tasks.expand, packings.service.coordinator.expand_task
     batches: list[list[int]] = []
-    monkeypatch.setattr(packings.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
+    monkeypatch.setattr(packings.service.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
 
     def failing(cluster, p, arrivals=()):
         if same_geometry(cluster, victim, p.tol_d):
@@ -318,11 +318,11 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
         return real_expand(cluster, p, arrivals)
 
     def recording(expansions, plugin):
-        packings.tasks.seen_batches.append([eid for eid, _ in expansions])
+        packings.service.tasks.seen_batches.append([eid for eid, _ in expansions])
         return real_task(expansions, plugin)
 
-    monkeypatch.setattr(packings.tasks, "expand", failing)
-    monkeypatch.setattr(packings.coordinator, "expand_task", recording)
+    monkeypatch.setattr(packings.service.tasks, "expand", failing)
+    monkeypatch.setattr(packings.service.coordinator, "expand_task", recording)
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
@@ -341,7 +341,7 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
 
 
 def test_claimed_expansions_are_shared_out_evenly():
-    from packings.coordinator import _shares
+    from packings.service.coordinator import _shares
 
     claimed = [(i, f"t{i}") for i in range(11)]
     parts = _shares(claimed, 4)
@@ -355,7 +355,7 @@ def test_the_last_expansions_of_a_run_go_out_in_small_tasks():
     """While the frontier is large a task takes ``batch`` expansions; once a claim takes all that is
     pending, what it took is spread over as many tasks as the workers hold, so that one worker does not
     hold them all in one task while another has none."""
-    from packings.coordinator import _task_count
+    from packings.service.coordinator import _task_count
 
     assert _task_count(32, 4, 8, 8) == 4  # a full claim: the tasks wanted, eight each
     assert _task_count(20, 4, 8, 8) == 8  # the frontier ran out: spread over the capacity
@@ -369,10 +369,10 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
 
     from click.testing import CliRunner
 
-    import packings.cli
-    import packings.coordinator
-    import packings.dask_cluster
-    from packings.coordinator import RunResult
+    import packings.service.cli
+    import packings.service.coordinator
+    import packings.service.dask_cluster
+    from packings.service.coordinator import RunResult
 
     seen = {}
 
@@ -380,10 +380,10 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
         seen["max_attempts"] = max_attempts
         return RunResult(1, n, "complete", {}, {}, 0.0, False)
 
-    monkeypatch.setattr(packings.coordinator, "run_enumeration", fake_run)
-    monkeypatch.setattr(packings.dask_cluster, "dask_client",
+    monkeypatch.setattr(packings.service.coordinator, "run_enumeration", fake_run)
+    monkeypatch.setattr(packings.service.dask_cluster, "dask_client",
                         lambda *a, **kw: nullcontext(SimpleNamespace(client=None, revive_workers=lambda: 0)))
-    r = CliRunner().invoke(packings.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
+    r = CliRunner().invoke(packings.service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
 
@@ -393,7 +393,7 @@ def test_each_worker_compiles_the_kernels_when_it_joins(engine):
     before any task runs, so no task pays for compilation."""
     from distributed import Client, LocalCluster
 
-    from packings.plugin import DatabasePlugin
+    from packings.service.plugin import DatabasePlugin
 
     url = engine.url.render_as_string(hide_password=False)
     plugin = DatabasePlugin(url)
@@ -418,8 +418,8 @@ def test_a_local_cluster_sets_its_workers_up_as_they_start(engine):
     frozen what it loaded out of the garbage collector's way before it joins and any task runs."""
     import gc
 
-    import packings.dask_cluster
-    from packings.plugin import DatabasePlugin
+    import packings.service.dask_cluster
+    from packings.service.plugin import DatabasePlugin
 
     plugin = DatabasePlugin(engine.url.render_as_string(hide_password=False))
 
@@ -427,7 +427,7 @@ def test_a_local_cluster_sets_its_workers_up_as_they_start(engine):
         p = dask_worker.plugins.get(plugin.name)
         return p is not None and p.engine is not None, getattr(p, "warm_up_seconds", 0.0), gc.get_freeze_count()
 
-    with packings.dask_cluster.dask_client(None, 2, True, plugins=(plugin,)) as local:
+    with packings.service.dask_cluster.dask_client(None, 2, True, plugins=(plugin,)) as local:
         seen = local.client.run(state)
     assert len(seen) == 2
     for has_engine, warm_up_seconds, frozen in seen.values():
@@ -438,7 +438,7 @@ def _worker_origin():
     """What a worker process tells of how it started (run in it)."""
     import os
 
-    preload = sys.modules.get("packings.preload")
+    preload = sys.modules.get("packings.service.preload")
     return (os.getppid(), preload is not None, getattr(preload, "warm_up_seconds", 0.0),
             os.environ.get("OMP_NUM_THREADS"), os.environ.get("MALLOC_TRIM_THRESHOLD_"))
 
@@ -458,16 +458,16 @@ def fresh_dask_config(monkeypatch):
                     reason="this platform has no fork server: local workers are spawned")
 def test_a_local_clusters_workers_are_forked_warm_from_one_fork_server(engine, fresh_dask_config):
     """The local cluster's workers are forked from one fork server that imported the tasks' modules and
-    warmed the kernels up before (packings.preload), not spawned by this process to import it all each
+    warmed the kernels up before (packings.service.preload), not spawned by this process to import it all each
     again; they have the environment Dask gives new worker processes (one BLAS thread, malloc trim)."""
     import os
 
-    import packings.dask_cluster
-    from packings.plugin import DatabasePlugin
+    import packings.service.dask_cluster
+    from packings.service.plugin import DatabasePlugin
 
-    fresh_dask_config.delenv(packings.dask_cluster.METHOD_ENV, raising=False)
+    fresh_dask_config.delenv(packings.service.dask_cluster.METHOD_ENV, raising=False)
     plugin = DatabasePlugin(engine.url.render_as_string(hide_password=False))
-    with packings.dask_cluster.dask_client(None, 2, True, plugins=(plugin,)) as local:
+    with packings.service.dask_cluster.dask_client(None, 2, True, plugins=(plugin,)) as local:
         seen = local.client.run(_worker_origin)
     assert len(seen) == 2
     parents = {parent for parent, *_ in seen.values()}
@@ -484,12 +484,12 @@ def test_a_chosen_start_method_is_kept(engine, fresh_dask_config):
 
     import dask
 
-    import packings.dask_cluster
+    import packings.service.dask_cluster
 
-    fresh_dask_config.setenv(packings.dask_cluster.METHOD_ENV, "spawn")
+    fresh_dask_config.setenv(packings.service.dask_cluster.METHOD_ENV, "spawn")
     dask.config.refresh()
-    assert packings.dask_cluster.start_fork_server() is False
-    with packings.dask_cluster.dask_client(None, 1, True) as local:
+    assert packings.service.dask_cluster.start_fork_server() is False
+    with packings.service.dask_cluster.dask_client(None, 1, True) as local:
         seen = local.client.run(_worker_origin)
     ((parent, preloaded, *_),) = seen.values()
     assert parent == os.getpid() and not preloaded
@@ -498,8 +498,8 @@ def test_a_chosen_start_method_is_kept(engine, fresh_dask_config):
 def test_the_command_line_starts_the_workers_before_loading_the_kernels():
     """What ``packings enumerate`` imports before it starts its local cluster (the command line and the
     worker plugin) leaves out the numerical code: the workers start while it is loaded."""
-    code = ("import sys, packings.cli, packings.plugin; "
-            "print(sorted(m for m in ('numba', 'packings.workers.expand', 'packings.workers.kernels', 'packings.store') if m in sys.modules))")
+    code = ("import sys, packings.service.cli, packings.service.plugin; "
+            "print(sorted(m for m in ('numba', 'packings.workers.expand', 'packings.workers.kernels', 'packings.service.store') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -507,7 +507,7 @@ def test_the_command_line_starts_the_workers_before_loading_the_kernels():
 def test_the_command_line_loads_light_so_that_the_fork_server_starts_first():
     """Importing the command line loads none of SQLAlchemy, numpy, Dask (0.3 s in all): `packings
     enumerate` starts its workers' fork server before it loads them, and the commands load what they use."""
-    code = ("import sys, packings.cli; "
+    code = ("import sys, packings.service.cli; "
             "print(sorted(m for m in ('sqlalchemy', 'numpy', 'dask', 'distributed') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
@@ -519,8 +519,8 @@ def test_the_coordinator_never_loads_the_path_following_code(tmp_path):
     second of a run's start-up, on the cores the workers need)."""
     code = (
         "import sys\n"
-        "from packings import coordinator, store\n"
-        "from packings.db import open_database, sessions\n"
+        "from packings.service import coordinator, store\n"
+        "from packings.service.db import open_database, sessions\n"
         "from packings.workers.params import Params\n"
         f"S = sessions(open_database('sqlite:///{tmp_path / 'c.db'}', create=True))\n"
         "info = store.start_run(S, 8, Params(), 'here:1')\n"
@@ -539,13 +539,13 @@ def test_local_workers_do_not_profile_unless_asked(fresh_dask_config, env, expec
     cluster of ``packings enumerate`` starts its workers without it, unless the variable asks."""
     import dask
 
-    import packings.dask_cluster
+    import packings.service.dask_cluster
 
-    fresh_dask_config.delenv(packings.dask_cluster.PROFILE_ENV, raising=False)
+    fresh_dask_config.delenv(packings.service.dask_cluster.PROFILE_ENV, raising=False)
     if env is not None:
-        fresh_dask_config.setenv(packings.dask_cluster.PROFILE_ENV, env)
+        fresh_dask_config.setenv(packings.service.dask_cluster.PROFILE_ENV, env)
     dask.config.refresh()  # read the environment as a new process would
-    with packings.dask_cluster.dask_client(None, 1, True) as local:
+    with packings.service.dask_cluster.dask_client(None, 1, True) as local:
         seen = local.client.run(lambda: dask.config.get("distributed.worker.profile.enabled"))
     assert list(seen.values()) == [expected]
 
@@ -563,7 +563,7 @@ def test_the_coordinator_keeps_few_of_the_messages_it_sent(fresh_dask_config, en
     variable asks for another number."""
     import dask
 
-    import packings.dask_cluster as dc
+    import packings.service.dask_cluster as dc
 
     fresh_dask_config.delenv(dc.LOG_LENGTH_ENV, raising=False)
     if env is not None:
@@ -593,22 +593,22 @@ def test_the_scheduler_forgets_what_each_task_left_once_it_is_gone(fresh_dask_co
     """Dask's scheduler adds the kind of collection of every submission (``{"type": "Future"}``) to the
     metadata of the span its tasks join and never shortens that list, and splits each task's key through a
     cache of up to 100,000 keys: both grew by a few hundred bytes with every task ``packings enumerate``
-    submitted.  The scheduler of ``dask_client`` has :class:`packings.plugin.TaskLeftovers`, which keeps one
-    entry of each kind and empties the cache past :data:`packings.plugin.KEY_CACHE_LIMIT`; without it both
+    submitted.  The scheduler of ``dask_client`` has :class:`packings.service.plugin.TaskLeftovers`, which keeps one
+    entry of each kind and empties the cache past :data:`packings.service.plugin.KEY_CACHE_LIMIT`; without it both
     grow.  Tasks are kept in flight, as the coordinator keeps them: they all join one span."""
     from dask.utils import key_split
 
-    import packings.dask_cluster as dc
-    import packings.plugin
+    import packings.service.dask_cluster as dc
+    import packings.service.plugin
 
-    monkeypatch.setattr(packings.plugin, "KEY_CACHE_LIMIT", 20)  # the scheduler runs in this process
+    monkeypatch.setattr(packings.service.plugin, "KEY_CACHE_LIMIT", 20)  # the scheduler runs in this process
     with dc.dask_client(None, 1, True) as local:
         client, scheduler = local.client, local.cluster.scheduler
-        assert packings.plugin.TaskLeftovers.name in scheduler.plugins
+        assert packings.service.plugin.TaskLeftovers.name in scheduler.plugins
         key_split.cache_clear()
         assert client.gather([client.submit(_one, i, key=f"left-{i}") for i in range(60)]) == list(range(60))
         kinds, keys = _kinds(scheduler), key_split.cache_info().currsize
-        client.unregister_scheduler_plugin(packings.plugin.TaskLeftovers.name)
+        client.unregister_scheduler_plugin(packings.service.plugin.TaskLeftovers.name)
         assert client.gather([client.submit(_one, i, key=f"right-{i}") for i in range(60)]) == list(range(60))
         grown, grown_keys = _kinds(scheduler), key_split.cache_info().currsize
     assert max(kinds) == 1 and keys < 30  # the limit, and the few keys split since the last submission
@@ -620,10 +620,10 @@ def test_a_worker_empties_its_cache_of_task_keys_as_tasks_are_forgotten(monkeypa
     it, once past the limit, as the worker forgets a task."""
     from dask.utils import key_split
 
-    import packings.plugin
+    import packings.service.plugin
 
-    monkeypatch.setattr(packings.plugin, "KEY_CACHE_LIMIT", 5)
-    plugin = packings.plugin.DatabasePlugin(f"sqlite:///{tmp_path / 'db.sqlite'}")
+    monkeypatch.setattr(packings.service.plugin, "KEY_CACHE_LIMIT", 5)
+    plugin = packings.service.plugin.DatabasePlugin(f"sqlite:///{tmp_path / 'db.sqlite'}")
     key_split.cache_clear()
     for i in range(5):
         key_split(f"kept-{i}")
@@ -637,10 +637,10 @@ def test_a_worker_empties_its_cache_of_task_keys_as_tasks_are_forgotten(monkeypa
 
 
 def test_a_scheduler_started_with_the_preload_has_the_plugin_for_its_memory(monkeypatch):
-    """``dask scheduler --preload packings.dashboard`` (a scheduler of many machines, also when it is
-    started again) gives it :class:`packings.plugin.TaskLeftovers` itself."""
-    import packings.dashboard
-    import packings.plugin
+    """``dask scheduler --preload packings.service.dashboard`` (a scheduler of many machines, also when it is
+    started again) gives it :class:`packings.service.plugin.TaskLeftovers` itself."""
+    import packings.service.dashboard
+    import packings.service.plugin
 
     added = {}
 
@@ -651,8 +651,8 @@ def test_a_scheduler_started_with_the_preload_has_the_plugin_for_its_memory(monk
             added[plugin.name] = plugin
 
     monkeypatch.delenv("PACKINGS_DB", raising=False)
-    packings.dashboard.dask_setup(Scheduler())
-    assert isinstance(added.get(packings.plugin.TaskLeftovers.name), packings.plugin.TaskLeftovers)
+    packings.service.dashboard.dask_setup(Scheduler())
+    assert isinstance(added.get(packings.service.plugin.TaskLeftovers.name), packings.service.plugin.TaskLeftovers)
 
 
 def _sigint_by_default() -> None:
@@ -669,7 +669,7 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10
     can finish in the moment between the test seeing its fifth expansion done and the signal."""
     import os
 
-    proc = subprocess.Popen([sys.executable, "-m", "packings.cli", "enumerate", "10", "--db", db_url, "--workers", "2",
+    proc = subprocess.Popen([sys.executable, "-m", "packings.service.cli", "enumerate", "10", "--db", db_url, "--workers", "2",
                              "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True, preexec_fn=_sigint_by_default)
     try:

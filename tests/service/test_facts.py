@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from sqlalchemy import select, text
 
-from packings.models import ClusterRow, Transition
+from packings.service.models import ClusterRow, Transition
 from tests.service.querydb import filled_catalog
 from tests.service.test_query_cli import ok, one_line_error, run, run_many
 from packings.workers.classify import lattice_type, static_class
@@ -63,8 +63,8 @@ CONSTRUCTED = {"fcc": cuboctahedron, "hcp": anticuboctahedron, "none": pentagona
 
 def store_clusters(engine, clusters) -> list[int]:
     """Store clusters the way a finished expansion does (store.insert_or_match)."""
-    from packings import store
-    from packings.db import sessions
+    from packings.service import store
+    from packings.service.db import sessions
     from packings.workers.rigidity import rigidity
 
     Session_ = sessions(engine)
@@ -153,7 +153,7 @@ def test_two_geometries_of_one_contact_graph_are_counted(engine):
 
 @pytest.fixture(scope="module")
 def rows(catalog):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     with sessions(catalog.engine)() as s:
         clusters = s.execute(select(ClusterRow).order_by(ClusterRow.id)).scalars().all()
@@ -238,7 +238,7 @@ def test_path_keys_agree_with_the_transitions(catalog, rows):
 
 
 def test_upgrade_from_0001_backfills_the_facts(db_url):
-    from packings.db import head_revision, migrate, open_database
+    from packings.service.db import head_revision, migrate, open_database
 
     engine = open_database(db_url, create=True)
     ids = store_clusters(engine, [cuboctahedron(), pentagonal_bipyramid()])

@@ -22,8 +22,8 @@ import pytest
 from sqlalchemy import func, select
 
 from benchmarks.soak import worker_processes
-from packings.db import make_engine, sessions
-from packings.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run, Transition
+from packings.service.db import make_engine, sessions
+from packings.service.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run, Transition
 from packings.workers.params import Params
 from tests.service.test_enumerate import (
     assert_same_clusters, done_count, start, wait_for)
@@ -53,11 +53,11 @@ def _in_process_run(engine, n: int, monkeypatch, task, max_attempts: int = 3):
     plugin)`` (threads of this process: the patch reaches them)."""
     from distributed import Client, LocalCluster
 
-    import packings.coordinator
-    from packings.coordinator import run_enumeration
+    import packings.service.coordinator
+    from packings.service.coordinator import run_enumeration
 
-    real = packings.coordinator.expand_task
-    monkeypatch.setattr(packings.coordinator, "expand_task", lambda e, p: task(real, e, p))
+    real = packings.service.coordinator.expand_task
+    monkeypatch.setattr(packings.service.coordinator, "expand_task", lambda e, p: task(real, e, p))
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
@@ -74,14 +74,14 @@ def _expansions(engine) -> list[ExpansionRow]:
 def test_a_lost_task_puts_its_expansions_back_without_using_an_attempt(engine, monkeypatch, paper_counts):
     """The first tasks of several expansions are lost as with a dead worker: their expansions go back
     to pending with no attempt used, each is then sent alone, and the run completes with max_attempts 1."""
-    import packings.tasks
+    import packings.service.tasks
 
     batches, lost = [], set()
     # tasks are pickled, closures by value: they reach the lists through a module
-    monkeypatch.setattr(packings.tasks, "fault_log", (batches, lost), raising=False)
+    monkeypatch.setattr(packings.service.tasks, "fault_log", (batches, lost), raising=False)
 
     def task(real, expansions, plugin):
-        batches, lost = packings.tasks.fault_log
+        batches, lost = packings.service.tasks.fault_log
         ids = [eid for eid, _ in expansions]
         batches.append(ids)
         if len(ids) > 1 and len(lost) < 3:
@@ -109,15 +109,15 @@ def test_an_expansion_that_kills_every_worker_alone_ends_failed(engine, monkeypa
     from packings.workers.explore import explore
     from packings.workers.identity import same_geometry
 
-    import packings.store
-    import packings.tasks
+    import packings.service.store
+    import packings.service.tasks
 
     poison = explore(8).clusters[4]
-    monkeypatch.setattr(packings.tasks, "fault_log", (sessions(engine), poison, Params().tol_d), raising=False)
+    monkeypatch.setattr(packings.service.tasks, "fault_log", (sessions(engine), poison, Params().tol_d), raising=False)
 
     def task(real, expansions, plugin):
-        Session_, poison, tol_d = packings.tasks.fault_log  # tasks are pickled: reach them through a module
-        loaded = packings.store.load_tasks(Session_, expansions)
+        Session_, poison, tol_d = packings.service.tasks.fault_log  # tasks are pickled: reach them through a module
+        loaded = packings.service.store.load_tasks(Session_, expansions)
         if any(same_geometry(t.cluster, poison, tol_d) for t in loaded.values()):
             raise _killed_worker(f"expand-{expansions[0][0]}")
         return real(expansions, plugin)
@@ -258,9 +258,9 @@ def test_a_write_back_that_dies_half_way_leaves_nothing_and_is_retried(engine, m
     """The write-back of one task raises after half of its clusters are inserted (once): nothing of
     that transaction is visible, the task's expansions are retried (an attempt each: the fault is in
     the task), and the run ends with exactly the paper's clusters."""
-    import packings.store
+    import packings.service.store
 
-    real = packings.store.insert_or_match
+    real = packings.service.store.insert_or_match
     state = {"calls": 0, "raised": False}
 
     def dying(session, c, *a, **kw):
@@ -270,7 +270,7 @@ def test_a_write_back_that_dies_half_way_leaves_nothing_and_is_retried(engine, m
             raise RuntimeError("worker died mid-write (injected)")
         return real(session, c, *a, **kw)
 
-    monkeypatch.setattr(packings.store, "insert_or_match", dying)
+    monkeypatch.setattr(packings.service.store, "insert_or_match", dying)
     result = _in_process_run(engine, 9, monkeypatch, lambda real_task, e, p: real_task(e, p))
     assert state["raised"] and result.status == "complete"
     assert result.by_contacts == {int(k): v for k, v in paper_counts["clusters_by_contacts"]["9"].items()}
@@ -398,8 +398,8 @@ def test_a_cluster_left_without_workers_stops_the_run_resumably(engine):
 
     from distributed import Client, LocalCluster
 
-    from packings.coordinator import run_enumeration
-    from packings.errors import SchedulerError
+    from packings.service.coordinator import run_enumeration
+    from packings.service.errors import SchedulerError
 
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
@@ -448,10 +448,10 @@ def test_a_connection_that_breaks_as_the_coordinator_asks_is_asked_again(engine,
     the error ended the command with a traceback."""
     from distributed import Client, LocalCluster
 
-    import packings.coordinator
-    from packings.coordinator import run_enumeration
+    import packings.service.coordinator
+    from packings.service.coordinator import run_enumeration
 
-    monkeypatch.setattr(packings.coordinator, "CAPACITY_SECONDS", 0.0)  # asked at every fill
+    monkeypatch.setattr(packings.service.coordinator, "CAPACITY_SECONDS", 0.0)  # asked at every fill
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
@@ -468,12 +468,12 @@ def test_a_connection_that_stays_broken_stops_the_run_resumably(engine, monkeypa
     used, and a new coordinator completes it."""
     from distributed import Client, LocalCluster
 
-    import packings.coordinator
-    from packings.coordinator import run_enumeration
-    from packings.errors import SchedulerError
+    import packings.service.coordinator
+    from packings.service.coordinator import run_enumeration
+    from packings.service.errors import SchedulerError
 
-    monkeypatch.setattr(packings.coordinator, "CAPACITY_SECONDS", 0.0)
-    monkeypatch.setattr(packings.coordinator, "RECONNECT_MARGIN", 1.0)
+    monkeypatch.setattr(packings.service.coordinator, "CAPACITY_SECONDS", 0.0)
+    monkeypatch.setattr(packings.service.coordinator, "RECONNECT_MARGIN", 1.0)
     url = engine.url.render_as_string(hide_password=False)
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
             Client(cluster) as client:
@@ -494,7 +494,7 @@ def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
     to fail) leaves a slot without a worker for good; revive_workers gives it a new nanny and worker."""
     import os
 
-    import packings.dask_cluster as dc
+    import packings.service.dask_cluster as dc
 
     monkeypatch.setattr(dc, "REVIVE_SECONDS", 1.0)
     with dc.dask_client(None, 2, quiet=True) as d:
@@ -532,7 +532,7 @@ def test_fresh_workers_replaces_the_local_worker_processes():
     plugins as the first were, and take tasks; an existing cluster's workers are left alone."""
     import os
 
-    import packings.dask_cluster as dc
+    import packings.service.dask_cluster as dc
 
     with dc.dask_client(None, 2, quiet=True) as d:
         client = d.client

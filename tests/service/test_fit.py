@@ -1,4 +1,4 @@
-"""The fit total(n) ≈ b·(n − 5)! (packings.fit)."""
+"""The fit total(n) ≈ b·(n − 5)! (packings.service.fit)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from packings.fit import fit_factorial, predicted
+from packings.service.fit import fit_factorial, predicted
 
 #: the paper's totals (Holmes-Cerfon 2016, Table 1), n = 5 .. 14
 PAPER_TOTALS = dict(zip(range(5, 15), [1, 2, 5, 13, 52, 263, 1659, 11980, 98529, 895478]))

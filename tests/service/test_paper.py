@@ -1,11 +1,11 @@
 """The paper's counts that ship with the package, and a catalogue held against them
-(``packings.paper``, shown by ``packings stats``)."""
+(``packings.service.paper``, shown by ``packings stats``)."""
 
 from __future__ import annotations
 
 import pytest
 
-from packings import paper
+from packings.service import paper
 
 
 def test_the_counts_the_package_carries_are_the_papers(paper_counts):

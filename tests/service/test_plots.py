@@ -1,4 +1,4 @@
-"""Figures (packings.plots): the pure figure functions on synthetic data, and
+"""Figures (packings.service.plots): the pure figure functions on synthetic data, and
 ``packings plot ...`` on a filled catalogue (SQLite and PostgreSQL)."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from click.testing import CliRunner
 from PIL import Image
 from sqlalchemy import select
 
-from packings.models import ClusterRow
-from packings.plots import (
+from packings.service.models import ClusterRow
+from packings.service.plots import (
     aligned,
     best_view,
     closest_pair,
@@ -126,8 +126,8 @@ def test_the_contacts_figure_says_which_n_were_counted_from_m_contacts_up():
 def test_the_commands_compare_with_the_paper_from_the_fewest_contacts_kept(catalog, monkeypatch, tmp_path):
     """`plot counts`, `plot contacts` and `plot all` pass the paper's counts of the n they draw, from M
     contacts up for an n only restricted runs hold."""
-    from packings import plots
-    from packings.paper import paper_tables, paper_totals
+    from packings.service import plots
+    from packings.service.paper import paper_tables, paper_totals
 
     assert paper_totals([7, 8, 9, 15], {9: 21}) == {7: 5, 8: 13, 9: 52}
     assert paper_totals([10, 14], {10: 24, 14: 39}) == {10: 262, 14: 83}
@@ -163,8 +163,8 @@ def test_the_commands_label_partial_and_restricted_n(sqlite_url, monkeypatch, tm
     only the n counted in full."""
     import socket
 
-    from packings import plots, store
-    from packings.db import open_database, sessions
+    from packings.service import plots, store
+    from packings.service.db import open_database, sessions
     from packings.workers.params import Params
     from tests.service.conftest import fill_database
 
@@ -289,7 +289,7 @@ def _busy(fig):
 
 
 def test_importing_the_commands_does_not_load_matplotlib():
-    code = "import sys, packings.plots; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
+    code = "import sys, packings.service.plots; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 
@@ -490,7 +490,7 @@ def test_all(catalog, tmp_path):
 
 
 def test_cluster_color_by(catalog, tmp_path, monkeypatch):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     with sessions(catalog.engine, readonly=True)() as s:
         cid = s.execute(select(ClusterRow.id).where(ClusterRow.n == 8).order_by(ClusterRow.id)).scalars().first()
@@ -516,7 +516,7 @@ def test_cluster_color_by(catalog, tmp_path, monkeypatch):
 
 
 def test_no_clusters(tmp_path):
-    from packings.db import open_database
+    from packings.service.db import open_database
 
     url = f"sqlite:///{tmp_path / 'empty.db'}"
     open_database(url, create=True).dispose()
@@ -562,7 +562,7 @@ def test_bad_database(tmp_path):
 
 def test_errors_through_packings_main(catalog, tmp_path, monkeypatch, capsys):
     """Once registered under ``packings``, errors are the usual one line ``packings: error: ...``."""
-    import packings.cli as cli_module
+    import packings.service.cli as cli_module
 
     group = click.Group("packings", commands={**cli_module.cli.commands, "plot": plot})
     monkeypatch.setattr(cli_module, "cli", group)
@@ -597,7 +597,7 @@ def test_help_lists_the_subcommands():
 
 
 def test_cluster_command_writes_several_clusters_formats_and_sizes(catalog, tmp_path, monkeypatch):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     with sessions(catalog.engine, readonly=True)() as s:
         a, b = s.execute(select(ClusterRow.id).where(ClusterRow.n == 8).order_by(ClusterRow.id)).scalars().all()[:2]

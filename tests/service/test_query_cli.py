@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from sqlalchemy import func, select
 
-from packings.models import ClusterRow, Transition
+from packings.service.models import ClusterRow, Transition
 from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7, 8)
@@ -23,7 +23,7 @@ TABLE_HEADER = ["id", "n", "contacts", "embedding", "singular", "flexes", "stres
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "packings.cli", *args], capture_output=True, text=True, timeout=120,
+    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=120,
                           cwd=cwd)
 
 
@@ -50,7 +50,7 @@ def one_line_error(r, *words):
 @pytest.fixture(scope="module")
 def stored(catalog):
     """{id: (row, exact coordinates)} of every stored cluster."""
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     with sessions(catalog.engine)() as s:
         rows = s.execute(select(ClusterRow).order_by(ClusterRow.n, ClusterRow.contacts, ClusterRow.id)).scalars().all()
@@ -97,12 +97,12 @@ def test_select_table_limits_and_columns_as_ase_db(catalog, stored, monkeypatch)
     # the default limit of a table (not of JSON or CSV), in this process so that it can be made small
     from click.testing import CliRunner
 
-    import packings.cli
+    import packings.service.cli
 
-    monkeypatch.setattr(packings.cli, "TABLE_LIMIT", 7)
-    table = CliRunner().invoke(packings.cli.cli, ["select", "--db", catalog.url]).output.splitlines()
+    monkeypatch.setattr(packings.service.cli, "TABLE_LIMIT", 7)
+    table = CliRunner().invoke(packings.service.cli.cli, ["select", "--db", catalog.url]).output.splitlines()
     assert len(table) == 1 + 7 + 1 and table[-1].startswith("7 of 18 clusters")
-    as_json = CliRunner().invoke(packings.cli.cli, ["select", "--json", "--db", catalog.url]).output
+    as_json = CliRunner().invoke(packings.service.cli.cli, ["select", "--json", "--db", catalog.url]).output
     assert len(json.loads(as_json)) == 18
 
 
@@ -163,7 +163,7 @@ def test_select_errors_are_one_line(tmp_path):
 
 
 def test_show(catalog, stored):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     cid = next(i for i, (c, _) in stored.items() if c.n == 8)
     c, x = stored[cid]

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from sqlalchemy import select
 
-from packings import selection as sel
-from packings.models import ClusterRow, ExpansionRow, Transition
-from packings.selection import SelectionError, Term, parse
+from packings.service import selection as sel
+from packings.service.models import ClusterRow, ExpansionRow, Transition
+from packings.service.selection import SelectionError, Term, parse
 from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7)
@@ -143,7 +143,7 @@ SYNTHETIC = [
 @pytest.fixture(scope="module")
 def rows(catalog):
     """Every cluster row, after adding the synthetic ones (once per backend)."""
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     rng = np.random.default_rng(1)
     with sessions(catalog.engine).begin() as s:
@@ -160,7 +160,7 @@ def frontier(catalog, rows):
     """Run 1's frontier (``ids``) and, counted here from the transitions, the paths leaving each
     cluster (``out``), reaching it from another (``into``), circular (``circ``), and the geometries
     of each contact graph (``geom``)."""
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     with sessions(catalog.engine)() as s:
         ids = set(s.execute(select(ExpansionRow.cluster_id).where(ExpansionRow.run_id == catalog.runs[7])).scalars())
@@ -245,7 +245,7 @@ CASES = {
 
 @pytest.mark.parametrize("text", list(CASES))
 def test_selection_selects_exactly_the_matching_rows(catalog, rows, frontier, text):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     assert catalog.runs[7] == 1  # the cases name run 1
     expected = [c.id for c in rows if CASES[text](c, frontier)]
@@ -273,7 +273,7 @@ def test_the_data_tells_keys_apart(rows, frontier):
 
 
 def test_certificate_of_a_stored_cluster(catalog, rows):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     target = rows[2]
     with sessions(catalog.engine)() as s:
@@ -289,7 +289,7 @@ def test_certificate_of_a_stored_cluster(catalog, rows):
     ("-margin", lambda c: (c.margin is None, -(c.margin or 0.0), c.id)),
 ])
 def test_sort_and_limit(catalog, rows, sort, key):
-    from packings.db import sessions
+    from packings.service.db import sessions
 
     expected = [c.id for c in sorted(rows, key=key)]
     with sessions(catalog.engine)() as s:

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from sqlalchemy import event, func, select
 
-from packings import store
-from packings.owners import RunBusy
-from packings.db import make_engine, sessions
-from packings.models import DONE, FAILED, LEASED, PENDING, ClusterRow, ExpansionRow, Run, Transition
-from packings.tasks import run_expansion
+from packings.service import store
+from packings.service.owners import RunBusy
+from packings.service.db import make_engine, sessions
+from packings.service.models import DONE, FAILED, LEASED, PENDING, ClusterRow, ExpansionRow, Run, Transition
+from packings.service.tasks import run_expansion
 from packings.workers.params import Params
 
 OWNER = f"{socket.gethostname()}:{os.getpid()}:test"
@@ -147,9 +147,9 @@ def test_a_task_reads_the_paths_that_arrived_through_the_index_of_targets(sqlite
     """store.load_tasks reads a cluster's arrivals by ix_transitions_target: with a condition on run_id
     SQLite searches the unique index (run_id, ...) instead, every transition of the run (a tenth of a
     second a task at the end of n = 12, the whole n = 13 run's millions later)."""
-    import packings.db
+    import packings.service.db
 
-    engine = packings.db.open_database(sqlite_url, create=True)
+    engine = packings.service.db.open_database(sqlite_url, create=True)
     with engine.connect() as conn:
         sql = store._ARRIVALS.params(cids=[1, 2, 3]).compile(engine, compile_kwargs={"literal_binds": True})
         plan = conn.exec_driver_sql(f"EXPLAIN QUERY PLAN {sql}").all()
@@ -159,11 +159,11 @@ def test_a_task_reads_the_paths_that_arrived_through_the_index_of_targets(sqlite
 def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
     """Workers read their task with read-only sessions: on SQLite those begin DEFERRED, so a task is
     read while another worker holds the write lock (a write session would wait for it)."""
-    import packings.db
+    import packings.service.db
     from sqlalchemy.exc import OperationalError
 
     monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
-    engine = packings.db.open_database(sqlite_url, create=True)
+    engine = packings.service.db.open_database(sqlite_url, create=True)
     S = sessions(engine)
     info = store.start_run(S, 8, Params(), OWNER)
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
@@ -200,7 +200,7 @@ def test_write_back_is_all_or_nothing(run8, engine, monkeypatch):
 
 def _two_finished(S, info) -> list:
     """Two expansions of the run, leased and expanded, not yet written back (as a task holds them)."""
-    from packings.tasks import run_loaded
+    from packings.service.tasks import run_loaded
 
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
     run_expansion(S, eid, token)  # the seed: the clusters it reaches become pending
@@ -397,7 +397,7 @@ def test_the_coordinator_heartbeat_runs_on_its_own(run8, monkeypatch):
     """The run's heartbeat advances while the coordinator waits for long tasks."""
     import time
 
-    from packings import coordinator
+    from packings.service import coordinator
 
     S, info = run8
     monkeypatch.setattr(coordinator, "HEARTBEAT_SECONDS", 0.05)
@@ -437,7 +437,7 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
     """store.insert_transitions (the driver's executemany on SQLite, a Core insert elsewhere) puts each
     value of a row's tuple in its column, in the order of TRANSITION_COLUMNS; rows may come from a
     generator, taken a chunk at a time (here chunks of 2), none lost or repeated."""
-    import packings.db
+    import packings.service.db
 
     S, info = run8
     with S() as s:
@@ -471,7 +471,7 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
 def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, monkeypatch):
     """A row inserted from a cluster is read back (stored_with) as that very cluster, so what was computed
     from it (its canonical form) is not computed again; the clusters kept are bounded."""
-    import packings.models as models
+    import packings.service.models as models
     from packings.workers.expand import expand
     from packings.workers.identity import certificate_key
 
@@ -508,14 +508,14 @@ def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
     """The coordinator's heartbeat thread goes on after a failed beat, and says so in the log."""
     import logging
 
-    import packings.coordinator as coordinator
+    import packings.service.coordinator as coordinator
 
     def failing(*args):
         raise RuntimeError("database is locked")
 
     monkeypatch.setattr(coordinator, "HEARTBEAT_SECONDS", 0.01)
     monkeypatch.setattr(coordinator.store, "heartbeat", failing)
-    with caplog.at_level(logging.WARNING, logger="packings.coordinator"):
+    with caplog.at_level(logging.WARNING, logger="packings.service.coordinator"):
         beat = coordinator._Heartbeat(None, 7, "here:1")
         for _ in range(500):
             if beat.missed >= 2:
@@ -528,7 +528,7 @@ def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
 
 
 def test_a_stored_traceback_has_a_one_line_summary():
-    from packings.tasks import error_text, summary
+    from packings.service.tasks import error_text, summary
 
     try:
         raise ValueError("boom\nsecond line of the message")

@@ -28,7 +28,7 @@ def wheel_env(tmp_path_factory):
     src.mkdir()
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(ROOT / name, src / name)
-    for name in ("service", "workers", "alembic"):
+    for name in ("packings", "service", "workers", "alembic"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", "--wheel-dir",
                         str(work / "dist"), str(src)], capture_output=True, text=True, timeout=900)
