@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 N ?= 10
 
-.PHONY: install run test test-fast clean
+.PHONY: install run test test-fast lint clean
 
 SOURCES := pyproject.toml $(wildcard packings/*.py service/*.py service/*.json workers/*.py alembic/*.py alembic/*.mako alembic/versions/*.py)
 
@@ -27,6 +27,10 @@ run: install
 
 test: install
 	$(BIN)/python -m pytest
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 
 test-fast: install
 	$(BIN)/python -m pytest -m "not slow"

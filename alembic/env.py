@@ -15,7 +15,6 @@ are off for the migration, on the connection it runs on, and after it
 from logging.config import fileConfig
 
 from alembic import context
-
 from packings.service.db import make_engine
 from packings.service.models import Base
 
@@ -62,8 +61,13 @@ def _migrate(connection) -> None:
 
 
 def run_migrations_offline() -> None:
-    context.configure(url=_url(), target_metadata=target_metadata, literal_binds=True,
-                      dialect_opts={"paramstyle": "named"}, render_as_batch=_url().startswith("sqlite"))
+    context.configure(
+        url=_url(),
+        target_metadata=target_metadata,
+        literal_binds=True,
+        dialect_opts={"paramstyle": "named"},
+        render_as_batch=_url().startswith("sqlite"),
+    )
     with context.begin_transaction():
         context.run_migrations()
 

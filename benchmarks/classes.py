@@ -70,37 +70,74 @@ ARRIVALS = ("run", "all", "none")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n", type=int, default=10, help="number of spheres (default 10)")
-    parser.add_argument("--db", default=None, metavar="URL",
-                        help="a catalogue holding the clusters of N (default: enumerate N in memory, for N <= 10)")
+    parser.add_argument(
+        "--db",
+        default=None,
+        metavar="URL",
+        help="a catalogue holding the clusters of N (default: enumerate N in memory, for N <= 10)",
+    )
     parser.add_argument("--sample", type=int, default=20, help="clusters timed per class, about (default 20)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the sample (default 0)")
-    parser.add_argument("--numpy", action=argparse.BooleanOptionalAction, default=True,
-                        help="also time the numpy reference (default: yes)")
-    parser.add_argument("--against", metavar="FILE", default=None,
-                        help="also time the compiled kernels of FILE, a workers/_compiled.py of another version "
-                             "(e.g. `git show REV:workers/_compiled.py > before.py`), in this process, and count "
-                             "the attempts that differ from the current code's")
-    parser.add_argument("--every", action=argparse.BooleanOptionalAction, default=True,
-                        help="also time expand following every path, not one of each set a symmetry of the cluster "
-                             "makes congruent, and count the paths whose outcome differs (default: yes)")
-    parser.add_argument("--unheld", action=argparse.BooleanOptionalAction, default=True,
-                        help="also time expand following the paths of subsets with a contact the rest holds at "
-                             "its length (outcome held: docs/method.md), and count the attempts of other subsets "
-                             "and the clusters reached that differ (default: yes)")
-    parser.add_argument("--max-break", type=int, default=None, metavar="K",
-                        help="break at most K contacts at once, as the run of a restricted catalogue did "
-                             "(`packings enumerate N --max-break K`; default: no cap)")
-    parser.add_argument("--min-contacts", type=int, default=None, metavar="M",
-                        help="endpoints with fewer than M contacts are not kept, as in a run with "
-                             "`--min-contacts M` (default: all kept)")
-    parser.add_argument("--arrivals", choices=ARRIVALS, default="run",
-                        help="with --db, the paths that arrived at each cluster that it is given: those its run had "
-                             "stored when it was expanded (run, the default), every one stored (all), or none")
-    parser.add_argument("--parts", action="store_true",
-                        help="also split each class's time in expand (one more call per cluster, as a run makes it): "
-                             "the paths whose set keeps a self-stress (their steps, first step and endpoint), the "
-                             "other paths, and the rest (deciding the subsets; its probes apart), and the "
-                             "non-regular share were the stressed paths and probes free")
+    parser.add_argument(
+        "--numpy",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also time the numpy reference (default: yes)",
+    )
+    parser.add_argument(
+        "--against",
+        metavar="FILE",
+        default=None,
+        help="also time the compiled kernels of FILE, a workers/_compiled.py of another version "
+        "(e.g. `git show REV:workers/_compiled.py > before.py`), in this process, and count "
+        "the attempts that differ from the current code's",
+    )
+    parser.add_argument(
+        "--every",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also time expand following every path, not one of each set a symmetry of the cluster "
+        "makes congruent, and count the paths whose outcome differs (default: yes)",
+    )
+    parser.add_argument(
+        "--unheld",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also time expand following the paths of subsets with a contact the rest holds at "
+        "its length (outcome held: docs/method.md), and count the attempts of other subsets "
+        "and the clusters reached that differ (default: yes)",
+    )
+    parser.add_argument(
+        "--max-break",
+        type=int,
+        default=None,
+        metavar="K",
+        help="break at most K contacts at once, as the run of a restricted catalogue did "
+        "(`packings enumerate N --max-break K`; default: no cap)",
+    )
+    parser.add_argument(
+        "--min-contacts",
+        type=int,
+        default=None,
+        metavar="M",
+        help="endpoints with fewer than M contacts are not kept, as in a run with "
+        "`--min-contacts M` (default: all kept)",
+    )
+    parser.add_argument(
+        "--arrivals",
+        choices=ARRIVALS,
+        default="run",
+        help="with --db, the paths that arrived at each cluster that it is given: those its run had "
+        "stored when it was expanded (run, the default), every one stored (all), or none",
+    )
+    parser.add_argument(
+        "--parts",
+        action="store_true",
+        help="also split each class's time in expand (one more call per cluster, as a run makes it): "
+        "the paths whose set keeps a self-stress (their steps, first step and endpoint), the "
+        "other paths, and the rest (deciding the subsets; its probes apart), and the "
+        "non-regular share were the stressed paths and probes free",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -139,18 +176,26 @@ def _the_run(url: str, n: int, params) -> tuple[int, dict[str, tuple[int, float]
     from packings.service.models import COMPLETE, ClusterRow, ExpansionRow, Run
 
     with packings.connect(url) as cat, cat.session() as s:
-        runs = [rid for rid, text in s.execute(select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE)
-                                                .order_by(Run.id.desc()))
-                if (json.loads(text).get("max_break"), json.loads(text).get("min_contacts"))
-                == (params.max_break, params.min_contacts)]
+        runs = [
+            rid
+            for rid, text in s.execute(
+                select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE).order_by(Run.id.desc())
+            )
+            if (json.loads(text).get("max_break"), json.loads(text).get("min_contacts"))
+            == (params.max_break, params.min_contacts)
+        ]
         if not runs:
-            raise SystemExit(f"no complete run of n = {n} with --max-break {params.max_break} and --min-contacts "
-                             f"{params.min_contacts} in {url}: --arrivals none times expand without the paths "
-                             "that arrived")
+            raise SystemExit(
+                f"no complete run of n = {n} with --max-break {params.max_break} and --min-contacts "
+                f"{params.min_contacts} in {url}: --arrivals none times expand without the paths "
+                "that arrived"
+            )
         times: dict[str, list] = {}
         for m, flexes, seconds in s.execute(
-                select(ClusterRow.contacts, ClusterRow.flexes, ExpansionRow.seconds)
-                .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id).where(ExpansionRow.run_id == runs[0])):
+            select(ClusterRow.contacts, ClusterRow.flexes, ExpansionRow.seconds)
+            .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
+            .where(ExpansionRow.run_id == runs[0])
+        ):
             t = times.setdefault(cluster_class(n, m, flexes), [0, 0.0])
             t[0] += 1
             t[1] += seconds or 0.0
@@ -164,6 +209,7 @@ def _loaded(rows) -> dict[int, dt.datetime]:
     each other are one task, read about their expand calls' time before the first was written."""
     out: dict[int, dt.datetime] = {}
     task: list = []
+    last = (None, None)  # the worker and time of the row before
 
     def close():
         if task:
@@ -197,18 +243,34 @@ def arrivals_of(url: str, run_id: int, mode: str, ids) -> dict[int, tuple[tuple[
     ids = sorted(set(ids))
     out: dict[int, list] = {cid: [] for cid in ids}
     with packings.connect(url) as cat, cat.session() as s:
-        rows = s.execute(select(ExpansionRow.cluster_id, ExpansionRow.worker, ExpansionRow.finished_at,
-                                ExpansionRow.seconds).where(ExpansionRow.run_id == run_id)).all()
-        took = {cid: json.loads(outcomes or "{}").get("paths_retraced", 0) for cid, outcomes in s.execute(
-            select(ExpansionRow.cluster_id, ExpansionRow.outcomes)
-            .where(ExpansionRow.run_id == run_id, ExpansionRow.cluster_id.in_(ids)))}
+        rows = s.execute(
+            select(ExpansionRow.cluster_id, ExpansionRow.worker, ExpansionRow.finished_at, ExpansionRow.seconds).where(
+                ExpansionRow.run_id == run_id
+            )
+        ).all()
+        took = {
+            cid: json.loads(outcomes or "{}").get("paths_retraced", 0)
+            for cid, outcomes in s.execute(
+                select(ExpansionRow.cluster_id, ExpansionRow.outcomes).where(
+                    ExpansionRow.run_id == run_id, ExpansionRow.cluster_id.in_(ids)
+                )
+            )
+        }
         finished = {cid: at for cid, _, at, _ in rows}
         loaded = _loaded(rows) if mode == "run" else {}
         for run, target, source, broken, new, steps, labels in s.execute(
-                select(Transition.run_id, Transition.target_id, Transition.source_id, Transition.broken,
-                       Transition.new_contacts, Transition.steps, Transition.target_labels)
-                .where(Transition.target_id.in_(ids), Transition.target_labels.is_not(None))
-                .order_by(Transition.id)):
+            select(
+                Transition.run_id,
+                Transition.target_id,
+                Transition.source_id,
+                Transition.broken,
+                Transition.new_contacts,
+                Transition.steps,
+                Transition.target_labels,
+            )
+            .where(Transition.target_id.in_(ids), Transition.target_labels.is_not(None))
+            .order_by(Transition.id)
+        ):
             if run != run_id:
                 continue
             if mode == "run":
@@ -330,6 +392,7 @@ def _instrumented(split: dict):
                 return f(*args, **kwargs)
             finally:
                 inside[part] += time.perf_counter() - t0
+
         return call
 
     def timed_probe(*args, **kwargs):
@@ -354,8 +417,10 @@ def _instrumented(split: dict):
         seconds = time.perf_counter() - t0
         t1 = time.perf_counter()
         ns = kernels.null_spaces(start.x, np.asarray(start.keep).reshape(-1, 2), start.free, params.tol_n)
-        kind = split.setdefault("stressed" if ns.W.shape[1] else "plain",
-                                {"paths": 0, "seconds": 0.0, "path_steps": 0, **{p: 0.0 for p in PATH_PARTS}})
+        kind = split.setdefault(
+            "stressed" if ns.W.shape[1] else "plain",
+            {"paths": 0, "seconds": 0.0, "path_steps": 0, **{p: 0.0 for p in PATH_PARTS}},
+        )
         kind["paths"] += 1
         kind["seconds"] += seconds
         kind["path_steps"] += end.steps
@@ -393,8 +458,17 @@ def _parts(cluster, params, came: tuple = ()) -> dict:
 def _attempt_keys(ex) -> list[tuple]:
     """Every attempt of an expansion as (subset, direction, outcome, steps, new contacts, endpoint coordinates'
     bytes): what must be the same, to the last bit, after a change that moves no number."""
-    return [(e.broken, e.direction, e.outcome, e.steps, e.new_contacts,
-             None if e.cluster is None else e.cluster.coords.tobytes()) for e in ex.endpoints]
+    return [
+        (
+            e.broken,
+            e.direction,
+            e.outcome,
+            e.steps,
+            e.new_contacts,
+            None if e.cluster is None else e.cluster.coords.tobytes(),
+        )
+        for e in ex.endpoints
+    ]
 
 
 def _path_outcomes(endpoints) -> Counter:
@@ -425,8 +499,18 @@ def _stratified(members, sample: int, rng) -> list[int]:
     return sorted(pick)
 
 
-def measure(clusters: list[tuple[object, str, object]], params, sample: int, seed: int, numpy: bool,
-            against=None, every: bool = False, came=None, unheld: bool = False, parts: bool = False) -> list[dict]:
+def measure(
+    clusters: list[tuple[object, str, object]],
+    params,
+    sample: int,
+    seed: int,
+    numpy: bool,
+    against=None,
+    every: bool = False,
+    came=None,
+    unheld: bool = False,
+    parts: bool = False,
+) -> list[dict]:
     """One row per class present: counts, mean seconds per cluster per backend, subsets, not-1d share, paths
     taken from the other end; with ``against`` (a kernels module, :func:`load_kernels`) also its time and the
     attempts that differ; with ``every``, the time of following every path and the paths whose outcome
@@ -439,8 +523,13 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
 
     from packings.workers.expand import HELD, NOT_1D
 
-    backends = (["numba", "svd"] + ([AGAINST] if against is not None else []) + (["numpy"] if numpy else [])
-                + (["every"] if every else []) + (["unheld"] if unheld else []))
+    backends = (
+        ["numba", "svd"]
+        + ([AGAINST] if against is not None else [])
+        + (["numpy"] if numpy else [])
+        + (["every"] if every else [])
+        + (["unheld"] if unheld else [])
+    )
     rng = np.random.default_rng(seed)
     rows = []
     for name in CLASSES:
@@ -489,8 +578,9 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
                 other = results["unheld"][1]
                 kept = {e.broken for e in ex.endpoints if e.outcome == HELD}
                 held += len(kept)
-                unheld_differ += (_reached(ex) != _reached(other) or [k for k in _attempt_keys(ex) if k[0] not in kept]
-                                  != [k for k in _attempt_keys(other) if k[0] not in kept])
+                unheld_differ += _reached(ex) != _reached(other) or [
+                    k for k in _attempt_keys(ex) if k[0] not in kept
+                ] != [k for k in _attempt_keys(other) if k[0] not in kept]
             if parts:  # one more call, apart from the others: its wrappers cost a little
                 one = _parts(members[i], params, came_rows)
                 split["seconds"] += one["seconds"] * scale
@@ -502,9 +592,16 @@ def measure(clusters: list[tuple[object, str, object]], params, sample: int, see
             if against is not None:
                 mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
                 against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
-        row = {"class": name, "clusters": len(members), "sampled": len(pick),
-               "subsets_min": min(subsets), "subsets_max": max(subsets),
-               "not_1d_share": not_1d / max(1, sum(subsets)), "svd_paths_differing": svd_differ, "attempts": attempts}
+        row = {
+            "class": name,
+            "clusters": len(members),
+            "sampled": len(pick),
+            "subsets_min": min(subsets),
+            "subsets_max": max(subsets),
+            "not_1d_share": not_1d / max(1, sum(subsets)),
+            "svd_paths_differing": svd_differ,
+            "attempts": attempts,
+        }
         for b in backends:
             row[f"mean_ms_{b}"] = 1e3 * totals[b] / len(members)
             row[f"total_s_{b}"] = totals[b]
@@ -549,15 +646,20 @@ def _parts_row(split: dict, clusters: int, sampled: int) -> dict:
         mine = split[kind]
         share = split["weighted"][(kind, "seconds")] / whole
         rest -= share
-        row[kind] = {"share": share, **{f"{p}_share": split["weighted"][(kind, p)] / whole for p in PATH_PARTS},
-                     "per_cluster": mine["paths"] / sampled,
-                     "ms_per_path": 1e3 * mine["seconds"] / mine["paths"] if mine["paths"] else 0.0,
-                     "steps_per_path": mine["path_steps"] / mine["paths"] if mine["paths"] else 0.0}
+        row[kind] = {
+            "share": share,
+            **{f"{p}_share": split["weighted"][(kind, p)] / whole for p in PATH_PARTS},
+            "per_cluster": mine["paths"] / sampled,
+            "ms_per_path": 1e3 * mine["seconds"] / mine["paths"] if mine["paths"] else 0.0,
+            "steps_per_path": mine["path_steps"] / mine["paths"] if mine["paths"] else 0.0,
+        }
     row["rest_share"] = rest
     mine = split["probes"]
-    row["probes"] = {"share": split["weighted"][("probes", "seconds")] / whole,
-                     "per_cluster": mine["calls"] / sampled,
-                     "ms_each": 1e3 * mine["seconds"] / mine["calls"] if mine["calls"] else 0.0}
+    row["probes"] = {
+        "share": split["weighted"][("probes", "seconds")] / whole,
+        "per_cluster": mine["calls"] / sampled,
+        "ms_each": 1e3 * mine["seconds"] / mine["calls"] if mine["calls"] else 0.0,
+    }
     return row
 
 
@@ -567,8 +669,9 @@ def floors(rows: list[dict], seconds: str) -> dict:
     with every class's stressed paths and subset-deciding probes taking no time (each class's time times the share
     its parts leave); ``hyperstatic_only`` with that and the singular and hypostatic classes taking no time at
     all, what the hyperstatic class's plain paths and the rest of its subsets cost beside the regular class."""
-    left = {r["class"]: r[seconds] * (1.0 - r["parts"]["stressed"]["share"] - r["parts"]["probes"]["share"])
-            for r in rows}
+    left = {
+        r["class"]: r[seconds] * (1.0 - r["parts"]["stressed"]["share"] - r["parts"]["probes"]["share"]) for r in rows
+    }
     whole = {r["class"]: r[seconds] for r in rows}
 
     def share(times: dict, others) -> float:
@@ -577,8 +680,12 @@ def floors(rows: list[dict], seconds: str) -> dict:
 
     irregular = CLASSES[1:]  # all but regular
     hyper = {c: t for c, t in left.items() if c in ("regular", "hyperstatic")}
-    return {"seconds": seconds, "share": share(whole, irregular), "free": share(left, irregular),
-            "hyperstatic_only": share(hyper, irregular)}
+    return {
+        "seconds": seconds,
+        "share": share(whole, irregular),
+        "free": share(left, irregular),
+        "hyperstatic_only": share(hyper, irregular),
+    }
 
 
 def run(args: argparse.Namespace) -> int:
@@ -608,29 +715,49 @@ def run(args: argparse.Namespace) -> int:
     if mode != "none":
         run_id, run_times = _the_run(args.db, args.n, params)
         came = lambda keys: arrivals_of(args.db, run_id, mode, keys)  # noqa: E731
-    rows = measure(clusters, params, args.sample, args.seed, args.numpy, against, args.every, came, args.unheld,
-                   args.parts)
+    rows = measure(
+        clusters, params, args.sample, args.seed, args.numpy, against, args.every, came, args.unheld, args.parts
+    )
     whole = sum(seconds for _, seconds in run_times.values()) or 1.0
     for r in rows:
         expanded, seconds = run_times.get(r["class"], (0, 0.0))
         r["run_expanded"], r["run_s"], r["run_share"] = expanded, seconds, seconds / whole
-    result = {"n": args.n, "source": args.db or "in-memory enumeration", "seed": args.seed, "against": args.against,
-              "arrivals": mode, "run": run_id, "max_break": args.max_break, "min_contacts": args.min_contacts,
-              "cpus": os.cpu_count(), "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-              "rows": rows}
+    result = {
+        "n": args.n,
+        "source": args.db or "in-memory enumeration",
+        "seed": args.seed,
+        "against": args.against,
+        "arrivals": mode,
+        "run": run_id,
+        "max_break": args.max_break,
+        "min_contacts": args.min_contacts,
+        "cpus": os.cpu_count(),
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "rows": rows,
+    }
     if args.parts:
         result["floors"] = floors(rows, "run_s" if run_id is not None else "total_s_numba")
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    limits = "".join(f", {name} {value}" for name, value in (("--max-break", args.max_break),
-                                                             ("--min-contacts", args.min_contacts)) if value is not None)
-    given = {"run": f"the paths that arrived at each before run {run_id} expanded it",
-             "all": f"every path of run {run_id} that arrived at each", "none": "no path that arrived"}[mode]
-    print(f"n = {args.n}: {len(clusters)} clusters ({result['source']}{limits}); time in expand by class, "
-          f"a sample of up to {args.sample} each, given {given}")
-    head = (f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
-            f"{'retraced':>9}")
+    limits = "".join(
+        f", {name} {value}"
+        for name, value in (("--max-break", args.max_break), ("--min-contacts", args.min_contacts))
+        if value is not None
+    )
+    given = {
+        "run": f"the paths that arrived at each before run {run_id} expanded it",
+        "all": f"every path of run {run_id} that arrived at each",
+        "none": "no path that arrived",
+    }[mode]
+    print(
+        f"n = {args.n}: {len(clusters)} clusters ({result['source']}{limits}); time in expand by class, "
+        f"a sample of up to {args.sample} each, given {given}"
+    )
+    head = (
+        f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
+        f"{'retraced':>9}"
+    )
     if run_id is not None:
         head += f"{'in run':>7}{'run s':>9}{'run share':>10}"
     head += f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}"
@@ -644,72 +771,114 @@ def run(args: argparse.Namespace) -> int:
         head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}{'same cl':>8}"
     print(head)
     for r in rows:
-        line = (f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
-                f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
-                f"{r['not_1d_share']:>9.0%}{r['paths_retraced_each']:>9.1f}")
+        line = (
+            f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
+            f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
+            f"{r['not_1d_share']:>9.0%}{r['paths_retraced_each']:>9.1f}"
+        )
         if run_id is not None:
             line += f"{r['run_paths_retraced_each']:>7.1f}{r['run_s']:>9.1f}{r['run_share']:>10.0%}"
         line += f"{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}"
         if against is not None:
-            line += (f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
-                     f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}")
+            line += (
+                f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
+                f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}"
+            )
         if args.every:
-            line += (f"{r['mean_ms_every']:>10.1f}{r['every_ratio']:>7.2f}{r['paths_by_symmetry']:>8}"
-                     f"{r['every_paths_differing']:>7}")
+            line += (
+                f"{r['mean_ms_every']:>10.1f}{r['every_ratio']:>7.2f}{r['paths_by_symmetry']:>8}"
+                f"{r['every_paths_differing']:>7}"
+            )
         if args.unheld:
-            line += (f"{r['mean_ms_unheld']:>10.1f}{r['unheld_ratio']:>8.2f}{r['held']:>8}"
-                     f"{r['unheld_clusters_differing']:>7}")
+            line += (
+                f"{r['mean_ms_unheld']:>10.1f}{r['unheld_ratio']:>8.2f}{r['held']:>8}"
+                f"{r['unheld_clusters_differing']:>7}"
+            )
         if args.numpy:
-            line += (f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
-                     f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}"
-                     f"{str(r['same_clusters_reached']) + '/' + str(r['sampled']):>8}")
+            line += (
+                f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
+                f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}"
+                f"{str(r['same_clusters_reached']) + '/' + str(r['sampled']):>8}"
+            )
         print(line)
-    print("(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
-          "times the class's clusters; retraced: paths taken from the other end, per cluster"
-          + ("; in run: those the run took expanding the same clusters; run s, run share: the run's own time in "
-             "expand, expansions.seconds" if run_id is not None else "")
-          + "; svd: every subset decided by an SVD of what is left, not by the "
-          "first-order counts, and no path taken from the other end; svd/ = svd / ms each; ratio = numpy / compiled"
-          + ("; before: the kernels of --against, before/ = before / ms each, differ: attempts not the same "
-             "to the last bit, of all" if against is not None else "")
-          + ("; every: every path followed, not one of each set congruent by a symmetry of the cluster, every/ = "
-             "every / ms each, images: paths taken as images, differ: paths whose outcome is not the one following "
-             "every path gave" if args.every else "")
-          + ("; unheld: the paths of subsets with a contact the rest holds followed too, unheld/ = unheld / ms each, "
-             "held: subsets held, differ: clusters whose other attempts or clusters reached differ" if args.unheld
-             else "")
-          + ("; same: sampled clusters whose attempts all end as with numpy, same cl: whose distinct clusters "
-             "reached are the same (certificates) as with numpy" if args.numpy else "") + ")")
+    print(
+        "(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
+        "times the class's clusters; retraced: paths taken from the other end, per cluster"
+        + (
+            "; in run: those the run took expanding the same clusters; run s, run share: the run's own time in "
+            "expand, expansions.seconds"
+            if run_id is not None
+            else ""
+        )
+        + "; svd: every subset decided by an SVD of what is left, not by the "
+        "first-order counts, and no path taken from the other end; svd/ = svd / ms each; ratio = numpy / compiled"
+        + (
+            "; before: the kernels of --against, before/ = before / ms each, differ: attempts not the same "
+            "to the last bit, of all"
+            if against is not None
+            else ""
+        )
+        + (
+            "; every: every path followed, not one of each set congruent by a symmetry of the cluster, every/ = "
+            "every / ms each, images: paths taken as images, differ: paths whose outcome is not the one following "
+            "every path gave"
+            if args.every
+            else ""
+        )
+        + (
+            "; unheld: the paths of subsets with a contact the rest holds followed too, unheld/ = unheld / ms each, "
+            "held: subsets held, differ: clusters whose other attempts or clusters reached differ"
+            if args.unheld
+            else ""
+        )
+        + (
+            "; same: sampled clusters whose attempts all end as with numpy, same cl: whose distinct clusters "
+            "reached are the same (certificates) as with numpy"
+            if args.numpy
+            else ""
+        )
+        + ")"
+    )
     if args.parts:
         _print_parts(rows, result["floors"])
     differ = sum(r["svd_paths_differing"] for r in rows)
     if differ:
-        print(f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "
-              "their tangents agree only to rounding)")
+        print(
+            f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "
+            "their tangents agree only to rounding)"
+        )
     return 0
 
 
 def _print_parts(rows: list[dict], floor: dict) -> None:
     """The table of --parts: where each class's time in expand goes, and the floors of the non-regular share."""
     print()
-    print(f"{'class':<12}{'ms each':>9}{'stressed':>10}{'each':>7}{'ms':>7}{'steps':>7}{'loop':>7}"
-          f"{'first':>7}{'end':>7}{'plain':>8}{'each':>7}{'ms':>7}{'rest':>7}{'probes':>8}{'each':>7}{'ms':>7}")
+    print(
+        f"{'class':<12}{'ms each':>9}{'stressed':>10}{'each':>7}{'ms':>7}{'steps':>7}{'loop':>7}"
+        f"{'first':>7}{'end':>7}{'plain':>8}{'each':>7}{'ms':>7}{'rest':>7}{'probes':>8}{'each':>7}{'ms':>7}"
+    )
     for r in rows:
         p = r["parts"]
         st, pl, pr = p["stressed"], p["plain"], p["probes"]
-        print(f"{r['class']:<12}{p['ms_each']:>9.1f}{st['share']:>10.0%}{st['per_cluster']:>7.1f}"
-              f"{st['ms_per_path']:>7.2f}"
-              f"{st['steps_per_path']:>7.0f}{st['steps_share']:>7.0%}{st['first_step_share']:>7.0%}"
-              f"{st['endpoint_share']:>7.0%}{pl['share']:>8.0%}{pl['per_cluster']:>7.1f}{pl['ms_per_path']:>7.2f}"
-              f"{p['rest_share']:>7.0%}{pr['share']:>8.0%}{pr['per_cluster']:>7.0f}{pr['ms_each']:>7.2f}")
-    print("(--parts: one more expand call per sampled cluster, timed by parts; stressed: the paths whose contacts "
-          "kept have a self-stress where they start, their share of the class's time, paths per cluster (each), ms "
-          "and steps a path, and the shares of the class's time in their stepping loop (loop), their first step "
-          "where Python decides it (first) and their endpoints (end); plain: the other paths; rest: deciding the "
-          "subsets and the rest of expand; probes: of the rest, the dimension test's probes that decide subsets, "
-          "their share, calls per cluster (each) and ms a call)")
+        print(
+            f"{r['class']:<12}{p['ms_each']:>9.1f}{st['share']:>10.0%}{st['per_cluster']:>7.1f}"
+            f"{st['ms_per_path']:>7.2f}"
+            f"{st['steps_per_path']:>7.0f}{st['steps_share']:>7.0%}{st['first_step_share']:>7.0%}"
+            f"{st['endpoint_share']:>7.0%}{pl['share']:>8.0%}{pl['per_cluster']:>7.1f}{pl['ms_per_path']:>7.2f}"
+            f"{p['rest_share']:>7.0%}{pr['share']:>8.0%}{pr['per_cluster']:>7.0f}{pr['ms_each']:>7.2f}"
+        )
+    print(
+        "(--parts: one more expand call per sampled cluster, timed by parts; stressed: the paths whose contacts "
+        "kept have a self-stress where they start, their share of the class's time, paths per cluster (each), ms "
+        "and steps a path, and the shares of the class's time in their stepping loop (loop), their first step "
+        "where Python decides it (first) and their endpoints (end); plain: the other paths; rest: deciding the "
+        "subsets and the rest of expand; probes: of the rest, the dimension test's probes that decide subsets, "
+        "their share, calls per cluster (each) and ms a call)"
+    )
     whose = "the run's" if floor["seconds"] == "run_s" else "the sample's"
-    print(f"non-regular classes' share of {whose} time in expand: {floor['share']:.1%}; with every stressed path "
-          f"and every probe deciding a subset free, {floor['free']:.1%}; with that and the singular and hypostatic "
-          f"classes free altogether (the hyperstatic class's plain paths and the rest of its subsets beside the "
-          f"regular class), {floor['hyperstatic_only']:.1%}")
+    print(
+        f"non-regular classes' share of {whose} time in expand: {floor['share']:.1%}; with every stressed path "
+        f"and every probe deciding a subset free, {floor['free']:.1%}; with that and the singular and hypostatic "
+        f"classes free altogether (the hyperstatic class's plain paths and the rest of its subsets beside the "
+        f"regular class), {floor['hyperstatic_only']:.1%}"
+    )

@@ -39,10 +39,22 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", type=int, nargs="+", default=[10, 11], metavar="N",
-                        help="numbers of spheres (default: 10 11; add 12 when you have the time)")
-    parser.add_argument("--workers", type=int, nargs="+", default=[2], metavar="K",
-                        help="worker processes to compare (default: 2; e.g. --workers 1 2 for the speed-up)")
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="+",
+        default=[10, 11],
+        metavar="N",
+        help="numbers of spheres (default: 10 11; add 12 when you have the time)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        nargs="+",
+        default=[2],
+        metavar="K",
+        help="worker processes to compare (default: 2; e.g. --workers 1 2 for the speed-up)",
+    )
     parser.add_argument("--keep", metavar="DIR", default=None, help="keep the databases in DIR")
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
@@ -104,17 +116,26 @@ def run_one(n: int, k: int, directory: Path) -> dict:
     result = json.loads(out)
     with sqlite3.connect(db) as c:
         in_expand, expansions, paths = c.execute(
-            "SELECT SUM(seconds), COUNT(*), SUM(paths) FROM expansions WHERE run_id = ?", (result["run"],)).fetchone()
+            "SELECT SUM(seconds), COUNT(*), SUM(paths) FROM expansions WHERE run_id = ?", (result["run"],)
+        ).fetchone()
     run = result["seconds"]
     per_worker = (in_expand or 0.0) / k
     return {
-        "n": n, "workers": k, "wall_s": round(wall, 2), "run_s": run, "in_expand_s": round(per_worker, 3),
+        "n": n,
+        "workers": k,
+        "wall_s": round(wall, 2),
+        "run_s": run,
+        "in_expand_s": round(per_worker, 3),
         "outside_share_of_wall": round(1.0 - per_worker / wall, 4),
         "outside_share_of_run": round(1.0 - per_worker / run, 4) if run else None,
-        "expansions": expansions, "paths": paths,
+        "expansions": expansions,
+        "paths": paths,
         "ms_per_path_in_expand": round(1000.0 * (in_expand or 0.0) / paths, 3) if paths else None,
-        "peak_worker_rss_mib": round(rss.worker / 2**20, 1), "peak_coordinator_rss_mib": round(rss.coordinator / 2**20, 1),
-        "total": result["total"], "by_contacts": result["by_contacts"], "status": result["status"],
+        "peak_worker_rss_mib": round(rss.worker / 2**20, 1),
+        "peak_coordinator_rss_mib": round(rss.coordinator / 2**20, 1),
+        "total": result["total"],
+        "by_contacts": result["by_contacts"],
+        "status": result["status"],
     }
 
 
@@ -137,9 +158,21 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report))
         return 0
-    cols = ["n", "workers", "wall_s", "run_s", "in_expand_s", "outside_share_of_wall", "outside_share_of_run",
-            "expansions", "paths",
-            "ms_per_path_in_expand", "peak_worker_rss_mib", "peak_coordinator_rss_mib", "total"]
+    cols = [
+        "n",
+        "workers",
+        "wall_s",
+        "run_s",
+        "in_expand_s",
+        "outside_share_of_wall",
+        "outside_share_of_run",
+        "expansions",
+        "paths",
+        "ms_per_path_in_expand",
+        "peak_worker_rss_mib",
+        "peak_coordinator_rss_mib",
+        "total",
+    ]
     widths = [max(len(c), *(len(str(r[c])) for r in rows)) for c in cols]
     print("  ".join(c.rjust(w) for c, w in zip(cols, widths)))
     for r in rows:

@@ -106,11 +106,16 @@ print(json.dumps({"n": n, "stored": len(stored), "parents": min(parents, len(sto
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n", type=int, default=13, help="spheres of the close-packed fragment expanded (default 13)")
-    parser.add_argument("--glued", action="store_true",
-                        help="measure a glued pass's record of remainders seen instead (needs --db)")
+    parser.add_argument(
+        "--glued", action="store_true", help="measure a glued pass's record of remainders seen instead (needs --db)"
+    )
     parser.add_argument("--db", help="with --glued: the database holding the clusters of n")
-    parser.add_argument("--parents", type=int, default=2000,
-                        help="with --glued: how many stored clusters have a sphere moved (default 2000)")
+    parser.add_argument(
+        "--parents",
+        type=int,
+        default=2000,
+        help="with --glued: how many stored clusters have a sphere moved (default 2000)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -140,22 +145,30 @@ def run(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps(row))
             return 0
-        print(f"glued pass over {row['parents']:,} of the {row['stored']:,} stored clusters of n = {row['n']}: "
-              f"{row['decided']:,} remainders decided, {row['not_again']:,} not again; "
-              f"{row['seconds']} s ({row['seconds_traced']} s traced)")
-        print(f"  record {row['record_mib']} MiB for {row['record_clusters']:,} clusters "
-              f"({row['record_bytes_per_cluster']} B a cluster), traced peak {row['traced_peak_mib']} MiB, "
-              f"process peak {row['max_rss_mib_before']} -> {row['max_rss_mib_after']} MiB")
+        print(
+            f"glued pass over {row['parents']:,} of the {row['stored']:,} stored clusters of n = {row['n']}: "
+            f"{row['decided']:,} remainders decided, {row['not_again']:,} not again; "
+            f"{row['seconds']} s ({row['seconds_traced']} s traced)"
+        )
+        print(
+            f"  record {row['record_mib']} MiB for {row['record_clusters']:,} clusters "
+            f"({row['record_bytes_per_cluster']} B a cluster), traced peak {row['traced_peak_mib']} MiB, "
+            f"process peak {row['max_rss_mib_before']} -> {row['max_rss_mib_after']} MiB"
+        )
         return 0
     row = measure(args.n)
     if args.json:
         print(json.dumps(row))
         return 0
-    print(f"expand of the close-packed fragment of n = {row['n']} ({row['contacts']} contacts): "
-          f"{row['attempts']:,} attempts, {row['paths']:,} paths followed and {row['paths_by_symmetry']:,} taken as "
-          f"images by a symmetry, {row['rigid_endpoints']:,} rigid endpoints "
-          f"({row['distinct']:,} distinct), {row['seconds']} s traced")
-    print(f"  retained {row['retained_mib']} MiB ({row['retained_bytes_per_attempt']} B an attempt), "
-          f"traced peak {row['traced_peak_mib']} MiB, "
-          f"process peak {row['max_rss_mib_before']} -> {row['max_rss_mib_after']} MiB")
+    print(
+        f"expand of the close-packed fragment of n = {row['n']} ({row['contacts']} contacts): "
+        f"{row['attempts']:,} attempts, {row['paths']:,} paths followed and {row['paths_by_symmetry']:,} taken as "
+        f"images by a symmetry, {row['rigid_endpoints']:,} rigid endpoints "
+        f"({row['distinct']:,} distinct), {row['seconds']} s traced"
+    )
+    print(
+        f"  retained {row['retained_mib']} MiB ({row['retained_bytes_per_attempt']} B an attempt), "
+        f"traced peak {row['traced_peak_mib']} MiB, "
+        f"process peak {row['max_rss_mib_before']} -> {row['max_rss_mib_after']} MiB"
+    )
     return 0

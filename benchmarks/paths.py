@@ -28,12 +28,28 @@ DEFAULT_SIZES = (10, 12, 14)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", type=int, nargs="+", default=list(DEFAULT_SIZES), metavar="N", help="numbers of spheres (default: 10 12 14)")
+    parser.add_argument(
+        "--sizes",
+        type=int,
+        nargs="+",
+        default=list(DEFAULT_SIZES),
+        metavar="N",
+        help="numbers of spheres (default: 10 12 14)",
+    )
     parser.add_argument("--paths", type=int, default=60, help="paths sampled per n (default 60)")
-    parser.add_argument("--clusters", type=int, default=4, help="clusters per n: the seed and the first rigid clusters it reaches (default 4)")
+    parser.add_argument(
+        "--clusters",
+        type=int,
+        default=4,
+        help="clusters per n: the seed and the first rigid clusters it reaches (default 4)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the path sample (default 0)")
     parser.add_argument("--quick", action="store_true", help="fewer paths (12 per n) and clusters (2 per n)")
-    parser.add_argument("--cold", action="store_true", help="compile into a fresh numba cache directory, so the first call pays for compilation")
+    parser.add_argument(
+        "--cold",
+        action="store_true",
+        help="compile into a fresh numba cache directory, so the first call pays for compilation",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -144,5 +160,7 @@ def run(args: argparse.Namespace) -> int:
         )
     print("(median wall time of one packings.workers.paths.follow_path call; ratio = numpy / compiled;")
     if hasattr(os, "getloadavg"):
-        print(f" load average at the end {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; --json adds CPU-time medians)")
+        print(
+            f" load average at the end {os.getloadavg()[0]:.2f} on {os.cpu_count()} CPUs; --json adds CPU-time medians)"
+        )
     return 0

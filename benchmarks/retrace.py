@@ -38,8 +38,12 @@ def count(url: str, n: int) -> dict:
     from packings.workers.params import Params
 
     with packings.connect(url) as cat, cat.session() as s:
-        runs = [(rid, json.loads(params)) for rid, params in s.execute(
-            select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE).order_by(Run.id.desc()))]
+        runs = [
+            (rid, json.loads(params))
+            for rid, params in s.execute(
+                select(Run.id, Run.params).where(Run.n == n, Run.status == COMPLETE).order_by(Run.id.desc())
+            )
+        ]
         runs = [(rid, params) for rid, params in runs if params.get("min_contacts") is None]
         if not runs:
             raise SystemExit(f"no complete run of n = {n} (without --min-contacts) in {url}")
@@ -47,23 +51,36 @@ def count(url: str, n: int) -> dict:
         tol_d = Params.from_dict(params).tol_d
         rigid, regular = {}, set()  # the first-order rigid clusters; the regular ones among them
         for cid, m, coords, contacts in s.execute(
-                select(ClusterRow.id, ClusterRow.contacts, ClusterRow.coords, ClusterRow.contact_list)
-                .where(ClusterRow.n == n, ClusterRow.contacts >= 3 * n - 6, ClusterRow.flexes == 0)):
+            select(ClusterRow.id, ClusterRow.contacts, ClusterRow.coords, ClusterRow.contact_list).where(
+                ClusterRow.n == n, ClusterRow.contacts >= 3 * n - 6, ClusterRow.flexes == 0
+            )
+        ):
             rigid[cid] = (coords, contacts)
             if m == 3 * n - 6:
                 regular.add(cid)
         followed = s.execute(select(func.sum(ExpansionRow.paths)).where(ExpansionRow.run_id == run_id)).scalar() or 0
-        retraced = sum(json.loads(o).get("paths_retraced", 0) for o in s.execute(
-            select(ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id, ExpansionRow.outcomes.is_not(None))
-        ).scalars())
-        with_direction = s.execute(select(func.count()).select_from(Transition).where(
-            Transition.run_id == run_id, Transition.direction != 0)).scalar()
+        retraced = sum(
+            json.loads(o).get("paths_retraced", 0)
+            for o in s.execute(
+                select(ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id, ExpansionRow.outcomes.is_not(None))
+            ).scalars()
+        )
+        with_direction = s.execute(
+            select(func.count()).select_from(Transition).where(Transition.run_id == run_id, Transition.direction != 0)
+        ).scalar()
         k = Counter()
         for source, broken, target, new in s.execute(
-                select(Transition.source_id, Transition.broken, Transition.target_id, Transition.new_contacts)
-                .where(Transition.run_id == run_id, Transition.direction != 0, Transition.outcome == RIGID)):
-            if (source in rigid and target in rigid and (source in regular or target in regular)
-                    and json.loads(broken) and json.loads(new)):
+            select(Transition.source_id, Transition.broken, Transition.target_id, Transition.new_contacts).where(
+                Transition.run_id == run_id, Transition.direction != 0, Transition.outcome == RIGID
+            )
+        ):
+            if (
+                source in rigid
+                and target in rigid
+                and (source in regular or target in regular)
+                and json.loads(broken)
+                and json.loads(new)
+            ):
                 k[(source, target)] += 1
     order = {cid: len(symmetries(core_cluster(n, *rigid[cid]), tol_d)) for cid in {c for pair in k for c in pair}}
     holds = fails = lonely = retracing = 0
@@ -78,10 +95,20 @@ def count(url: str, n: int) -> dict:
         else:
             fails += 1
     every = int(followed) + retraced
-    return {"n": n, "run": run_id, "attempts_with_direction": with_direction, "paths_followed": int(followed),
-            "paths_retraced": retraced, "retraceable": sum(k.values()), "ordered_pairs": len(k),
-            "rule_holds": holds, "rule_fails": fails, "no_reverse": lonely, "retracing": retracing,
-            "retracing_share": round(retracing / every, 4) if every else 0.0}
+    return {
+        "n": n,
+        "run": run_id,
+        "attempts_with_direction": with_direction,
+        "paths_followed": int(followed),
+        "paths_retraced": retraced,
+        "retraceable": sum(k.values()),
+        "ordered_pairs": len(k),
+        "rule_holds": holds,
+        "rule_fails": fails,
+        "no_reverse": lonely,
+        "retracing": retracing,
+        "retracing_share": round(retracing / every, 4) if every else 0.0,
+    }
 
 
 def run(args) -> int:
@@ -90,12 +117,20 @@ def run(args) -> int:
         print(json.dumps(report, indent=2))
         return 0
     r = report
-    print(f"n = {r['n']}, run {r['run']}: {r['attempts_with_direction']} attempts with a direction, "
-          f"{r['paths_followed']} paths followed, {r['paths_retraced']} taken from the other end")
-    print(f"  between first-order rigid clusters, one of them regular: {r['retraceable']} attempts, "
-          f"{r['ordered_pairs']} ordered pairs of clusters")
-    print(f"  pairs whose paths are each other's reverses (k(A->B)|Sym(B)| = k(B->A)|Sym(A)|): {r['rule_holds']}; "
-          f"other counts: {r['rule_fails']}; no reverse: {r['no_reverse']}")
-    print(f"  paths a run could take from the other end: {r['retracing']} "
-          f"({100 * r['retracing_share']:.1f} % of the paths followed and taken from the other end)")
+    print(
+        f"n = {r['n']}, run {r['run']}: {r['attempts_with_direction']} attempts with a direction, "
+        f"{r['paths_followed']} paths followed, {r['paths_retraced']} taken from the other end"
+    )
+    print(
+        f"  between first-order rigid clusters, one of them regular: {r['retraceable']} attempts, "
+        f"{r['ordered_pairs']} ordered pairs of clusters"
+    )
+    print(
+        f"  pairs whose paths are each other's reverses (k(A->B)|Sym(B)| = k(B->A)|Sym(A)|): {r['rule_holds']}; "
+        f"other counts: {r['rule_fails']}; no reverse: {r['no_reverse']}"
+    )
+    print(
+        f"  paths a run could take from the other end: {r['retracing']} "
+        f"({100 * r['retracing_share']:.1f} % of the paths followed and taken from the other end)"
+    )
     return 0

@@ -51,9 +51,22 @@ async def _render(url: str, wait: float, width: int, height: int) -> dict:
     if chromium is None:
         raise RuntimeError("no chromium on PATH (Debian: apt-get install chromium)")
     profile = tempfile.TemporaryDirectory(ignore_cleanup_errors=True)
-    proc = subprocess.Popen([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                             "--remote-debugging-port=0", f"--user-data-dir={profile.name}", "about:blank"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            chromium,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--remote-debugging-port=0",
+            f"--user-data-dir={profile.name}",
+            "about:blank",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         port = _devtools_port(proc)
         deadline = time.monotonic() + 30
@@ -65,8 +78,9 @@ async def _render(url: str, wait: float, width: int, height: int) -> dict:
                 if time.monotonic() > deadline:
                     raise
                 await asyncio.sleep(0.1)
-        ws = await websocket_connect(next(t["webSocketDebuggerUrl"] for t in tabs if t["type"] == "page"),
-                                     max_message_size=1 << 28)
+        ws = await websocket_connect(
+            next(t["webSocketDebuggerUrl"] for t in tabs if t["type"] == "page"), max_message_size=1 << 28
+        )
         errors: list[str] = []
         ids = iter(range(1, 1 << 30))
 

@@ -59,8 +59,11 @@ def worker_processes(pid: int) -> list:
         kids = root.children(recursive=True)
     except psutil.Error:
         return []
-    kids = [p for p in kids if ("multiprocessing" in command(p) or "spawn_main" in command(p))
-            and "resource_tracker" not in command(p)]
+    kids = [
+        p
+        for p in kids
+        if ("multiprocessing" in command(p) or "spawn_main" in command(p)) and "resource_tracker" not in command(p)
+    ]
     # never the fork server (a child of pid whose command says so), even when it has no worker left
     server = {p.pid for p in children(root) if "forkserver" in command(p)}
     pids = {p.pid for p in kids}
@@ -98,7 +101,18 @@ def fresh_database(backend: str):
 
 
 def _command(n: int, url: str, workers: int) -> list[str]:
-    return [sys.executable, "-m", "packings.service.cli", "enumerate", str(n), "--db", url, "--workers", str(workers), "--quiet"]
+    return [
+        sys.executable,
+        "-m",
+        "packings.service.cli",
+        "enumerate",
+        str(n),
+        "--db",
+        url,
+        "--workers",
+        str(workers),
+        "--quiet",
+    ]
 
 
 def _done(url: str) -> int:
@@ -187,15 +201,30 @@ def inspect(url: str, n: int) -> dict:
     engine = make_engine(url)
     with engine.connect() as c:
         certs = sorted(c.execute(text("SELECT certificate FROM clusters WHERE n = :n"), {"n": n}).scalars())
-        dup = c.execute(text("SELECT count(*) FROM (SELECT n, certificate, embedding FROM clusters "
-                             "GROUP BY n, certificate, embedding HAVING count(*) > 1) d")).scalar()
-        row = c.execute(text("SELECT sum(CASE WHEN status = 'failed' THEN 1 ELSE 0 END), "
-                             "sum(CASE WHEN status = 'leased' THEN 1 ELSE 0 END), "
-                             "sum(CASE WHEN status = 'pending' THEN 1 ELSE 0 END), "
-                             "sum(retries), sum(isolated_failures) FROM expansions")).one()
+        dup = c.execute(
+            text(
+                "SELECT count(*) FROM (SELECT n, certificate, embedding FROM clusters "
+                "GROUP BY n, certificate, embedding HAVING count(*) > 1) d"
+            )
+        ).scalar()
+        row = c.execute(
+            text(
+                "SELECT sum(CASE WHEN status = 'failed' THEN 1 ELSE 0 END), "
+                "sum(CASE WHEN status = 'leased' THEN 1 ELSE 0 END), "
+                "sum(CASE WHEN status = 'pending' THEN 1 ELSE 0 END), "
+                "sum(retries), sum(isolated_failures) FROM expansions"
+            )
+        ).one()
     engine.dispose()
-    return {"certificates": certs, "duplicates": dup, "failed": int(row[0] or 0), "leased": int(row[1] or 0),
-            "pending": int(row[2] or 0), "retries": int(row[3] or 0), "isolated_failures": int(row[4] or 0)}
+    return {
+        "certificates": certs,
+        "duplicates": dup,
+        "failed": int(row[0] or 0),
+        "leased": int(row[1] or 0),
+        "pending": int(row[2] or 0),
+        "retries": int(row[3] or 0),
+        "isolated_failures": int(row[4] or 0),
+    }
 
 
 def run(args) -> int:
@@ -209,31 +238,68 @@ def run(args) -> int:
             base_s = time.perf_counter() - t
             reference = inspect(url, args.n)
         expected = reference["certificates"]
-        rows.append({"backend": backend, "faults": "none", "injected": 0, "exit": status, **reference,
-                     "seconds": round(base_s, 1), "time_ratio": 1.0, "stopped": line if status else ""})
-        for name, inject in (("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
-                             ("coordinator killed", lambda u: kill_coordinator(args.n, u, args.workers, rng,
-                                                                                len(expected)))):
+        rows.append(
+            {
+                "backend": backend,
+                "faults": "none",
+                "injected": 0,
+                "exit": status,
+                **reference,
+                "seconds": round(base_s, 1),
+                "time_ratio": 1.0,
+                "stopped": line if status else "",
+            }
+        )
+        for name, inject in (
+            ("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
+            ("coordinator killed", lambda u: kill_coordinator(args.n, u, args.workers, rng, len(expected))),
+        ):
             with fresh_database(backend) as url:
                 t = time.perf_counter()
                 injected, status, line = inject(url)
                 seconds = time.perf_counter() - t
                 seen = inspect(url, args.n)
-            rows.append({"backend": backend, "faults": name, "injected": injected, "exit": status, **seen,
-                         "seconds": round(seconds, 1), "time_ratio": round(seconds / base_s, 2),
-                         "stopped": line if status else ""})
+            rows.append(
+                {
+                    "backend": backend,
+                    "faults": name,
+                    "injected": injected,
+                    "exit": status,
+                    **seen,
+                    "seconds": round(seconds, 1),
+                    "time_ratio": round(seconds / base_s, 2),
+                    "stopped": line if status else "",
+                }
+            )
     for r in rows:
         r["expected"], r["seen"] = len(expected), len(r["certificates"])
         r["same_clusters"] = r.pop("certificates") == expected
-        ok &= r["exit"] == 0 and r["same_clusters"] and not (r["failed"] or r["leased"] or r["pending"]
-                                                                 or r["duplicates"])
+        ok &= (
+            r["exit"] == 0
+            and r["same_clusters"]
+            and not (r["failed"] or r["leased"] or r["pending"] or r["duplicates"])
+        )
     if args.json:
         print(json.dumps({"n": args.n, "seed": args.seed, "rows": rows}))
     else:
-        cols = ["backend", "faults", "injected", "exit", "expected", "seen", "same_clusters", "pending", "failed",
-                "leased", "duplicates", "retries", "isolated_failures", "seconds", "time_ratio"]
-        print(f"soak, n = {args.n}, {args.workers} workers, seed {args.seed}, "
-              f"allowed-failures {args.allowed_failures}")
+        cols = [
+            "backend",
+            "faults",
+            "injected",
+            "exit",
+            "expected",
+            "seen",
+            "same_clusters",
+            "pending",
+            "failed",
+            "leased",
+            "duplicates",
+            "retries",
+            "isolated_failures",
+            "seconds",
+            "time_ratio",
+        ]
+        print(f"soak, n = {args.n}, {args.workers} workers, seed {args.seed}, allowed-failures {args.allowed_failures}")
         width = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in cols}
         print("  ".join(c.rjust(width[c]) for c in cols))
         for r in rows:

@@ -93,8 +93,10 @@ class Row:
         return [*super().__dir__(), *self.facts]
 
     def __repr__(self) -> str:
-        return (f"<Row {self.facts['id']}: n={self.facts['n']}, {len(self.contacts)} contacts, "
-                f"embedding {self.facts['embedding']}>")
+        return (
+            f"<Row {self.facts['id']}: n={self.facts['n']}, {len(self.contacts)} contacts, "
+            f"embedding {self.facts['embedding']}>"
+        )
 
     def record(self) -> dict:
         """Facts, ``coords`` (lists of floats) and ``contact_list`` (pairs): a JSON record, as
@@ -191,8 +193,9 @@ class Catalogue:
 
         return sessions(self.engine, readonly=True)()
 
-    def select(self, selection: str | None = "", *, sort: str | None = None, limit: int | None = None,
-               **equalities) -> Iterator[Row]:
+    def select(
+        self, selection: str | None = "", *, sort: str | None = None, limit: int | None = None, **equalities
+    ) -> Iterator[Row]:
         """The clusters that match ``selection`` (the command line's language, e.g. ``"n=10,contacts<24,
         singular"``) and every ``key=value`` given, as :class:`Row` objects, ordered by ``sort`` (a key,
         ``-key`` for descending; default n, contacts, id), at most ``limit`` of them (None: all).  A bad
@@ -243,9 +246,19 @@ class Catalogue:
         self.get(id)
         where = T.target_id == int(id) if reaching else T.source_id == int(id)
         with self.session() as s:
-            return [{"id": t.id, "run": t.run_id, "source": t.source_id, "broken": json.loads(t.broken),
-                     "direction": t.direction, "outcome": t.outcome, "target": t.target_id, "steps": t.steps}
-                    for t in s.execute(select(T).where(where).order_by(T.id)).scalars()]
+            return [
+                {
+                    "id": t.id,
+                    "run": t.run_id,
+                    "source": t.source_id,
+                    "broken": json.loads(t.broken),
+                    "direction": t.direction,
+                    "outcome": t.outcome,
+                    "target": t.target_id,
+                    "steps": t.steps,
+                }
+                for t in s.execute(select(T).where(where).order_by(T.id)).scalars()
+            ]
 
     def stats(self, n: int | None = None) -> list[dict]:
         """What the catalogue holds, one dict per n (all n, or only ``n``): what ``packings stats --json``
@@ -281,14 +294,25 @@ class Catalogue:
                 f = store.frontier(s, run.id)
                 faults = store.faults(s, run.id)
                 params = json.loads(run.params)
-                out.append({"run": run.id, "n": run.n, "status": store.shown_status(run), "clusters": sum(f.values()),
-                            "pending": f.get("pending", 0), "leased": f.get("leased", 0),
-                            "done": f.get("done", 0), "failed": f.get("failed", 0),
-                            "retries": faults["retries"], "isolated_failures": faults["isolated_failures"],
-                            "max_break": params.get("max_break"), "min_contacts": params.get("min_contacts"),
-                            "seconds": round(run.seconds or 0.0, 1),
-                            "started": run.started_at.isoformat(timespec="seconds"),
-                            "coordinator": run.coordinator})
+                out.append(
+                    {
+                        "run": run.id,
+                        "n": run.n,
+                        "status": store.shown_status(run),
+                        "clusters": sum(f.values()),
+                        "pending": f.get("pending", 0),
+                        "leased": f.get("leased", 0),
+                        "done": f.get("done", 0),
+                        "failed": f.get("failed", 0),
+                        "retries": faults["retries"],
+                        "isolated_failures": faults["isolated_failures"],
+                        "max_break": params.get("max_break"),
+                        "min_contacts": params.get("min_contacts"),
+                        "seconds": round(run.seconds or 0.0, 1),
+                        "started": run.started_at.isoformat(timespec="seconds"),
+                        "coordinator": run.coordinator,
+                    }
+                )
         return out
 
 
@@ -303,8 +327,10 @@ def _progress_bar(show: bool) -> Callable:
     def update(p):
         bar.total = p.total
         bar.n = p.done
-        bar.set_postfix_str(f"pending {p.pending + p.leased}, clusters {p.clusters}"
-                            + (f", failed {p.failed}" if p.failed else ""), refresh=False)
+        bar.set_postfix_str(
+            f"pending {p.pending + p.leased}, clusters {p.clusters}" + (f", failed {p.failed}" if p.failed else ""),
+            refresh=False,
+        )
         bar.refresh()
 
     update.close = bar.close  # type: ignore[attr-defined]
@@ -320,7 +346,8 @@ def _refuse_busy_run(engine, n: int, params) -> None:
     from packings.service.owners import busy
 
     q = text("SELECT id, coordinator, heartbeat_at FROM runs WHERE n = :n AND params = :params").columns(
-        column("id", Integer), column("coordinator", String), column("heartbeat_at", DateTime))
+        column("id", Integer), column("coordinator", String), column("heartbeat_at", DateTime)
+    )
     with engine.connect() as conn:
         row = conn.execute(q, {"n": n, "params": params.to_json()}).first()
     if row is not None and (held := busy(row.id, n, row.coordinator, row.heartbeat_at)) is not None:
@@ -343,9 +370,19 @@ def _seconds(variable: str, default: float) -> float:
     return seconds
 
 
-def enumerate(n: int, url: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
-              max_break: int | None = None, min_contacts: int | None = None, max_attempts: int = 3,
-              progress: bool = True, dashboard_address: str = DASHBOARD_ADDRESS, glued: bool = False) -> RunResult:
+def enumerate(
+    n: int,
+    url: str | None = None,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    max_break: int | None = None,
+    min_contacts: int | None = None,
+    max_attempts: int = 3,
+    progress: bool = True,
+    dashboard_address: str = DASHBOARD_ADDRESS,
+    glued: bool = False,
+) -> RunResult:
     """Enumerate the rigid clusters of ``n`` spheres into the database at ``url`` (as :func:`connect`;
     created if need be), or resume the run with the same n and parameters, and return its result:
     ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,
@@ -402,14 +439,25 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
     # Dask cluster starts
     preflight(url, check=lambda engine: _refuse_busy_run(engine, n, params))
     if compiling:  # said, rather than a silent minute
-        print("packings: compiling the numerical kernels, once for this installation (about a minute on two "
-              "cores; later runs load them in a second)", file=sys.stderr, flush=True)
+        print(
+            "packings: compiling the numerical kernels, once for this installation (about a minute on two "
+            "cores; later runs load them in a second)",
+            file=sys.stderr,
+            flush=True,
+        )
     from packings.service.plugin import DatabasePlugin
 
     # a local cluster starts in the background, its workers warming up with the database plugin, while the
     # database is opened here; .client waits for it
-    with dask_client(scheduler, workers, not progress, plugins=(DatabasePlugin(url),),
-                     dashboard_address=dashboard_address, database=url, reconnect_seconds=reconnect) as dask:
+    with dask_client(
+        scheduler,
+        workers,
+        not progress,
+        plugins=(DatabasePlugin(url),),
+        dashboard_address=dashboard_address,
+        database=url,
+        reconnect_seconds=reconnect,
+    ) as dask:
         if scheduler:
             dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
         engine = open_database(url, create=True)
@@ -417,22 +465,35 @@ def enumerate(n: int, url: str | None = None, *, workers: int | None = None, sch
             from packings.service.coordinator import run_enumeration
 
             if scheduler and engine.dialect.name == "sqlite":
-                print("packings: warning: SQLite with a scheduler works only if every worker sees this file "
-                      f"({engine.url.database}); use PostgreSQL for many machines", file=sys.stderr)
+                print(
+                    "packings: warning: SQLite with a scheduler works only if every worker sees this file "
+                    f"({engine.url.database}); use PostgreSQL for many machines",
+                    file=sys.stderr,
+                )
+
             def paths() -> RunResult:
                 bar = _progress_bar(progress)
                 try:
-                    return run_enumeration(engine, url, n, params, dask.client,
-                                           on_progress=bar if progress else None, max_attempts=max_attempts,
-                                           workerless_timeout=workerless, revive=dask.revive_workers)
+                    return run_enumeration(
+                        engine,
+                        url,
+                        n,
+                        params,
+                        dask.client,
+                        on_progress=bar if progress else None,
+                        max_attempts=max_attempts,
+                        workerless_timeout=workerless,
+                        revive=dask.revive_workers,
+                    )
                 finally:
                     bar.close()
 
             result = paths()
             passes = []
             while glued and result.status == "complete":
-                report = _glued_pass(engine, url, n, params, result.run_id, dask.client, progress,
-                                     before=dask.fresh_workers)
+                report = _glued_pass(
+                    engine, url, n, params, result.run_id, dask.client, progress, before=dask.fresh_workers
+                )
                 if report is None:
                     break
                 passes.append(report)
@@ -463,8 +524,9 @@ def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress:
         before()
     bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress, off_terminal=True)
     try:
-        return catalyse(Session_, n, params, glued=True, client=client, plugin=plugin_name(url), after=after,
-                        on_progress=shown)
+        return catalyse(
+            Session_, n, params, glued=True, client=client, plugin=plugin_name(url), after=after, on_progress=shown
+        )
     finally:
         bar.close()
 

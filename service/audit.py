@@ -157,12 +157,17 @@ class AuditReport:
         return not self.near and not self.close and not self.unproved and not self.unseparated
 
     def to_dict(self) -> dict:
-        return {"tolerances": {str(n): t for n, t in self.tolerances.items()},
-                "near": [asdict(r) for r in self.near], "prestress": [asdict(r) for r in self.prestress],
-                "close": [asdict(r) for r in self.close],
-                "exact": {str(n): asdict(e) for n, e in self.exact.items()},
-                "unproved": [asdict(r) for r in self.unproved], "unseparated": [asdict(r) for r in self.unseparated],
-                "near_copies": {str(k): v for k, v in self.near_copies.items()}, "clean": self.clean}
+        return {
+            "tolerances": {str(n): t for n, t in self.tolerances.items()},
+            "near": [asdict(r) for r in self.near],
+            "prestress": [asdict(r) for r in self.prestress],
+            "close": [asdict(r) for r in self.close],
+            "exact": {str(n): asdict(e) for n, e in self.exact.items()},
+            "unproved": [asdict(r) for r in self.unproved],
+            "unseparated": [asdict(r) for r in self.unseparated],
+            "near_copies": {str(k): v for k, v in self.near_copies.items()},
+            "clean": self.clean,
+        }
 
 
 def run_params(s: Session, n: int) -> Params:
@@ -192,9 +197,11 @@ def audit(s: Session, n: int | None = None) -> AuditReport:
 def near_rows(s: Session, n: int, params: Params) -> list[NearRow]:
     """List (a) for n: the clusters with a non-contact pair within tol_a0 of touching (those whose stored
     min_gap says so, or is not computed yet), each near pair alone and all together."""
-    q = (select(ClusterRow.id, ClusterRow.contacts, ClusterRow.coords, ClusterRow.contact_list)
-         .where(ClusterRow.n == n, or_(ClusterRow.min_gap < params.tol_a0, ClusterRow.min_gap.is_(None)))
-         .order_by(ClusterRow.id))
+    q = (
+        select(ClusterRow.id, ClusterRow.contacts, ClusterRow.coords, ClusterRow.contact_list)
+        .where(ClusterRow.n == n, or_(ClusterRow.min_gap < params.tol_a0, ClusterRow.min_gap.is_(None)))
+        .order_by(ClusterRow.id)
+    )
     rows = []
     for id_, m, coords, contact_list in s.execute(q).all():
         c = core_cluster(n, coords, contact_list)
@@ -202,10 +209,19 @@ def near_rows(s: Session, n: int, params: Params) -> list[NearRow]:
         gaps = {p.pair: p.gap for p in near}
         for added in what_adding_gives(c, near, params):
             match = _stored_as(s, added.cluster, params) if added.status == RIGID else None
-            rows.append(NearRow(
-                id=id_, n=n, contacts=m, pairs=[list(p) for p in added.pairs],
-                gap=min(gaps[p] for p in added.pairs), status=added.status,
-                new_contacts=None if added.cluster is None else added.cluster.m, moved=added.moved, match=match))
+            rows.append(
+                NearRow(
+                    id=id_,
+                    n=n,
+                    contacts=m,
+                    pairs=[list(p) for p in added.pairs],
+                    gap=min(gaps[p] for p in added.pairs),
+                    status=added.status,
+                    new_contacts=None if added.cluster is None else added.cluster.m,
+                    moved=added.moved,
+                    match=match,
+                )
+            )
     return rows
 
 
@@ -219,19 +235,34 @@ def _stored_as(s: Session, c, params: Params) -> int | None:
 
 def prestress_rows(s: Session, n: int, params: Params) -> list[PrestressRow]:
     """List (b) for n: clusters decided by the pre-stress test with margin below PRESTRESS_FACTOR tol_psd."""
-    q = (select(ClusterRow.id, ClusterRow.contacts, ClusterRow.rigid_method, ClusterRow.margin, ClusterRow.min_gap)
-         .where(ClusterRow.n == n, ClusterRow.rigid_kind == PRESTRESS,
-                or_(ClusterRow.margin < PRESTRESS_FACTOR * params.tol_psd, ClusterRow.margin.is_(None)))
-         .order_by(ClusterRow.margin, ClusterRow.id))
-    return [PrestressRow(id_, n, m, method, margin, params.tol_psd, gap)
-            for id_, m, method, margin, gap in s.execute(q)]
+    q = (
+        select(ClusterRow.id, ClusterRow.contacts, ClusterRow.rigid_method, ClusterRow.margin, ClusterRow.min_gap)
+        .where(
+            ClusterRow.n == n,
+            ClusterRow.rigid_kind == PRESTRESS,
+            or_(ClusterRow.margin < PRESTRESS_FACTOR * params.tol_psd, ClusterRow.margin.is_(None)),
+        )
+        .order_by(ClusterRow.margin, ClusterRow.id)
+    )
+    return [
+        PrestressRow(id_, n, m, method, margin, params.tol_psd, gap) for id_, m, method, margin, gap in s.execute(q)
+    ]
 
 
 def close_rows(s: Session, n: int, params: Params) -> list[CloseRow]:
     """List (c) for n: every two stored clusters of one contact graph whose geometry_distance (the later
     stored aligned onto the earlier) is below CLOSE_FACTOR tol_d."""
-    certs = s.execute(select(ClusterRow.certificate).where(ClusterRow.n == n).group_by(ClusterRow.certificate)
-                      .having(func.count() > 1).order_by(ClusterRow.certificate)).scalars().all()
+    certs = (
+        s.execute(
+            select(ClusterRow.certificate)
+            .where(ClusterRow.n == n)
+            .group_by(ClusterRow.certificate)
+            .having(func.count() > 1)
+            .order_by(ClusterRow.certificate)
+        )
+        .scalars()
+        .all()
+    )
     rows = []
     for cert, stored in stored_with(s, n, certs).items():
         stored = sorted(stored, key=lambda r: r.id)
@@ -246,8 +277,11 @@ def close_rows(s: Session, n: int, params: Params) -> list[CloseRow]:
 def exact_rows(s: Session, n: int, params: Params) -> tuple[ExactSummary, list[UnprovedRow], list[UnseparatedRow]]:
     """List (d) for n: Kantorovich's theorem on every cluster with no flex, then every two proved clusters
     of one contact graph compared."""
-    q = (select(ClusterRow.id, ClusterRow.certificate, ClusterRow.coords, ClusterRow.contact_list)
-         .where(ClusterRow.n == n, ClusterRow.flexes == 0).order_by(ClusterRow.id))
+    q = (
+        select(ClusterRow.id, ClusterRow.certificate, ClusterRow.coords, ClusterRow.contact_list)
+        .where(ClusterRow.n == n, ClusterRow.flexes == 0)
+        .order_by(ClusterRow.id)
+    )
     by_cert: dict[str, list] = {}
     unproved = []
     for id_, cert, coords, contact_list in s.execute(q).all():
@@ -264,13 +298,17 @@ def exact_rows(s: Session, n: int, params: Params) -> tuple[ExactSummary, list[U
         k = sum(e.proved for _, _, e in group)
         pairs += k * (k - 1) // 2
         for i, j, bound in not_told_apart([c for _, c, _ in group], [e for _, _, e in group]):
-            unseparated.append(UnseparatedRow(n, cert, group[i][0], group[j][0], bound,
-                                              group[i][2].radius + group[j][2].radius))
+            unseparated.append(
+                UnseparatedRow(n, cert, group[i][0], group[j][0], bound, group[i][2].radius + group[j][2].radius)
+            )
     summary = ExactSummary(
-        clusters=sum(len(g) for g in by_cert.values()), proved=len(proved),
+        clusters=sum(len(g) for g in by_cert.values()),
+        proved=len(proved),
         max_radius=max((e.radius for e in proved), default=None),
         min_gap=min((e.gap for e in proved if e.gap is not None), default=None),
-        max_others=max((e.others for e in proved), default=None), pairs=pairs)
+        max_others=max((e.others for e in proved), default=None),
+        pairs=pairs,
+    )
     return summary, unproved, unseparated
 
 
@@ -284,68 +322,144 @@ def _g(x: float | None) -> str | None:
 def format_audit(r: AuditReport) -> str:
     """Three sections, each a count line and a table, then "clean" or what is not."""
     out = []
-    tol = ", ".join(f"n = {n}: tol_a0 {t['tol_a0']:g}, tol_psd {t['tol_psd']:g}, tol_d {t['tol_d']:g}"
-                    for n, t in r.tolerances.items())
+    tol = ", ".join(
+        f"n = {n}: tol_a0 {t['tol_a0']:g}, tol_psd {t['tol_psd']:g}, tol_d {t['tol_d']:g}"
+        for n, t in r.tolerances.items()
+    )
     out.append(f"audit of {len(r.tolerances)} n ({tol})" if r.tolerances else "audit: no clusters")
     near_ids = r.near_clusters
-    out.append(f"\nnear pairs (gap < tol_a0): {len(near_ids)} cluster{'s' if len(near_ids) != 1 else ''}, "
-               f"{len(r.near)} addition{'s' if len(r.near) != 1 else ''}")
+    out.append(
+        f"\nnear pairs (gap < tol_a0): {len(near_ids)} cluster{'s' if len(near_ids) != 1 else ''}, "
+        f"{len(r.near)} addition{'s' if len(r.near) != 1 else ''}"
+    )
     if r.near:
-        out.append(table(["id", "n", "contacts", "pairs", "gap", "adding gives", "contacts'", "moved", "stored as"],
-                         [[x.id, x.n, x.contacts, " ".join(f"{i}-{j}" for i, j in x.pairs), _g(x.gap), x.status,
-                           x.new_contacts, _g(x.moved),
-                           x.match if x.match is not None else ("not stored" if x.status == RIGID else "-")]
-                          for x in r.near]))
-    out.append(f"\npre-stress margins (< {PRESTRESS_FACTOR:g} tol_psd): {len(r.prestress)} "
-               f"cluster{'s' if len(r.prestress) != 1 else ''}")
+        out.append(
+            table(
+                ["id", "n", "contacts", "pairs", "gap", "adding gives", "contacts'", "moved", "stored as"],
+                [
+                    [
+                        x.id,
+                        x.n,
+                        x.contacts,
+                        " ".join(f"{i}-{j}" for i, j in x.pairs),
+                        _g(x.gap),
+                        x.status,
+                        x.new_contacts,
+                        _g(x.moved),
+                        x.match if x.match is not None else ("not stored" if x.status == RIGID else "-"),
+                    ]
+                    for x in r.near
+                ],
+            )
+        )
+    out.append(
+        f"\npre-stress margins (< {PRESTRESS_FACTOR:g} tol_psd): {len(r.prestress)} "
+        f"cluster{'s' if len(r.prestress) != 1 else ''}"
+    )
     if r.prestress:
-        out.append(table(["id", "n", "contacts", "method", "margin", "/ tol_psd", "min_gap"],
-                         [[x.id, x.n, x.contacts, x.method, _g(x.margin),
-                           None if x.margin is None else f"{x.margin / x.tol_psd:.3g}", _g(x.min_gap)]
-                          for x in r.prestress]))
-    out.append(f"\nclose geometries of one contact graph (< {CLOSE_FACTOR:g} tol_d): {len(r.close)} "
-               f"pair{'s' if len(r.close) != 1 else ''}")
+        out.append(
+            table(
+                ["id", "n", "contacts", "method", "margin", "/ tol_psd", "min_gap"],
+                [
+                    [
+                        x.id,
+                        x.n,
+                        x.contacts,
+                        x.method,
+                        _g(x.margin),
+                        None if x.margin is None else f"{x.margin / x.tol_psd:.3g}",
+                        _g(x.min_gap),
+                    ]
+                    for x in r.prestress
+                ],
+            )
+        )
+    out.append(
+        f"\nclose geometries of one contact graph (< {CLOSE_FACTOR:g} tol_d): {len(r.close)} "
+        f"pair{'s' if len(r.close) != 1 else ''}"
+    )
     if r.close:
-        out.append(table(["n", "a", "b", "distance", "/ tol_d", "certificate"],
-                         [[x.n, x.a, x.b, _g(x.distance), f"{x.distance / x.tol_d:.3g}",
-                           x.certificate if len(x.certificate) <= 16 else x.certificate[:13] + "..."]
-                          for x in r.close]))
-    out.append("\nexact clusters (Kantorovich; clusters with no flex): " + "; ".join(
-        f"n = {n}: {e.proved} of {e.clusters} proved"
-        + (f" within {e.max_radius:.2g}" + (f", exact gaps >= {e.min_gap:.3g}" if e.min_gap is not None else "")
-           + (f", other contacts' |f| <= {e.max_others:.2g}" if e.max_others else "")
-           + f", {e.pairs} pair{'s' if e.pairs != 1 else ''} of one contact graph compared" if e.proved else "")
-        for n, e in r.exact.items()))
+        out.append(
+            table(
+                ["n", "a", "b", "distance", "/ tol_d", "certificate"],
+                [
+                    [
+                        x.n,
+                        x.a,
+                        x.b,
+                        _g(x.distance),
+                        f"{x.distance / x.tol_d:.3g}",
+                        x.certificate if len(x.certificate) <= 16 else x.certificate[:13] + "...",
+                    ]
+                    for x in r.close
+                ],
+            )
+        )
+    out.append(
+        "\nexact clusters (Kantorovich; clusters with no flex): "
+        + "; ".join(
+            f"n = {n}: {e.proved} of {e.clusters} proved"
+            + (
+                f" within {e.max_radius:.2g}"
+                + (f", exact gaps >= {e.min_gap:.3g}" if e.min_gap is not None else "")
+                + (f", other contacts' |f| <= {e.max_others:.2g}" if e.max_others else "")
+                + f", {e.pairs} pair{'s' if e.pairs != 1 else ''} of one contact graph compared"
+                if e.proved
+                else ""
+            )
+            for n, e in r.exact.items()
+        )
+    )
     if r.unproved:
-        out.append(table(["id", "n", "contacts", "status", "h", "gap"],
-                         [[x.id, x.n, x.contacts, x.status, _g(x.h), _g(x.gap)] for x in r.unproved]))
+        out.append(
+            table(
+                ["id", "n", "contacts", "status", "h", "gap"],
+                [[x.id, x.n, x.contacts, x.status, _g(x.h), _g(x.gap)] for x in r.unproved],
+            )
+        )
     if r.unseparated:
-        out.append(table(["n", "a", "b", "distance >=", "radii", "certificate"],
-                         [[x.n, x.a, x.b, _g(x.bound), _g(x.radii),
-                           x.certificate if len(x.certificate) <= 16 else x.certificate[:13] + "..."]
-                          for x in r.unseparated]))
+        out.append(
+            table(
+                ["n", "a", "b", "distance >=", "radii", "certificate"],
+                [
+                    [
+                        x.n,
+                        x.a,
+                        x.b,
+                        _g(x.bound),
+                        _g(x.radii),
+                        x.certificate if len(x.certificate) <= 16 else x.certificate[:13] + "...",
+                    ]
+                    for x in r.unseparated
+                ],
+            )
+        )
     out.append("\n" + verdict(r))
     return "\n".join(out)
 
 
 def verdict(r: AuditReport) -> str:
-    """"clean", or what is not: the clusters with near pairs (and which of them are near copies of which
+    """ "clean", or what is not: the clusters with near pairs (and which of them are near copies of which
     stored cluster) and the pairs of close geometries."""
     if r.clean:
-        return "clean" + (f" ({len(r.prestress)} small pre-stress margin{'s' if len(r.prestress) != 1 else ''})"
-                          if r.prestress else "")
+        return "clean" + (
+            f" ({len(r.prestress)} small pre-stress margin{'s' if len(r.prestress) != 1 else ''})"
+            if r.prestress
+            else ""
+        )
     parts = []
     if r.near:
         copies = r.near_copies
         k = len(r.near_clusters)
-        parts.append(f"{k} cluster{'s' if k != 1 else ''} with a near pair, {len(copies)} of them near copies of "
-                     "stored clusters" + (": " + ", ".join(f"{i} -> {'/'.join(map(str, v))}" for i, v in copies.items())
-                                          if copies else ""))
+        parts.append(
+            f"{k} cluster{'s' if k != 1 else ''} with a near pair, {len(copies)} of them near copies of "
+            "stored clusters"
+            + (": " + ", ".join(f"{i} -> {'/'.join(map(str, v))}" for i, v in copies.items()) if copies else "")
+        )
     if r.close:
         parts.append(f"{len(r.close)} pair{'s' if len(r.close) != 1 else ''} of close geometries")
     if r.unproved:
-        parts.append(f"{len(r.unproved)} cluster{'s' if len(r.unproved) != 1 else ''} with no flex and no root "
-                     "proved")
+        parts.append(f"{len(r.unproved)} cluster{'s' if len(r.unproved) != 1 else ''} with no flex and no root proved")
     if r.unseparated:
         parts.append(f"{len(r.unseparated)} pair{'s' if len(r.unseparated) != 1 else ''} of roots not told apart")
     return "not clean: " + "; ".join(parts)

@@ -56,8 +56,8 @@ from packings.service.models import (
     core_cluster,
 )
 from packings.service.owners import process_name, utcnow
-from packings.workers.fragments import close_packed
 from packings.workers.cluster import Cluster
+from packings.workers.fragments import close_packed
 from packings.workers.identity import certificate_key
 from packings.workers.params import Params
 from packings.workers.rigidity import Rigidity
@@ -130,8 +130,9 @@ class CatalysisReport:
 def count_stored(Session_: sessionmaker, n: int, after: int = 0) -> int:
     """How many clusters of n are stored (with ``after``: with an id above it)."""
     with Session_() as s:
-        return s.execute(select(func.count()).select_from(ClusterRow)
-                         .where(ClusterRow.n == n, ClusterRow.id > after)).scalar_one()
+        return s.execute(
+            select(func.count()).select_from(ClusterRow).where(ClusterRow.n == n, ClusterRow.id > after)
+        ).scalar_one()
 
 
 def parents_stored(Session_: sessionmaker, source: int) -> int:
@@ -161,8 +162,11 @@ def covered(Session_: sessionmaker, run_id: int) -> int:
     """The largest cluster id up to which glued passes into ``run_id`` that ran to their end have read every
     stored parent (0: none ran): a pass after them need read only the clusters stored since."""
     with Session_() as s:
-        rows = s.execute(select(CatalysisPass.after, CatalysisPass.last_parent)
-                         .where(CatalysisPass.run_id == run_id, CatalysisPass.kind == PASS_GLUED)).all()
+        rows = s.execute(
+            select(CatalysisPass.after, CatalysisPass.last_parent).where(
+                CatalysisPass.run_id == run_id, CatalysisPass.kind == PASS_GLUED
+            )
+        ).all()
     return max((max(a, last or 0) for a, last in rows), default=0)
 
 
@@ -178,9 +182,12 @@ class _Rows:
     def __iter__(self):
         while True:
             with self.Session_() as s:
-                rows = s.execute(select(*self.columns)
-                                 .where(ClusterRow.n == self.n, ClusterRow.id > self.last)
-                                 .order_by(ClusterRow.id).limit(self.batch)).all()
+                rows = s.execute(
+                    select(*self.columns)
+                    .where(ClusterRow.n == self.n, ClusterRow.id > self.last)
+                    .order_by(ClusterRow.id)
+                    .limit(self.batch)
+                ).all()
             if not rows:
                 return
             self.last = rows[-1].id
@@ -201,8 +208,9 @@ def stored_seen(Session_: sessionmaker, n: int, tol_d: float, batch: int = BATCH
     seen = Seen(tol_d)
     for rows in _Rows(Session_, n, batch):
         for _, coords, contact_list in rows:  # plain clusters: their canonical forms are not kept
-            seen.add(Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3),
-                             tuple(map(tuple, json.loads(contact_list)))))
+            seen.add(
+                Cluster(np.frombuffer(coords, dtype="<f8").reshape(n, 3), tuple(map(tuple, json.loads(contact_list))))
+            )
     return seen
 
 
@@ -257,8 +265,7 @@ class Decided:
         return self
 
 
-def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
-           seen: Seen | None = None) -> Decided:
+def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False, seen: Seen | None = None) -> Decided:
     """The remainders of one batch of stored parents ``rows`` ((id, coords, contact list) as stored: of n +
     ``spheres`` spheres, or with ``glued`` of n, whose spheres are moved one at a time, ``seen`` being the
     remainders not to decide again, which grows with those decided).  Pure computation: the same in this
@@ -286,9 +293,18 @@ def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False,
     return out
 
 
-def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, batch: int = BATCH,
-             on_progress: Callable[[int, int], None] | None = None, glued: bool = False,
-             client=None, plugin: str | None = None, after: int = 0) -> CatalysisReport:
+def catalyse(
+    Session_: sessionmaker,
+    n: int,
+    params: Params,
+    spheres: int = 1,
+    batch: int = BATCH,
+    on_progress: Callable[[int, int], None] | None = None,
+    glued: bool = False,
+    client=None,
+    plugin: str | None = None,
+    after: int = 0,
+) -> CatalysisReport:
     """Delete ``spheres`` spheres from every stored cluster of n + ``spheres`` (with ``glued``: move one
     sphere of every stored cluster of n) and store the new rigid remainders in the run of (n, params)
     (module doc).  The parents are read by id as the pass goes, so that with ``glued`` the clusters it
@@ -339,13 +355,31 @@ def catalyse(Session_: sessionmaker, n: int, params: Params, spheres: int = 1, b
 def _record(Session_: sessionmaker, r: CatalysisReport, started) -> None:
     """The pass ``r``, run to its end, as a row of ``catalysis_passes``."""
     with Session_.begin() as s:
-        s.add(CatalysisPass(run_id=r.run_id, kind=PASS_GLUED if r.glued else PASS_DELETED, spheres=r.spheres,
-                            after=r.after, last_parent=r.last_parent, parents=r.parents, remainders=r.remainders,
-                            rigid=r.rigid, new=len(r.new), started_at=started, finished_at=utcnow()))
+        s.add(
+            CatalysisPass(
+                run_id=r.run_id,
+                kind=PASS_GLUED if r.glued else PASS_DELETED,
+                spheres=r.spheres,
+                after=r.after,
+                last_parent=r.last_parent,
+                parents=r.parents,
+                remainders=r.remainders,
+                rigid=r.rigid,
+                new=len(r.new),
+                started_at=started,
+                finished_at=utcnow(),
+            )
+        )
 
 
-def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contacts: int, batch: int = BATCH,
-                      on_progress: Callable[[int, int], None] | None = None) -> CatalysisReport:
+def close_packed_pass(
+    Session_: sessionmaker,
+    n: int,
+    params: Params,
+    min_contacts: int,
+    batch: int = BATCH,
+    on_progress: Callable[[int, int], None] | None = None,
+) -> CatalysisReport:
     """Every close-packed fragment of n spheres with at least ``min_contacts`` contacts (module doc), decided
     by the endpoint rule (:func:`packings.workers.catalysis.remainder` with nothing deleted); the rigid ones
     (with at least ``params.min_contacts`` contacts if that is set) not yet stored go into the run of
@@ -356,7 +390,7 @@ def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contac
     run_id = run_for(Session_, n, params)
     report = CatalysisReport(n, 0, run_id, close_packed=min_contacts)
     for a in range(0, len(fragments), batch):
-        chunk = fragments[a:a + batch]
+        chunk = fragments[a : a + batch]
         found = []
         for f in chunk:
             r = remainder(f.cluster, (), params)
@@ -372,8 +406,17 @@ def close_packed_pass(Session_: sessionmaker, n: int, params: Params, min_contac
     return report
 
 
-def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: int, glued: bool, run_id: int,
-                 absorb: Callable[[Decided], None]) -> None:
+def _distributed(
+    client,
+    plugin: str,
+    batches,
+    n: int,
+    params: Params,
+    spheres: int,
+    glued: bool,
+    run_id: int,
+    absorb: Callable[[Decided], None],
+) -> None:
     """Each batch a task (:func:`catalysis_task`), at most two per worker thread queued at a
     time; ``absorb`` each result here as it completes.  ``batches`` reads the stored parents' ids as it
     is iterated (a task carries the ids alone and reads its parents itself), so that, as in one process,
@@ -387,8 +430,11 @@ def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: 
     running = as_completed()
     while True:
         for rows in batches:
-            running.add(client.submit(catalysis_task, [r.id for r in rows], n, params, spheres, glued, plugin,
-                                      pass_id, run_id, pure=False))
+            running.add(
+                client.submit(
+                    catalysis_task, [r.id for r in rows], n, params, spheres, glued, plugin, pass_id, run_id, pure=False
+                )
+            )
             while running.count() >= width:
                 absorb(next(running).result())
         if running.is_empty():
@@ -399,8 +445,9 @@ def _distributed(client, plugin: str, batches, n: int, params: Params, spheres: 
 _SEEN_LOCK = threading.Lock()
 
 
-def catalysis_task(ids: list[int], n: int, params, spheres: int, glued: bool, plugin: str, pass_id: str,
-                   run_id: int) -> Decided:
+def catalysis_task(
+    ids: list[int], n: int, params, spheres: int, glued: bool, plugin: str, pass_id: str, run_id: int
+) -> Decided:
     """The Dask task of a catalysis pass: :func:`decide` of one batch of stored parents (``ids``, read here
     with this worker's engine), its rigid remainders stored here into the run ``run_id`` in one transaction
     (as an expansion's task writes its results back), and what that did returned.  So the coordinator and
@@ -423,8 +470,9 @@ def catalysis_task(ids: list[int], n: int, params, spheres: int, glued: bool, pl
     return decide(rows, n, params, spheres, glued, seen).store(p.sessions, n, run_id, params)
 
 
-def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found,
-           found_by: str = FOUND_CATALYSIS) -> Written:
+def _store(
+    Session_: sessionmaker, n: int, run_id: int, params: Params, found, found_by: str = FOUND_CATALYSIS
+) -> Written:
     """One transaction: the rigid remainders ``found`` (:class:`Kept`) inserted or matched, expansions for
     those new to the run, the run reopened if it was not running; what it did."""
     with Session_.kw["bind"].begin() as s:
@@ -434,12 +482,14 @@ def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found,
         inserted, others, w = [], [], Written()
         for k in found:
             rows = stored[k.certificate]
-            cid, is_new = store.insert_or_match(s, k.cluster, k.rigidity, run_id, params.tol_d, rows,
-                                                found_by=found_by, source_id=k.parent_id)
+            cid, is_new = store.insert_or_match(
+                s, k.cluster, k.rigidity, run_id, params.tol_d, rows, found_by=found_by, source_id=k.parent_id
+            )
             if is_new:
                 inserted.append(cid)
-                w.new.append(Found(cid, k.parent_id, k.deleted, k.cluster.m, store.lattice_value(k.cluster),
-                                   k.moved_onto))
+                w.new.append(
+                    Found(cid, k.parent_id, k.deleted, k.cluster.m, store.lattice_value(k.cluster), k.moved_onto)
+                )
             else:
                 w.already_stored += 1
                 if next(x.found_in_run for x in rows if x.id == cid) != run_id:
@@ -455,26 +505,38 @@ def _store(Session_: sessionmaker, n: int, run_id: int, params: Params, found,
 def format_report(r: CatalysisReport) -> str:
     """The report as a few lines of text."""
     if r.close_packed is not None:
-        lines = [f"close-packed fragments of n = {r.n} with at least {r.close_packed} contacts, run {r.run_id}:",
-                 f"  fragments {r.parents}, rigid {r.rigid}, already stored {r.already_stored}, new {len(r.new)}"]
+        lines = [
+            f"close-packed fragments of n = {r.n} with at least {r.close_packed} contacts, run {r.run_id}:",
+            f"  fragments {r.parents}, rigid {r.rigid}, already stored {r.already_stored}, new {len(r.new)}",
+        ]
     elif r.glued:
-        lines = [f"catalysis of n = {r.n} by moving one sphere of each stored cluster onto a contact triangle, "
-                 f"run {r.run_id}:",
-                 f"  clusters {r.parents}, remainders tested {r.remainders} (not again: {r.seen}), rigid {r.rigid}, "
-                 f"already stored {r.already_stored}, new {len(r.new)}"]
+        lines = [
+            f"catalysis of n = {r.n} by moving one sphere of each stored cluster onto a contact triangle, "
+            f"run {r.run_id}:",
+            f"  clusters {r.parents}, remainders tested {r.remainders} (not again: {r.seen}), rigid {r.rigid}, "
+            f"already stored {r.already_stored}, new {len(r.new)}",
+        ]
     else:
-        lines = [f"catalysis of n = {r.n} from n = {r.n + r.spheres} (deleting {r.spheres} sphere"
-                 f"{'s' if r.spheres != 1 else ''}), run {r.run_id}:",
-                 f"  parents {r.parents}, remainders tested {r.remainders}, rigid {r.rigid}, "
-                 f"already stored {r.already_stored}, new {len(r.new)}"]
+        lines = [
+            f"catalysis of n = {r.n} from n = {r.n + r.spheres} (deleting {r.spheres} sphere"
+            f"{'s' if r.spheres != 1 else ''}), run {r.run_id}:",
+            f"  parents {r.parents}, remainders tested {r.remainders}, rigid {r.rigid}, "
+            f"already stored {r.already_stored}, new {len(r.new)}",
+        ]
     for f in r.new:
-        origin = ("a close-packed fragment" if f.parent_id is None else
-                  f"from cluster {f.parent_id} with sphere {f.deleted[0]} moved onto contact triangle "
-                  f"{tuple(f.moved_onto)}" if f.moved_onto is not None else
-                  f"from cluster {f.parent_id} without sphere{'s' if len(f.deleted) > 1 else ''} "
-                  + ", ".join(map(str, f.deleted)))
+        origin = (
+            "a close-packed fragment"
+            if f.parent_id is None
+            else f"from cluster {f.parent_id} with sphere {f.deleted[0]} moved onto contact triangle "
+            f"{tuple(f.moved_onto)}"
+            if f.moved_onto is not None
+            else f"from cluster {f.parent_id} without sphere{'s' if len(f.deleted) > 1 else ''} "
+            + ", ".join(map(str, f.deleted))
+        )
         lines.append(f"  new cluster {f.id}: {f.contacts} contacts, lattice {f.lattice}, {origin}")
     if r.expansions_added:
-        lines.append(f"  {r.expansions_added} expansion{'s' if r.expansions_added != 1 else ''} added to run "
-                     f"{r.run_id}" + (" (marked running again)" if r.run_reopened else ""))
+        lines.append(
+            f"  {r.expansions_added} expansion{'s' if r.expansions_added != 1 else ''} added to run "
+            f"{r.run_id}" + (" (marked running again)" if r.run_reopened else "")
+        )
     return "\n".join(lines)

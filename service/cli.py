@@ -26,11 +26,17 @@ from packings.workers.params import Params
 # every 0.1 s before it is 0.1 s more before the workers can start.  The commands import what they use.
 
 db_option = click.option(
-    "--db", "db_url", default=None, metavar="URL",
+    "--db",
+    "db_url",
+    default=None,
+    metavar="URL",
     help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
 )
 dashboard_option = click.option(
-    "--dashboard-address", default=DASHBOARD_ADDRESS, show_default=True, metavar="HOST:PORT",
+    "--dashboard-address",
+    default=DASHBOARD_ADDRESS,
+    show_default=True,
+    metavar="HOST:PORT",
     help="Where a local cluster serves the Dask dashboard and its packings page (another port if taken).",
 )
 
@@ -78,28 +84,63 @@ def cli(verbose: int) -> None:
 @cli.command("enumerate")
 @click.argument("n", type=int)
 @db_option
-@click.option("--workers", "n_workers", type=click.IntRange(1, 512), default=None,
-              help="Worker processes of the local Dask cluster (default: one per core).")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.")
-@click.option("--max-break", type=click.IntRange(1, 10), default=None,
-              help="Largest number of contacts broken at once (default: no cap, every size up to m - rank + 1 as the "
-                   "paper for n <= 14; a cap is for restricted runs of large n).")
-@click.option("--min-contacts", type=int, default=None,
-              help="Keep only clusters with at least this many contacts (a restricted run, e.g. of the ground states "
-                   "of large N); above 3N - 6 the run starts from a close-packed fragment with that many (a beam search's, "
-                   "else the best of every close-packed fragment listed: minutes from N = 14).")
-@click.option("--max-attempts", type=click.IntRange(1, 100), default=3, show_default=True,
-              help="Tries per expansion before it is marked failed.")
+@click.option(
+    "--workers",
+    "n_workers",
+    type=click.IntRange(1, 512),
+    default=None,
+    help="Worker processes of the local Dask cluster (default: one per core).",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.",
+)
+@click.option(
+    "--max-break",
+    type=click.IntRange(1, 10),
+    default=None,
+    help="Largest number of contacts broken at once (default: no cap, every size up to m - rank + 1 as the "
+    "paper for n <= 14; a cap is for restricted runs of large n).",
+)
+@click.option(
+    "--min-contacts",
+    type=int,
+    default=None,
+    help="Keep only clusters with at least this many contacts (a restricted run, e.g. of the ground states "
+    "of large N); above 3N - 6 the run starts from a close-packed fragment with that many (a beam search's, "
+    "else the best of every close-packed fragment listed: minutes from N = 14).",
+)
+@click.option(
+    "--max-attempts",
+    type=click.IntRange(1, 100),
+    default=3,
+    show_default=True,
+    help="Tries per expansion before it is marked failed.",
+)
 @dashboard_option
-@click.option("--glued", is_flag=True,
-              help="Then move one sphere of every cluster onto each contact triangle (as `catalyse N --glued`), "
-                   "add the rigid clusters no path reached and expand them, until nothing new is found.")
+@click.option(
+    "--glued",
+    is_flag=True,
+    help="Then move one sphere of every cluster onto each contact triangle (as `catalyse N --glued`), "
+    "add the rigid clusters no path reached and expand them, until nothing new is found.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: str | None, max_break: int | None,
-                  min_contacts: int | None, max_attempts: int, dashboard_address: str, glued: bool, as_json: bool,
-                  quiet: bool) -> None:
+def enumerate_cmd(
+    n: int,
+    db_url: str | None,
+    n_workers: int | None,
+    scheduler: str | None,
+    max_break: int | None,
+    min_contacts: int | None,
+    max_attempts: int,
+    dashboard_address: str,
+    glued: bool,
+    as_json: bool,
+    quiet: bool,
+) -> None:
     """Enumerate the rigid clusters of N spheres into the database and print them by number of contacts.
 
     Resumes the run with the same N and parameters if the database has one
@@ -110,9 +151,18 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     from packings.service import api
 
     try:
-        result = api.enumerate(n, db_url, workers=n_workers, scheduler=scheduler, max_break=max_break,
-                               min_contacts=min_contacts, max_attempts=max_attempts, progress=not quiet,
-                               dashboard_address=dashboard_address, glued=glued)
+        result = api.enumerate(
+            n,
+            db_url,
+            workers=n_workers,
+            scheduler=scheduler,
+            max_break=max_break,
+            min_contacts=min_contacts,
+            max_attempts=max_attempts,
+            progress=not quiet,
+            dashboard_address=dashboard_address,
+            glued=glued,
+        )
     except KeyboardInterrupt as e:  # the run put its leases back: one line (click would print a newline first)
         raise _stopped(e) from None
     url = resolve_url(db_url)
@@ -122,11 +172,22 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     against = against_paper(n, result.by_contacts, min_contacts)
     gc.freeze()  # what is left is freed by the exit: skip the collector's last pass over it (0.2-0.3 s)
     if as_json:
-        click.echo(json.dumps({"n": n, "run": result.run_id, "status": result.status, "total": result.total,
-                               "by_contacts": {str(k): v for k, v in result.by_contacts.items()},
-                               "diagnostics": result.diagnostics, "seconds": round(result.seconds, 2),
-                               "total_seconds": round(result.total_seconds, 2), "paper": against,
-                               **({"catalysis": [r.to_dict() for r in result.catalysis]} if glued else {})}))
+        click.echo(
+            json.dumps(
+                {
+                    "n": n,
+                    "run": result.run_id,
+                    "status": result.status,
+                    "total": result.total,
+                    "by_contacts": {str(k): v for k, v in result.by_contacts.items()},
+                    "diagnostics": result.diagnostics,
+                    "seconds": round(result.seconds, 2),
+                    "total_seconds": round(result.total_seconds, 2),
+                    "paper": against,
+                    **({"catalysis": [r.to_dict() for r in result.catalysis]} if glued else {}),
+                }
+            )
+        )
     else:
         from packings.service.catalysis import format_report
 
@@ -135,8 +196,11 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
         if said is not None:
             click.echo(said)
         click.echo("diagnostics: " + ", ".join(f"{k} {v}" for k, v in result.diagnostics.items()))
-        took = (f"in {result.total_seconds:.1f} s, {result.seconds:.1f} s of it now (resumed)" if result.resumed
-                else f"in {result.seconds:.1f} s")
+        took = (
+            f"in {result.total_seconds:.1f} s, {result.seconds:.1f} s of it now (resumed)"
+            if result.resumed
+            else f"in {result.seconds:.1f} s"
+        )
         click.echo(f"run {result.run_id}: {result.status} {took}; database {display_url(parse_url(url))}")
         for report in result.catalysis:
             click.echo(format_report(report))
@@ -145,8 +209,10 @@ def enumerate_cmd(n: int, db_url: str | None, n_workers: int | None, scheduler: 
     if result.status == "complete" and not as_json:
         _offer_catalysis(url, n, result.run_id, restricted=max_break is not None or min_contacts is not None)
     if result.status != "complete":
-        raise click.ClickException(f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
-                                   "failed (see `packings status`); rerun the same command to retry them")
+        raise click.ClickException(
+            f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
+            "failed (see `packings status`); rerun the same command to retry them"
+        )
 
 
 def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
@@ -164,39 +230,86 @@ def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
     finally:
         engine.dispose()
     if more:
-        click.echo(f"{more} clusters of {n + 1} spheres are stored: `packings catalyse {n}` deletes a sphere from "
-                   "each and adds the rigid remainders no path reached")
+        click.echo(
+            f"{more} clusters of {n + 1} spheres are stored: `packings catalyse {n}` deletes a sphere from "
+            "each and adds the rigid remainders no path reached"
+        )
     elif not glued:
-        click.echo(f"some clusters no path reaches (n = 11 and 13 have one): `packings enumerate {n} --glued` "
-                   "moves a sphere of each cluster onto each contact triangle and adds the rigid ones")
+        click.echo(
+            f"some clusters no path reaches (n = 11 and 13 have one): `packings enumerate {n} --glued` "
+            "moves a sphere of each cluster onto each contact triangle and adds the rigid ones"
+        )
 
 
 @cli.command("catalyse")
 @click.argument("n", type=int)
 @db_option
-@click.option("--spheres", "k", type=click.IntRange(1, 10), default=1, show_default=True,
-              help="Spheres deleted from each stored cluster of N + K spheres.")
-@click.option("--max-break", type=click.IntRange(1, 10), default=None,
-              help="As for enumerate (default: no cap): chooses the run of N that the clusters found are added to.")
-@click.option("--min-contacts", type=int, default=None,
-              help="As for enumerate: keep only remainders with at least this many contacts (and choose that run).")
-@click.option("--glued", is_flag=True,
-              help="Instead, move one sphere of every stored cluster of N onto each contact triangle (the "
-                   "parents of N + 1 are made by gluing, not read: no run of N + 1 is needed).")
-@click.option("--close-packed", "close_packed", type=click.IntRange(0, None), default=None, metavar="M",
-              help="No parents: every close-packed fragment of N spheres with at least M contacts (fcc, hcp and "
-                   "every other stacking), decided in this process; the rigid ones not yet stored are added "
-                   "(found_by = close-packed).")
-@click.option("--workers", "n_workers", type=click.IntRange(1, 512), default=None,
-              help="Worker processes of the local Dask cluster (default: one per core).")
-@click.option("--scheduler", default=None, metavar="ADDRESS",
-              help="Use an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.")
+@click.option(
+    "--spheres",
+    "k",
+    type=click.IntRange(1, 10),
+    default=1,
+    show_default=True,
+    help="Spheres deleted from each stored cluster of N + K spheres.",
+)
+@click.option(
+    "--max-break",
+    type=click.IntRange(1, 10),
+    default=None,
+    help="As for enumerate (default: no cap): chooses the run of N that the clusters found are added to.",
+)
+@click.option(
+    "--min-contacts",
+    type=int,
+    default=None,
+    help="As for enumerate: keep only remainders with at least this many contacts (and choose that run).",
+)
+@click.option(
+    "--glued",
+    is_flag=True,
+    help="Instead, move one sphere of every stored cluster of N onto each contact triangle (the "
+    "parents of N + 1 are made by gluing, not read: no run of N + 1 is needed).",
+)
+@click.option(
+    "--close-packed",
+    "close_packed",
+    type=click.IntRange(0, None),
+    default=None,
+    metavar="M",
+    help="No parents: every close-packed fragment of N spheres with at least M contacts (fcc, hcp and "
+    "every other stacking), decided in this process; the rigid ones not yet stored are added "
+    "(found_by = close-packed).",
+)
+@click.option(
+    "--workers",
+    "n_workers",
+    type=click.IntRange(1, 512),
+    default=None,
+    help="Worker processes of the local Dask cluster (default: one per core).",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Use an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.",
+)
 @dashboard_option
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_contacts: int | None, glued: bool,
-                 close_packed: int | None, n_workers: int | None, scheduler: str | None, dashboard_address: str,
-                 as_json: bool, quiet: bool) -> None:
+def catalyse_cmd(
+    n: int,
+    db_url: str | None,
+    k: int,
+    max_break: int | None,
+    min_contacts: int | None,
+    glued: bool,
+    close_packed: int | None,
+    n_workers: int | None,
+    scheduler: str | None,
+    dashboard_address: str,
+    as_json: bool,
+    quiet: bool,
+) -> None:
     """Delete K spheres from every stored cluster of N + K spheres and add the rigid remainders that are not
     yet stored to the run of N (found_by = catalysis), with an expansion each: `packings enumerate N`
     afterwards follows the paths from them.  Finds clusters no path from the seed reaches (at N = 11 one).
@@ -207,8 +320,9 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
     check_n(n)
     if close_packed is not None:
         if glued or k != 1 or n_workers is not None or scheduler is not None:
-            raise click.UsageError("--close-packed lists fragments in this process: "
-                                   "not with --glued, --spheres, --workers or --scheduler")
+            raise click.UsageError(
+                "--close-packed lists fragments in this process: not with --glued, --spheres, --workers or --scheduler"
+            )
         _close_packed(n, close_packed, db_url, Params(max_break=max_break, min_contacts=min_contacts), as_json, quiet)
         return
     if glued and k != 1:
@@ -237,13 +351,22 @@ def catalyse_cmd(n: int, db_url: str | None, k: int, max_break: int | None, min_
 
     plugin = DatabasePlugin(url)
     try:
-        with dask_client(scheduler, n_workers, quiet or as_json, plugins=(plugin,), database=url,
-                         dashboard_address=dashboard_address) as dask:
+        with dask_client(
+            scheduler, n_workers, quiet or as_json, plugins=(plugin,), database=url, dashboard_address=dashboard_address
+        ) as dask:
             client = dask.client
             if scheduler:  # an existing cluster's workers get the engine now (a local one's as they started)
                 client.register_plugin(plugin)
-            report = catalyse(sessions(engine), n, params, spheres=k, on_progress=progress, glued=glued,
-                              client=client, plugin=plugin.name)
+            report = catalyse(
+                sessions(engine),
+                n,
+                params,
+                spheres=k,
+                on_progress=progress,
+                glued=glued,
+                client=client,
+                plugin=plugin.name,
+            )
     except KeyboardInterrupt as e:  # what was stored stays (the pass is idempotent): one line
         raise _stopped(e) from None
     except NoParents as e:
@@ -364,8 +487,21 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
     if not rows:
         click.echo("no runs yet: `packings enumerate N` starts one")
         return
-    cols = ["run", "n", "status", "clusters", "pending", "leased", "done", "failed", "retries", "isolated_failures",
-            "max_break", "seconds", "started"]
+    cols = [
+        "run",
+        "n",
+        "status",
+        "clusters",
+        "pending",
+        "leased",
+        "done",
+        "failed",
+        "retries",
+        "isolated_failures",
+        "max_break",
+        "seconds",
+        "started",
+    ]
     header = [{"isolated_failures": "isolated"}.get(c, c) for c in cols]
     click.echo(_export.table(header, [[r[c] for c in cols] for r in rows]))
 
@@ -394,7 +530,6 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     click.echo("\n\n".join(format_stats(r) for r in rows) + "\n\n" + format_fit(fit))
 
 
-
 @cli.command("audit")
 @db_option
 @click.option("--n", "n", type=int, default=None, help="Only this n.")
@@ -420,9 +555,11 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
 from packings.service import export as _export  # noqa: E402 - the query commands' formats
 
-_SELECTION_HELP = ("SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
-                   "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
-                   "'n=10,contacts<24,singular', '!singular,min_gap>0.1', hyperstatic, run=1.  Keys:\n\n\b\n")
+_SELECTION_HELP = (
+    "SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
+    "!key or 'not key' (false), key OP value with OP one of = != < <= > >=; e.g. "
+    "'n=10,contacts<24,singular', '!singular,min_gap>0.1', hyperstatic, run=1.  Keys:\n\n\b\n"
+)
 
 
 class _SelectionCommand(click.Command):
@@ -434,8 +571,20 @@ class _SelectionCommand(click.Command):
 
         self.epilog = _SELECTION_HELP + describe_keys()
         super().format_epilog(ctx, formatter)
-_TABLE_COLUMNS = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "lattice",
-                  "certificate"]
+
+
+_TABLE_COLUMNS = [
+    "id",
+    "n",
+    "contacts",
+    "embedding",
+    "singular",
+    "flexes",
+    "stresses",
+    "min_gap",
+    "lattice",
+    "certificate",
+]
 
 
 def _check_selection(selection: str | None, **kw) -> None:
@@ -493,14 +642,32 @@ def _columns(spec: str | None) -> list[str]:
 @click.option("--json", "as_json", is_flag=True, help="A JSON list: every fact, coords and contact_list.")
 @click.option("--csv", "as_csv", is_flag=True, help="CSV with a header line (no coordinates).")
 @click.option("--count", "as_count", is_flag=True, help="Only the number of clusters selected.")
-@click.option("-L", "--limit", type=click.IntRange(min=0), default=None,
-              help=f"At most this many clusters; 0: all (default: {TABLE_LIMIT} in a table, all in JSON or CSV).")
-@click.option("-c", "--columns", default=None, metavar="COLS",
-              help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,... to add "
-                   "to the default ones.")
+@click.option(
+    "-L",
+    "--limit",
+    type=click.IntRange(min=0),
+    default=None,
+    help=f"At most this many clusters; 0: all (default: {TABLE_LIMIT} in a table, all in JSON or CSV).",
+)
+@click.option(
+    "-c",
+    "--columns",
+    default=None,
+    metavar="COLS",
+    help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,... to add "
+    "to the default ones.",
+)
 @click.option("--sort", default=None, metavar="KEY", help="Sort by KEY (-KEY: descending); default n, contacts, id.")
-def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, as_count: bool, limit: int | None,
-               columns: str | None, sort: str | None) -> None:
+def select_cmd(
+    selection: str,
+    db_url: str | None,
+    as_json: bool,
+    as_csv: bool,
+    as_count: bool,
+    limit: int | None,
+    columns: str | None,
+    sort: str | None,
+) -> None:
     """The stored clusters that match SELECTION (default: all), as a table, JSON or CSV."""
     if as_json + as_csv + as_count > 1:
         raise click.UsageError("give at most one of --json, --csv, --count")
@@ -525,8 +692,11 @@ def select_cmd(selection: str, db_url: str | None, as_json: bool, as_csv: bool, 
                 click.echo("no clusters match")
                 return
             total = cat.count(selection) if limit is not None and len(table) == limit else len(table)
-            footer = (f"{total} clusters" if total == len(table) else
-                      f"{len(table)} of {total} clusters ({total - len(table)} more: --limit 0 shows all)")
+            footer = (
+                f"{total} clusters"
+                if total == len(table)
+                else f"{len(table)} of {total} clusters ({total - len(table)} more: --limit 0 shows all)"
+            )
             click.echo(_export.table(cols, table) + "\n" + footer)
 
 
@@ -545,26 +715,39 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
         click.echo(json.dumps({**rec, **info, "exact": exact}))
         return
     out = [f"cluster {rec['id']}: n = {rec['n']}, {rec['contacts']} contacts (3n-6{rec['excess']:+d}, {rec['static']})"]
-    out += [f"  {k:<13} {'' if rec[k] is None else repr(rec[k]) if isinstance(rec[k], float) else rec[k]}"
-            for k in _export.FACTS]
+    out += [
+        f"  {k:<13} {'' if rec[k] is None else repr(rec[k]) if isinstance(rec[k], float) else rec[k]}"
+        for k in _export.FACTS
+    ]
     if exact is None:
         out.append("  exact root    - (a flex: rigid by the pre-stress test, which this proof does not cover)")
     elif exact["status"] in ("proved", "gap"):
-        out.append(f"  exact root    {exact['status']}: within {exact['radius']:.2g} of these coordinates "
-                   f"(Kantorovich, h = {exact['h']:.2g})"
-                   + ("" if exact["gap"] is None else f", smallest gap there >= {exact['gap']:.3g}")
-                   + (f", other contacts' |f| <= {exact['others']:.2g}" if exact["others"] else ""))
+        out.append(
+            f"  exact root    {exact['status']}: within {exact['radius']:.2g} of these coordinates "
+            f"(Kantorovich, h = {exact['h']:.2g})"
+            + ("" if exact["gap"] is None else f", smallest gap there >= {exact['gap']:.3g}")
+            + (f", other contacts' |f| <= {exact['others']:.2g}" if exact["others"] else "")
+        )
     else:
-        out.append(f"  exact root    not proved ({exact['status']}" + (f", h = {exact['h']:.2g}" if exact["h"] else "") + ")")
-    out += ["coordinates (unit: sphere diameter):",
-            _export.table(["i", "x", "y", "z"], [[i, *map(repr, x)] for i, x in enumerate(rec["coords"])])]
+        out.append(
+            f"  exact root    not proved ({exact['status']}" + (f", h = {exact['h']:.2g}" if exact["h"] else "") + ")"
+        )
+    out += [
+        "coordinates (unit: sphere diameter):",
+        _export.table(["i", "x", "y", "z"], [[i, *map(repr, x)] for i, x in enumerate(rec["coords"])]),
+    ]
     pairs = [f"{i}-{j}" for i, j in rec["contact_list"]]
-    out += [f"contacts ({len(pairs)}):"] + ["  " + " ".join(pairs[k:k + 12]) for k in range(0, len(pairs), 12)]
+    out += [f"contacts ({len(pairs)}):"] + ["  " + " ".join(pairs[k : k + 12]) for k in range(0, len(pairs), 12)]
     by = ", ".join(f"{o} {c}" for o, c in info["leaving_by_outcome"].items())
-    out += [f"paths leaving: {info['paths_leaving']}" + (f" ({by})" if by else ""),
-            f"paths reaching: {info['paths_reaching']} from {info['reached_from']} clusters"]
-    out += [f"run {r['run']} (n = {r['n']}, {r['run_status']}): expansion {r['expansion']}"
-            + ("" if r["paths"] is None else f", {r['paths']} paths") for r in info["runs"]] or ["in no run's frontier"]
+    out += [
+        f"paths leaving: {info['paths_leaving']}" + (f" ({by})" if by else ""),
+        f"paths reaching: {info['paths_reaching']} from {info['reached_from']} clusters",
+    ]
+    out += [
+        f"run {r['run']} (n = {r['n']}, {r['run_status']}): expansion {r['expansion']}"
+        + ("" if r["paths"] is None else f", {r['paths']} paths")
+        for r in info["runs"]
+    ] or ["in no run's frontier"]
     click.echo("\n".join(out))
 
 
@@ -579,10 +762,20 @@ def _exact(row) -> dict | None:
 @cli.command("export", cls=_SelectionCommand)
 @click.argument("selection", required=False, default="")
 @click.option("--n", "n", type=int, default=None, help="Only clusters of N spheres.")
-@click.option("--format", "fmt", type=click.Choice(_export.FORMATS), default=None,
-              help="Default: from the suffix of -o (.extxyz, .xyz, .json), else extxyz.")
-@click.option("-o", "--output", type=click.Path(dir_okay=False), default=None,
-              help="Write to this file (replaced whole, never half-written); default standard output.")
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(_export.FORMATS),
+    default=None,
+    help="Default: from the suffix of -o (.extxyz, .xyz, .json), else extxyz.",
+)
+@click.option(
+    "-o",
+    "--output",
+    type=click.Path(dir_okay=False),
+    default=None,
+    help="Write to this file (replaced whole, never half-written); default standard output.",
+)
 @db_option
 def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | None, db_url: str | None) -> None:
     """Write the clusters that match SELECTION (default: all), ordered by n, contacts, id: extended XYZ

@@ -59,8 +59,15 @@ INFRASTRUCTURE = (KilledWorker, CommClosedError, FutureCancelledError)
 CONNECTION_LOST = "scheduler-connection-lost"
 RECONNECT_MARGIN = 30.0  #: how long past the Client's own reconnection window the coordinator waits for it
 #: what SQLite, PostgreSQL or the system say when the database cannot be written (lower case)
-CANNOT_WRITE = ("database or disk is full", "no space left on device", "could not extend file", "diskfull",
-                "readonly database", "read-only transaction", "read-only file system")
+CANNOT_WRITE = (
+    "database or disk is full",
+    "no space left on device",
+    "could not extend file",
+    "diskfull",
+    "readonly database",
+    "read-only transaction",
+    "read-only file system",
+)
 
 HEARTBEAT_SECONDS = 10.0
 CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
@@ -183,8 +190,10 @@ def cannot_write(error: str) -> str | None:
 
 
 def not_writable(line: str) -> StorageError:
-    return StorageError(f"the database cannot be written ({line}): free space or make it writable, then run "
-                        "the same command again to resume")
+    return StorageError(
+        f"the database cannot be written ({line}): free space or make it writable, then run "
+        "the same command again to resume"
+    )
 
 
 def _try(f: Callable) -> None:
@@ -201,8 +210,14 @@ class _Watchdog(threading.Thread):
     minute; after ``timeout`` seconds without one it sets :attr:`stalled` and cancels the tasks in
     flight (``cancel()``), so that the coordinator stops, resumably, rather than wait for ever."""
 
-    def __init__(self, client: Client, run_id: int, timeout: float | None, cancel: Callable[[], None],
-                 revive: Callable[[], int] | None = None):
+    def __init__(
+        self,
+        client: Client,
+        run_id: int,
+        timeout: float | None,
+        cancel: Callable[[], None],
+        revive: Callable[[], int] | None = None,
+    ):
         super().__init__(name="packings-watchdog", daemon=True)
         self.client, self.run_id, self.timeout, self.cancel, self.revive = client, run_id, timeout, cancel, revive
         self.stalled = False
@@ -276,8 +291,9 @@ def run_enumeration(
     info = store.start_run(Session_, n, params, owner)
     log.info("run %d (n = %d): %s", info.id, n, "started" if info.created else "resumed")
     if info.recovered:
-        log.warning("run %d: %d expansion(s) leased by a coordinator that is gone put back to pending",
-                    info.id, info.recovered)
+        log.warning(
+            "run %d: %d expansion(s) leased by a coordinator that is gone put back to pending", info.id, info.recovered
+        )
     isolate: set[int] = set()  #: expansions whose task was lost: sent one per task
     plugin = DatabasePlugin(url)
     client.register_plugin(plugin)
@@ -315,8 +331,10 @@ def run_enumeration(
         Client tries to reach it again (or the Client gave up)."""
         waited = time.monotonic() - since
         if client.status in ("closing", "closed") or waited > window() + RECONNECT_MARGIN:
-            raise SchedulerError(f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
-                                 "run the same command to resume")
+            raise SchedulerError(
+                f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
+                "run the same command to resume"
+            )
 
     def capacity_now() -> int:
         """Tasks to keep in flight.  The connection can break as the scheduler is asked, before the Client
@@ -350,8 +368,14 @@ def run_enumeration(
             # one alone goes first: the less it waits on a worker, the less a fault of another task hits it.
             # The key's prefix (Dask's key_split keeps "expand_n12", drops "-n12") names the run's n in
             # Dask's own panels (progress, task stream)
-            fut = client.submit(expand_task, part, plugin.name, key=f"expand_n{n}-{eid}-{len(part)}-{token}",
-                                pure=False, priority=int(eid in isolate))
+            fut = client.submit(
+                expand_task,
+                part,
+                plugin.name,
+                key=f"expand_n{n}-{eid}-{len(part)}-{token}",
+                pure=False,
+                priority=int(eid in isolate),
+            )
             fut.expansions = part  # type: ignore[attr-defined]
             ac.add(fut)
             flight.add(fut)
@@ -364,15 +388,26 @@ def run_enumeration(
         why = "task cancelled" if exc is None else error_line(exc)
         if len(part) == 1 and part[0][0] in isolate and isinstance(exc, KilledWorker):
             eid, token = part[0]
-            status = store.release(Session_, eid, token, f"lost its workers while running alone: {why}",
-                                   max_attempts, isolated=True)
-            log.error("run %d: expansion %d lost its workers while running alone (%s): %s",
-                      info.id, eid, why, "failed" if status == FAILED else "to be retried")
+            status = store.release(
+                Session_, eid, token, f"lost its workers while running alone: {why}", max_attempts, isolated=True
+            )
+            log.error(
+                "run %d: expansion %d lost its workers while running alone (%s): %s",
+                info.id,
+                eid,
+                why,
+                "failed" if status == FAILED else "to be retried",
+            )
             return
         back = store.put_back(Session_, part, f"infrastructure fault, retried: {why}")
         isolate.update(eid for eid, _ in part)
-        log.warning("run %d: a task of %d expansion(s) was lost (%s); %d put back, each to be retried alone",
-                    info.id, len(part), why, back)
+        log.warning(
+            "run %d: a task of %d expansion(s) was lost (%s); %d put back, each to be retried alone",
+            info.id,
+            len(part),
+            why,
+            back,
+        )
 
     def so_far() -> float:
         """The run's time: its earlier coordinators' and this one's."""
@@ -389,8 +424,9 @@ def run_enumeration(
                 failed = {}
                 if fut.status == "cancelled" and cancel_reason(fut) == CONNECTION_LOST:
                     # the Client lost the scheduler, which says nothing about the task: back, uncounted
-                    store.put_back(Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler "
-                                                             "was lost")
+                    store.put_back(
+                        Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler was lost"
+                    )
                 elif fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
                     lost(fut, None)
                 elif fut.status == "error":
@@ -409,12 +445,19 @@ def run_enumeration(
                 for eid, token in fut.expansions:
                     if eid in failed:
                         status = store.release(Session_, eid, token, failed[eid], max_attempts)
-                        log.warning("run %d: expansion %d failed (%s): %s", info.id, eid, summary(failed[eid]),
-                                    "given up" if status == FAILED else "to be retried")
+                        log.warning(
+                            "run %d: expansion %d failed (%s): %s",
+                            info.id,
+                            eid,
+                            summary(failed[eid]),
+                            "given up" if status == FAILED else "to be retried",
+                        )
                 fut.release()
                 if watchdog.stalled:
-                    raise SchedulerError(f"no Dask worker for {workerless_timeout:.0f} s (the local cluster could "
-                                         "not start them again); run the same command to resume")
+                    raise SchedulerError(
+                        f"no Dask worker for {workerless_timeout:.0f} s (the local cluster could "
+                        "not start them again); run the same command to resume"
+                    )
                 fill()
                 shown()
             fill(force=True)
@@ -437,7 +480,14 @@ def run_enumeration(
     with Reader() as s:
         by_contacts = store.run_counts(s, info.id)
         diagnostics = store.run_diagnostics(s, info.id)
-        errors = [f"expansion {i}: {summary(e or '')}" for i, e in s.execute(
-            select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == info.id, ExpansionRow.status == FAILED))]
-    return RunResult(info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors,
-                     info.seconds + seconds)
+        errors = [
+            f"expansion {i}: {summary(e or '')}"
+            for i, e in s.execute(
+                select(ExpansionRow.id, ExpansionRow.error).where(
+                    ExpansionRow.run_id == info.id, ExpansionRow.status == FAILED
+                )
+            )
+        ]
+    return RunResult(
+        info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors, info.seconds + seconds
+    )

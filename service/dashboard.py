@@ -139,20 +139,41 @@ def read_run(s) -> dict:
         return {"run": None, "at": at}
     f = store.frontier(s, run.id)
     frontier = {k: int(f.get(k, 0)) for k in ("pending", "leased", "done", "failed")}
-    workers = [{"worker": w, "done": int(k), "seconds": round(float(t or 0.0), 1)} for w, k, t in s.execute(
-        select(ExpansionRow.worker, func.count(), func.sum(ExpansionRow.seconds))
-        .where(ExpansionRow.run_id == run.id, ExpansionRow.status == "done").group_by(ExpansionRow.worker)
-        .order_by(ExpansionRow.worker))]
-    failed = [{"expansion": i, "error": summary(e or "")} for i, e in s.execute(
-        select(ExpansionRow.id, ExpansionRow.error).where(ExpansionRow.run_id == run.id, ExpansionRow.status == FAILED)
-        .order_by(ExpansionRow.id).limit(50))]
+    workers = [
+        {"worker": w, "done": int(k), "seconds": round(float(t or 0.0), 1)}
+        for w, k, t in s.execute(
+            select(ExpansionRow.worker, func.count(), func.sum(ExpansionRow.seconds))
+            .where(ExpansionRow.run_id == run.id, ExpansionRow.status == "done")
+            .group_by(ExpansionRow.worker)
+            .order_by(ExpansionRow.worker)
+        )
+    ]
+    failed = [
+        {"expansion": i, "error": summary(e or "")}
+        for i, e in s.execute(
+            select(ExpansionRow.id, ExpansionRow.error)
+            .where(ExpansionRow.run_id == run.id, ExpansionRow.status == FAILED)
+            .order_by(ExpansionRow.id)
+            .limit(50)
+        )
+    ]
     by_contacts = store.run_counts(s, run.id)
     least = json.loads(run.params or "{}").get("min_contacts")
-    return {"run": run.id, "n": run.n, "status": store.shown_status(run),
-            "at": at, "clusters": sum(by_contacts.values()), "by_contacts": {str(m): k for m, k in by_contacts.items()},
-            "min_contacts": least, "paper": paper_totals([run.n], {run.n: least} if least else None).get(run.n),
-            "frontier": frontier, **store.faults(s, run.id), "workers": workers, "failed": failed,
-            "seconds": round(run.seconds or 0.0, 1)}
+    return {
+        "run": run.id,
+        "n": run.n,
+        "status": store.shown_status(run),
+        "at": at,
+        "clusters": sum(by_contacts.values()),
+        "by_contacts": {str(m): k for m, k in by_contacts.items()},
+        "min_contacts": least,
+        "paper": paper_totals([run.n], {run.n: least} if least else None).get(run.n),
+        "frontier": frontier,
+        **store.faults(s, run.id),
+        "workers": workers,
+        "failed": failed,
+        "seconds": round(run.seconds or 0.0, 1),
+    }
 
 
 _WATCHERS: dict[str, Watcher] = {}
@@ -195,11 +216,15 @@ def _html(d: dict) -> str:
     if d.get("paper") is not None:
         least = f" with at least {d['min_contacts']} contacts" if d.get("min_contacts") else ""
         found += f" (the paper has {d['paper']:,}{least})"
-    rows = [("run", f"{d['run']} (n = {d['n']}), {d['status']}"), ("clusters found", found),
-            ("expansions", f"{fr['done']} done, {fr['pending']} pending, {fr['leased']} leased, {fr['failed']} failed"),
-            ("faults recovered", f"{d['retries']} retries, {d['isolated_failures']} isolated failures"),
-            ("expansions per second", d.get("rate", "—")),
-            ("time left, at least", left + " (the frontier still grows)"), ("read at", d["at"])]
+    rows = [
+        ("run", f"{d['run']} (n = {d['n']}), {d['status']}"),
+        ("clusters found", found),
+        ("expansions", f"{fr['done']} done, {fr['pending']} pending, {fr['leased']} leased, {fr['failed']} failed"),
+        ("faults recovered", f"{d['retries']} retries, {d['isolated_failures']} isolated failures"),
+        ("expansions per second", d.get("rate", "—")),
+        ("time left, at least", left + " (the frontier still grows)"),
+        ("read at", d["at"]),
+    ]
     if d.get("error"):
         rows.append(("database", d["error"]))
     cells = "".join(f"<tr><th style='text-align:left;padding-right:1em'>{k}</th><td>{v}</td></tr>" for k, v in rows)
@@ -214,24 +239,37 @@ def packings_doc(scheduler, extra, doc) -> None:
 
     header = Div(text=_html(current()), width=700, styles={"padding-top": "40px"})  # below the navigation bar
     contacts = ColumnDataSource({"contacts": [], "clusters": []})
-    bars = figure(title="clusters by number of contacts", x_range=[], height=280, width=460,
-                  tools="", toolbar_location=None)
+    bars = figure(
+        title="clusters by number of contacts", x_range=[], height=280, width=460, tools="", toolbar_location=None
+    )
     bars.vbar(x="contacts", top="clusters", source=contacts, width=0.8)
     states = ["pending", "leased", "done", "failed"]
     frontier = ColumnDataSource({"state": states, "expansions": [0] * 4})
     fbars = figure(title="frontier", x_range=states, height=280, width=360, tools="", toolbar_location=None)
     fbars.vbar(x="state", top="expansions", source=frontier, width=0.8)
     rate = ColumnDataSource({"t": [], "rate": []})
-    line = figure(title="expansions per second", height=220, width=820, x_axis_type="datetime", tools="",
-                  toolbar_location=None)
+    line = figure(
+        title="expansions per second", height=220, width=820, x_axis_type="datetime", tools="", toolbar_location=None
+    )
     line.line(x="t", y="rate", source=rate)
     workers = ColumnDataSource({"worker": [], "done": [], "seconds": []})
-    wtable = DataTable(source=workers, height=160, width=820, columns=[
-        TableColumn(field="worker", title="worker"), TableColumn(field="done", title="expansions done"),
-        TableColumn(field="seconds", title="seconds in expand")])
+    wtable = DataTable(
+        source=workers,
+        height=160,
+        width=820,
+        columns=[
+            TableColumn(field="worker", title="worker"),
+            TableColumn(field="done", title="expansions done"),
+            TableColumn(field="seconds", title="seconds in expand"),
+        ],
+    )
     failures = ColumnDataSource({"expansion": [], "error": []})
-    ftable = DataTable(source=failures, height=140, width=820, columns=[
-        TableColumn(field="expansion", title="failed expansion"), TableColumn(field="error", title="error")])
+    ftable = DataTable(
+        source=failures,
+        height=140,
+        width=820,
+        columns=[TableColumn(field="expansion", title="failed expansion"), TableColumn(field="error", title="error")],
+    )
 
     def update() -> None:
         d = current()

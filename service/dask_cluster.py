@@ -64,8 +64,10 @@ def start_fork_server() -> bool:
 
 
 #: why the worker processes of a local cluster ended as they started (:func:`refuse_while_importing_main`)
-UNGUARDED = ("its worker processes ran the script that starts it, which calls packings.enumerate at its top "
-             "level: call it under `if __name__ == \"__main__\":`")
+UNGUARDED = (
+    "its worker processes ran the script that starts it, which calls packings.enumerate at its top "
+    'level: call it under `if __name__ == "__main__":`'
+)
 #: the file a worker process that ran its parent's script creates, for its parent to say why in one line
 UNGUARDED_MARK_ENV = "PACKINGS_UNGUARDED_MARK"
 
@@ -94,8 +96,9 @@ def refuse_while_importing_main() -> None:
             except OSError:
                 mark = None
         if not mark:
-            print(f"packings: error: a worker process of a local cluster ended: {UNGUARDED}", file=sys.stderr,
-                  flush=True)
+            print(
+                f"packings: error: a worker process of a local cluster ended: {UNGUARDED}", file=sys.stderr, flush=True
+            )
         raise SystemExit(1)
 
 
@@ -170,9 +173,16 @@ class dask_client:
     need, and run ``plugins``' setup before it is up); :attr:`client` waits for it.
     """
 
-    def __init__(self, scheduler: str | None, n_workers: int | None, quiet: bool, plugins=(),
-                 dashboard_address: str = DASHBOARD_ADDRESS, database: str | None = None,
-                 reconnect_seconds: float = RECONNECT_SECONDS):
+    def __init__(
+        self,
+        scheduler: str | None,
+        n_workers: int | None,
+        quiet: bool,
+        plugins=(),
+        dashboard_address: str = DASHBOARD_ADDRESS,
+        database: str | None = None,
+        reconnect_seconds: float = RECONNECT_SECONDS,
+    ):
         self.scheduler, self.n_workers, self.quiet, self.plugins = scheduler, n_workers, quiet, tuple(plugins)
         self.dashboard_address, self.database = dashboard_address, database
         self.reconnect_seconds = reconnect_seconds
@@ -208,8 +218,10 @@ class dask_client:
             try:
                 self._client = Client(self.scheduler, timeout="10s")
             except (OSError, TimeoutError, ValueError) as e:
-                raise SchedulerError(f"cannot reach the Dask scheduler at {self.scheduler}: "
-                                     f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+                raise SchedulerError(
+                    f"cannot reach the Dask scheduler at {self.scheduler}: "
+                    f"{str(e).splitlines()[0] if str(e) else type(e).__name__}"
+                ) from None
             # A Client that loses its scheduler tries to connect again for as long as its timeout, then
             # closes: 10 s to connect at first (one that does not answer is said at once), then the
             # reconnection window (packings.service.coordinator waits for it and goes on)
@@ -228,16 +240,24 @@ class dask_client:
             warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
             for attempt in range(START_ATTEMPTS):
                 try:
-                    self.cluster = LocalCluster(n_workers=k, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                                dashboard_address=self.dashboard_address,
-                                                silence_logs=logging.CRITICAL,
-                                                plugins=(LocalWorkerPlugin(), *self.plugins))
+                    self.cluster = LocalCluster(
+                        n_workers=k,
+                        threads_per_worker=1,
+                        processes=True,
+                        host="127.0.0.1",
+                        dashboard_address=self.dashboard_address,
+                        silence_logs=logging.CRITICAL,
+                        plugins=(LocalWorkerPlugin(), *self.plugins),
+                    )
                     break
                 except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
                     if _ran_unguarded():  # every try would end so
                         raise SchedulerError(f"the local Dask cluster failed to start: {UNGUARDED}") from None
-                    log.warning("the local Dask cluster failed to start (%s)%s", e,
-                                "; trying again" if attempt + 1 < START_ATTEMPTS else "")
+                    log.warning(
+                        "the local Dask cluster failed to start (%s)%s",
+                        e,
+                        "; trying again" if attempt + 1 < START_ATTEMPTS else "",
+                    )
                     if attempt + 1 == START_ATTEMPTS:
                         raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
             packings.service.dashboard.serve_json(self.cluster.scheduler)
@@ -255,9 +275,12 @@ class dask_client:
         try:
             self._client.register_plugin(TaskLeftovers())
         except Exception as e:  # noqa: BLE001 - the run goes on; only the scheduler's memory is at stake
-            log.warning("the Dask scheduler did not take packings' plugin for its memory (%s): it keeps a few "
-                        "hundred bytes of each task; install packings beside it, or start it with "
-                        "--preload packings.service.dashboard", str(e).splitlines()[0] if str(e) else type(e).__name__)
+            log.warning(
+                "the Dask scheduler did not take packings' plugin for its memory (%s): it keeps a few "
+                "hundred bytes of each task; install packings beside it, or start it with "
+                "--preload packings.service.dashboard",
+                str(e).splitlines()[0] if str(e) else type(e).__name__,
+            )
 
     def revive_workers(self) -> int:
         """Replace the local cluster's workers whose nanny gave up (a worker process killed while it

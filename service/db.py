@@ -19,10 +19,10 @@ from __future__ import annotations
 import hashlib
 import os
 import time
-from itertools import islice
-from typing import Callable, Iterable
 from importlib import resources
+from itertools import islice
 from pathlib import Path
+from typing import Callable, Iterable
 
 from sqlalchemy import Engine, create_engine, event, inspect, text
 from sqlalchemy.engine import URL, make_url
@@ -46,8 +46,12 @@ def default_url() -> str:
 
 def absolute(u: URL) -> URL:
     """``u`` with a relative SQLite file path made absolute (a worker may run in another directory)."""
-    if u.get_backend_name() == "sqlite" and u.database and u.database != ":memory:" \
-            and not u.database.startswith("file:"):
+    if (
+        u.get_backend_name() == "sqlite"
+        and u.database
+        and u.database != ":memory:"
+        and not u.database.startswith("file:")
+    ):
         u = u.set(database=str(Path(u.database).expanduser().resolve()))
     return u
 
@@ -72,17 +76,23 @@ def parse_url(url: str) -> URL:
     if u.drivername in ("postgresql", "postgres"):
         u = u.set(drivername="postgresql+psycopg")
     if u.get_backend_name() not in ("sqlite", "postgresql"):
-        raise DatabaseError(f"unsupported database {u.get_backend_name()!r} in {url!r}: use sqlite:/// or postgresql://")
+        raise DatabaseError(
+            f"unsupported database {u.get_backend_name()!r} in {url!r}: use sqlite:/// or postgresql://"
+        )
     if u.get_backend_name() == "sqlite" and _in_memory(u):
-        raise DatabaseError(f"{url!r} is an in-memory SQLite database, which only the process that opens it sees "
-                            "(the workers would not): give a file, e.g. sqlite:///packings.db")
+        raise DatabaseError(
+            f"{url!r} is an in-memory SQLite database, which only the process that opens it sees "
+            "(the workers would not): give a file, e.g. sqlite:///packings.db"
+        )
     _check_driver(u, url)
     return u
 
 
 def _in_memory(u: URL) -> bool:
     db = u.database or ""
-    return db in ("", ":memory:") or (db.startswith("file:") and ("mode=memory" in db or db.startswith("file::memory:")))
+    return db in ("", ":memory:") or (
+        db.startswith("file:") and ("mode=memory" in db or db.startswith("file::memory:"))
+    )
 
 
 def _check_driver(u: URL, url: str) -> None:
@@ -93,15 +103,17 @@ def _check_driver(u: URL, url: str) -> None:
     try:
         dialect = u.get_dialect()
     except NoSuchModuleError:
-        raise DatabaseError(f"unknown database driver {u.drivername!r} in {url!r}: use sqlite:/// or postgresql://") from None
+        raise DatabaseError(
+            f"unknown database driver {u.drivername!r} in {url!r}: use sqlite:/// or postgresql://"
+        ) from None
     if getattr(dialect, "is_async", False):
-        raise DatabaseError(f"{u.drivername!r} is an asyncio driver, which packings does not use: "
-                            f"use {plain} instead")
+        raise DatabaseError(f"{u.drivername!r} is an asyncio driver, which packings does not use: use {plain} instead")
     try:
         dialect.import_dbapi()
     except ImportError as e:
-        raise DatabaseError(f"the driver of {u.drivername!r} is not installed ({e.name or e}): "
-                            f"use {plain} or install it") from None
+        raise DatabaseError(
+            f"the driver of {u.drivername!r} is not installed ({e.name or e}): use {plain} or install it"
+        ) from None
 
 
 def display_url(url: URL) -> str:
@@ -219,8 +231,9 @@ def insert_many(conn, table, columns: tuple[str, ...], rows: Iterable[tuple]) ->
     rows = iter(rows)
     while chunk := list(islice(rows, INSERT_CHUNK)):
         if conn.dialect.name == "sqlite":
-            conn.exec_driver_sql(f"INSERT INTO {table.name} ({', '.join(columns)}) "
-                                 f"VALUES ({', '.join('?' * len(columns))})", chunk)
+            conn.exec_driver_sql(
+                f"INSERT INTO {table.name} ({', '.join(columns)}) VALUES ({', '.join('?' * len(columns))})", chunk
+            )
         else:
             conn.execute(table.insert(), [dict(zip(columns, r)) for r in chunk])
 

@@ -29,14 +29,50 @@ import tempfile
 from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator
 
-
 #: the scalar facts of a cluster, in the order the formats list them
-FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
-         "rigid_method", "margin", "flexes", "stresses", "singular", "min_gap", "lattice", "close_packed",
-         "found_in_run", "found_by", "source_id", "created_at")
+FACTS = (
+    "id",
+    "n",
+    "contacts",
+    "excess",
+    "static",
+    "embedding",
+    "geometries",
+    "certificate",
+    "rigid_kind",
+    "rigid_method",
+    "margin",
+    "flexes",
+    "stresses",
+    "singular",
+    "min_gap",
+    "lattice",
+    "close_packed",
+    "found_in_run",
+    "found_by",
+    "source_id",
+    "created_at",
+)
 #: the facts on an extended XYZ comment line (None values are left out)
-XYZ_FACTS = ("id", "n", "contacts", "excess", "static", "embedding", "geometries", "certificate", "rigid_kind",
-             "rigid_method", "margin", "flexes", "stresses", "singular", "min_gap", "lattice", "close_packed")
+XYZ_FACTS = (
+    "id",
+    "n",
+    "contacts",
+    "excess",
+    "static",
+    "embedding",
+    "geometries",
+    "certificate",
+    "rigid_kind",
+    "rigid_method",
+    "margin",
+    "flexes",
+    "stresses",
+    "singular",
+    "min_gap",
+    "lattice",
+    "close_packed",
+)
 #: the names ASE's database reserves, and what extended XYZ and ase.Atoms.info call those facts instead
 #: (so that ``ase.db`` takes ``atoms.info`` as key-value pairs as it is)
 ASE_NAMES = {"id": "cluster_id", "stresses": "self_stresses"}
@@ -145,7 +181,7 @@ def replace_file(path: str | os.PathLike, write: Callable[[IO], None], binary: b
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with (os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="\n")) as f:
+        with os.fdopen(fd, "wb") if binary else os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())

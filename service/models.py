@@ -82,7 +82,9 @@ class Run(Base):
     started_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     finished_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
     code_version: Mapped[str] = mapped_column(String(64))
-    coordinator: Mapped[str | None] = mapped_column(String(200), nullable=True)  #: host:pid:token of the live coordinator
+    coordinator: Mapped[str | None] = mapped_column(
+        String(200), nullable=True
+    )  #: host:pid:token of the live coordinator
     heartbeat_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
     seconds: Mapped[float] = mapped_column(Float, default=0.0)  #: wall time spent by coordinators on this run
 
@@ -117,8 +119,9 @@ class ClusterRow(Base):
     found_by: Mapped[str] = mapped_column(String(16), server_default=FOUND_PATH)
     #: the cluster it was found from: for a path, the cluster whose expansion reached it; for catalysis,
     #: the cluster of more spheres it is a remainder of; None for a seed and a close-packed fragment
-    source_id: Mapped[int | None] = mapped_column(ForeignKey("clusters.id", name="fk_clusters_source_id"),
-                                                  nullable=True)
+    source_id: Mapped[int | None] = mapped_column(
+        ForeignKey("clusters.id", name="fk_clusters_source_id"), nullable=True
+    )
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     #: not a column: the number of stored clusters sharing this one's contact graph, filled in by
     #: packings.service.selection.query (None when the row was loaded another way)

@@ -46,10 +46,13 @@ def coordinator_alive(owner: str | None, heartbeat: dt.datetime | None) -> bool:
     return (utcnow() - heartbeat).total_seconds() < HEARTBEAT_STALE_SECONDS
 
 
-def busy(run_id: int, n: int, coordinator: str | None, heartbeat: dt.datetime | None,
-         owner: str | None = None) -> RunBusy | None:
+def busy(
+    run_id: int, n: int, coordinator: str | None, heartbeat: dt.datetime | None, owner: str | None = None
+) -> RunBusy | None:
     """The error for run ``run_id`` of n if a live coordinator other than ``owner`` holds it, else None."""
     if coordinator and coordinator != owner and coordinator_alive(coordinator, heartbeat):
-        return RunBusy(f"run {run_id} (n = {n}) is being driven by coordinator {coordinator}; "
-                       "wait for it to finish or stop it first")
+        return RunBusy(
+            f"run {run_id} (n = {n}) is being driven by coordinator {coordinator}; "
+            "wait for it to finish or stop it first"
+        )
     return None

@@ -106,8 +106,10 @@ def verdict(n: int, against: dict | None, complete: bool, min_contacts: int | No
         top = against["max_contacts"]
         if more:
             return f"MORE CONTACTS THAN THE PAPER'S MAXIMUM M({n}) = {top}: {_listed(more)}; see `packings audit`"
-        return f"the paper's largest number of contacts for n = {n} is M(n) = {top} ({SOURCE}, Table 3); " \
-               "no cluster here has more"
+        return (
+            f"the paper's largest number of contacts for n = {n} is M(n) = {top} ({SOURCE}, Table 3); "
+            "no cluster here has more"
+        )
     scope = "" if min_contacts is None else f", with at least {min_contacts} contacts"
     if against["same"]:
         return f"as the paper at every number of contacts{scope}: {against['total']} ({SOURCE}, Table 1)"
@@ -115,7 +117,12 @@ def verdict(n: int, against: dict | None, complete: bool, min_contacts: int | No
     if more:
         parts.append(f"MORE THAN THE PAPER: {_listed(more)}; see `packings audit`")
     if fewer:
-        why = (" (a run restricted by --min-contacts misses the clusters reached only through fewer contacts)"
-               if min_contacts is not None else "" if complete else " (partial: no full run is complete)")
+        why = (
+            " (a run restricted by --min-contacts misses the clusters reached only through fewer contacts)"
+            if min_contacts is not None
+            else ""
+            if complete
+            else " (partial: no full run is complete)"
+        )
         parts.append(f"fewer than the paper: {_listed(fewer)}{why}")
     return f"against the paper ({SOURCE}, Table 1){scope}: " + "; ".join(parts)

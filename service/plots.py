@@ -141,8 +141,17 @@ def _log_ticks(axis, lo: float, hi: float) -> None:
 # --------------------------------------------------------------------------- the figures
 
 
-def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *, restricted=None, partial=(),
-                ax=None, size: tuple[float, float] | None = None, dpi: float | None = None, paper=None):
+def plot_counts(
+    totals: dict[int, int],
+    path: str | os.PathLike | None = None,
+    *,
+    restricted=None,
+    partial=(),
+    ax=None,
+    size: tuple[float, float] | None = None,
+    dpi: float | None = None,
+    paper=None,
+):
     """The number of clusters against n (log scale, one marker per n, the count
     written above it) with the fitted curve b·(n − 5)! of
     :func:`packings.service.fit.fit_factorial` (b in the legend).  ``restricted``: {n:
@@ -168,28 +177,63 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
         ax_.plot(full, [totals[n] for n in full], "o", ms=7, color="C0", zorder=3, label="rigid clusters")
     if restricted:
         part = sorted(restricted)
-        ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="C2", mew=1.5, zorder=3,
-                 label="clusters with ≥ M contacts only (--min-contacts M)")
+        ax_.plot(
+            part,
+            [totals[n] for n in part],
+            "o",
+            ms=7,
+            mfc="none",
+            mec="C2",
+            mew=1.5,
+            zorder=3,
+            label="clusters with ≥ M contacts only (--min-contacts M)",
+        )
     if partial:
         part = sorted(partial)
-        ax_.plot(part, [totals[n] for n in part], "o", ms=7, mfc="none", mec="0.45", mew=1.5, zorder=3,
-                 label="partial counts (no full run of n complete)")
+        ax_.plot(
+            part,
+            [totals[n] for n in part],
+            "o",
+            ms=7,
+            mfc="none",
+            mec="0.45",
+            mew=1.5,
+            zorder=3,
+            label="partial counts (no full run of n complete)",
+        )
     shown = sorted(n for n in (paper or {}) if n in totals)
     if shown:
-        ax_.plot(shown, [paper[n] for n in shown], "x", ms=9, mew=1.5, color="C3", zorder=4,
-                 label="the paper (Holmes-Cerfon 2016, Table 1)")
+        ax_.plot(
+            shown,
+            [paper[n] for n in shown],
+            "x",
+            ms=9,
+            mew=1.5,
+            color="C3",
+            zorder=4,
+            label="the paper (Holmes-Cerfon 2016, Table 1)",
+        )
     for n in ns:
-        text = f"{totals[n]:,}" + (f"\n(≥ {restricted[n]})" if n in restricted else "\n(partial)" if n in partial
-                                   else "")
-        ax_.annotate(text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center",
-                     fontsize=8, color="0.25")
+        text = f"{totals[n]:,}" + (
+            f"\n(≥ {restricted[n]})" if n in restricted else "\n(partial)" if n in partial else ""
+        )
+        ax_.annotate(
+            text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=8, color="0.25"
+        )
     fit = fit_factorial({n: totals[n] for n in full})
     if fit is not None:
         xs = np.arange(max(min(ns), 5), max(ns) + 1)
         used = fit["ns"]
         over = f"n = {used[0]}" + (f"–{used[-1]}" if len(used) > 1 else "")
-        ax_.plot(xs, [predicted(fit["b"], x) for x in xs], "--", color="C1", lw=1.5, zorder=2,
-                 label=f"fit {fit['b']:.2f}·(n − 5)!  ({over})")
+        ax_.plot(
+            xs,
+            [predicted(fit["b"], x) for x in xs],
+            "--",
+            color="C1",
+            lw=1.5,
+            zorder=2,
+            label=f"fit {fit['b']:.2f}·(n − 5)!  ({over})",
+        )
     ax_.set_xlabel("n (spheres)")
     ax_.set_ylabel("number of rigid clusters")
     ax_.set_title("Rigid clusters of n spheres")
@@ -203,8 +247,14 @@ def plot_counts(totals: dict[int, int], path: str | os.PathLike | None = None, *
     return _done(fig, path, ax is None)
 
 
-def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike | None = None, *, ax=None,
-                 size: tuple[float, float] | None = None, dpi: float | None = None):
+def plot_gap_cdf(
+    gaps: dict[int, list[float]],
+    path: str | os.PathLike | None = None,
+    *,
+    ax=None,
+    size: tuple[float, float] | None = None,
+    dpi: float | None = None,
+):
     """The cumulative distribution of the clusters' minimum gaps (the smallest
     distance between spheres not in contact, minus 1), one line per n, on a log
     x axis.  Gaps that are missing, not finite or not positive are left out.
@@ -238,9 +288,17 @@ def plot_gap_cdf(gaps: dict[int, list[float]], path: str | os.PathLike | None = 
     return _done(fig, path, ax is None)
 
 
-def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | None = None, *, restricted=None,
-                     partial=(), ax=None, size: tuple[float, float] | None = None, dpi: float | None = None,
-                     paper=None):
+def plot_by_contacts(
+    by_n: dict[int, dict[int, int]],
+    path: str | os.PathLike | None = None,
+    *,
+    restricted=None,
+    partial=(),
+    ax=None,
+    size: tuple[float, float] | None = None,
+    dpi: float | None = None,
+    paper=None,
+):
     """The number of clusters by number of contacts, one series per n, against
     contacts − (3n − 6) (0: isostatic; negative: hypostatic), log y.  ``restricted``: {n:
     M} for the n whose clusters were counted only from M contacts up (as in
@@ -261,14 +319,22 @@ def plot_by_contacts(by_n: dict[int, dict[int, int]], path: str | os.PathLike | 
     markers = "osD^v<>ph*"
     for i, ((n, d), color) in enumerate(zip(sorted(series.items()), _colors(len(series)))):
         ms = sorted(d)
-        ax_.plot([m - (3 * n - 6) for m in ms], [d[m] for m in ms], marker=markers[i % len(markers)], ms=6, lw=1.5,
-                 color=color, zorder=3,
-                 label=f"n = {n} ({sum(d.values()):,}" + (f", ≥ {restricted[n]} contacts)" if n in restricted
-                                                          else ", partial)" if n in partial else ")"))
+        ax_.plot(
+            [m - (3 * n - 6) for m in ms],
+            [d[m] for m in ms],
+            marker=markers[i % len(markers)],
+            ms=6,
+            lw=1.5,
+            color=color,
+            zorder=3,
+            label=f"n = {n} ({sum(d.values()):,}"
+            + (f", ≥ {restricted[n]} contacts)" if n in restricted else ", partial)" if n in partial else ")"),
+        )
         if theirs[n]:
             ps = sorted(theirs[n])
-            ax_.plot([m - (3 * n - 6) for m in ps], [theirs[n][m] for m in ps], "x", ms=9, mew=1.3, color=color,
-                     zorder=4)
+            ax_.plot(
+                [m - (3 * n - 6) for m in ps], [theirs[n][m] for m in ps], "x", ms=9, mew=1.3, color=color, zorder=4
+            )
     if any(theirs.values()):
         ax_.plot([], [], "x", ms=9, mew=1.3, color="0.3", label="the paper (Holmes-Cerfon 2016, Table 1)")
     excess = [m - (3 * n - 6) for n, d in (*series.items(), *theirs.items()) for m in d]
@@ -396,8 +462,9 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
     # The hemisphere facing the viewer (a little more, so no gap shows at the rim), as unit normals.
     theta = np.linspace(0.0, np.radians(92.0), 15)[:, None]
     phi = np.linspace(0.0, 2 * np.pi, 49)[None, :]
-    normals = (np.cos(theta)[..., None] * eye + np.sin(theta)[..., None]
-               * (np.cos(phi)[..., None] * right + np.sin(phi)[..., None] * up))
+    normals = np.cos(theta)[..., None] * eye + np.sin(theta)[..., None] * (
+        np.cos(phi)[..., None] * right + np.sin(phi)[..., None] * up
+    )
     # shading at the middle of each face (plot_surface takes the colour of a face from its first corner)
     mid = normals[:-1, :-1] + normals[1:, :-1] + normals[:-1, 1:] + normals[1:, 1:]
     mid /= np.linalg.norm(mid, axis=-1, keepdims=True)
@@ -418,11 +485,20 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
             shaded = np.clip(rgb * (0.42 + 0.58 * diffuse) + 0.45 * specular, 0.0, 1.0)
             colors = np.concatenate([shaded, np.full(shaded.shape[:2] + (1,), alpha)], axis=-1)
             p = c + radius * normals
-            ax.plot_surface(p[..., 0], p[..., 1], p[..., 2], facecolors=colors, shade=False, linewidth=0,
-                            antialiased=False, rcount=theta.size, ccount=phi.size, zorder=z)
+            ax.plot_surface(
+                p[..., 0],
+                p[..., 1],
+                p[..., 2],
+                facecolors=colors,
+                shade=False,
+                linewidth=0,
+                antialiased=False,
+                rcount=theta.size,
+                ccount=phi.size,
+                zorder=z,
+            )
             o = c + radius * rim
-            ax.plot(o[:, 0], o[:, 1], o[:, 2], color=tuple(0.45 * rgb), lw=0.8, alpha=min(1.0, alpha + 0.2),
-                    zorder=z)
+            ax.plot(o[:, 0], o[:, 1], o[:, 2], color=tuple(0.45 * rgb), lw=0.8, alpha=min(1.0, alpha + 0.2), zorder=z)
         else:
             i, j = what
             ax.plot(*zip(x[i], x[j]), color=STICK_COLOR, lw=3.0, solid_capstyle="round", zorder=z)
@@ -438,12 +514,28 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
             i, j, g = near
             ax.plot(*zip(x[i], x[j]), color=GAP_COLOR, lw=1.6, ls="--", zorder=top + 1)
             at = (x[i] + x[j]) / 2 + 0.6 * radius * up
-            ax.text(*at, f"gap {g:.3g}", color=GAP_COLOR, fontsize=8, ha="center", va="bottom", zorder=top + 2,
-                    path_effects=outline)
+            ax.text(
+                *at,
+                f"gap {g:.3g}",
+                color=GAP_COLOR,
+                fontsize=8,
+                ha="center",
+                va="bottom",
+                zorder=top + 2,
+                path_effects=outline,
+            )
     if labels:
         for i in range(n):
-            ax.text(*(x[i] + 1.02 * radius * eye), str(i), fontsize=8 if style == "spheres" else 7, ha="center",
-                    va="center", color="black", zorder=top + 3, path_effects=outline)
+            ax.text(
+                *(x[i] + 1.02 * radius * eye),
+                str(i),
+                fontsize=8 if style == "spheres" else 7,
+                ha="center",
+                va="center",
+                color="black",
+                zorder=top + 3,
+                path_effects=outline,
+            )
     ax.set_xlim(-extent, extent)
     ax.set_ylim(-extent, extent)
     ax.set_zlim(-extent, extent)
@@ -465,10 +557,25 @@ def _options(style: str) -> None:
         raise ValueError(f"unknown style {style!r}: use one of {', '.join(STYLES)}")
 
 
-def plot_cluster(coords, contacts, path: str | os.PathLike | None = None, values=None, label: str | None = None,
-                 title: str | None = None, elev: float | None = None, azim: float | None = None,
-                 alpha: float = 1.0, ghost: float = GHOST, *, style: str = "spheres", labels: bool = False,
-                 gap: bool = True, ax=None, size: tuple[float, float] | None = None, dpi: float | None = None):
+def plot_cluster(
+    coords,
+    contacts,
+    path: str | os.PathLike | None = None,
+    values=None,
+    label: str | None = None,
+    title: str | None = None,
+    elev: float | None = None,
+    azim: float | None = None,
+    alpha: float = 1.0,
+    ghost: float = GHOST,
+    *,
+    style: str = "spheres",
+    labels: bool = False,
+    gap: bool = True,
+    ax=None,
+    size: tuple[float, float] | None = None,
+    dpi: float | None = None,
+):
     """A 3D picture of one cluster, each contact a stick between the two centres,
     spheres coloured by ``values`` (one per sphere; default the number of contacts
     of each sphere) with a colour bar labelled ``label`` (default "contacts per
@@ -506,8 +613,22 @@ def plot_cluster(coords, contacts, path: str | os.PathLike | None = None, values
         elev, azim = best[0] if elev is None else elev, best[1] if azim is None else azim
     fig, ax_ = _canvas(ax, size, dpi, path, projection="3d", proj_type="ortho", computed_zorder=False)
     extent = float(np.max(np.linalg.norm(x, axis=1))) + RADIUS
-    _draw_cluster(ax_, x, pairs, values, cmap, norm, elev, azim, alpha=alpha, ghost=ghost, style=style,
-                  labels=labels, gap=gap, extent=extent)
+    _draw_cluster(
+        ax_,
+        x,
+        pairs,
+        values,
+        cmap,
+        norm,
+        elev,
+        azim,
+        alpha=alpha,
+        ghost=ghost,
+        style=style,
+        labels=labels,
+        gap=gap,
+        extent=extent,
+    )
     if ax is None:
         ax_.set_position([0.0, 0.0, 0.8, 0.93 if title else 1.0])
         _colorbar(fig, cmap, norm, ticks, label, cax=fig.add_axes([0.83, 0.22, 0.025, 0.56]))
@@ -541,8 +662,16 @@ def aligned(clusters: Sequence[tuple]) -> list | None:
     rank[p0] = np.arange(first.n)
     touching = {(int(rank[i]), int(rank[j])) for i, j in first.contacts}
     touching |= {(j, i) for i, j in touching}
-    triangle = next(((a, b, c) for a, b in sorted(touching) if a < b
-                     for c in range(b + 1, first.n) if (a, c) in touching and (b, c) in touching), None)
+    triangle = next(
+        (
+            (a, b, c)
+            for a, b in sorted(touching)
+            if a < b
+            for c in range(b + 1, first.n)
+            if (a, c) in touching and (b, c) in touching
+        ),
+        None,
+    )
     if triangle is None:
         return None
     target = first.coords[p0[list(triangle)]]
@@ -559,10 +688,21 @@ def aligned(clusters: Sequence[tuple]) -> list | None:
     return out
 
 
-def plot_clusters(clusters: Sequence[tuple], path: str | os.PathLike | None = None, *, values=None,
-                  label: str | None = None, titles: Sequence[str] | None = None, title: str | None = None,
-                  style: str = "spheres", labels: bool = False, gap: bool = True, align: bool = True,
-                  size: tuple[float, float] | None = None, dpi: float | None = None):
+def plot_clusters(
+    clusters: Sequence[tuple],
+    path: str | os.PathLike | None = None,
+    *,
+    values=None,
+    label: str | None = None,
+    titles: Sequence[str] | None = None,
+    title: str | None = None,
+    style: str = "spheres",
+    labels: bool = False,
+    gap: bool = True,
+    align: bool = True,
+    size: tuple[float, float] | None = None,
+    dpi: float | None = None,
+):
     """Several clusters ((coords, contacts) pairs) side by side, each as :func:`plot_cluster` draws one,
     at one scale and with one colour bar.  With ``align`` and one contact graph in all (say, the
     geometries of one graph), they are turned to lie alike (:func:`aligned`) and seen from the same
@@ -598,10 +738,25 @@ def plot_clusters(clusters: Sequence[tuple], path: str | os.PathLike | None = No
     extent = max(float(np.max(np.linalg.norm(x, axis=1))) for x in xs) + RADIUS
     width = 0.88 / k
     for i, (x, (_, pairs, _), v, (elev, azim)) in enumerate(zip(xs, checked, values, views)):
-        ax = fig.add_axes([i * width, 0.0, width, 0.86 if title else 0.9], projection="3d", proj_type="ortho",
-                          computed_zorder=False)
-        _draw_cluster(ax, x, pairs, v, cmap, norm, elev, azim, alpha=1.0, ghost=GHOST, style=style, labels=labels,
-                      gap=gap, extent=extent)
+        ax = fig.add_axes(
+            [i * width, 0.0, width, 0.86 if title else 0.9], projection="3d", proj_type="ortho", computed_zorder=False
+        )
+        _draw_cluster(
+            ax,
+            x,
+            pairs,
+            v,
+            cmap,
+            norm,
+            elev,
+            azim,
+            alpha=1.0,
+            ghost=GHOST,
+            style=style,
+            labels=labels,
+            gap=gap,
+            extent=extent,
+        )
         if titles is not None:
             ax.set_title(titles[i], fontsize=9)
     _colorbar(fig, cmap, norm, ticks, label, cax=fig.add_axes([0.9, 0.22, 0.018, 0.56]))
@@ -615,17 +770,26 @@ def plot_clusters(clusters: Sequence[tuple], path: str | os.PathLike | None = No
 # --------------------------------------------------------------------------- the command line
 
 db_option = click.option(
-    "--db", "db_url", default=None, metavar="URL",
+    "--db",
+    "db_url",
+    default=None,
+    metavar="URL",
     help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
 )
-n_option = click.option("--n", "ns", multiple=True, metavar="N[,N...]",
-                        help="Only these n (repeat the option, or give a comma list).")
+n_option = click.option(
+    "--n", "ns", multiple=True, metavar="N[,N...]", help="Only these n (repeat the option, or give a comma list)."
+)
 
 
 def _file_option(default_name: str):
-    return click.option("-o", "--output", default=None, metavar="PATH",
-                        help=f"The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing "
-                             f"directory to write {default_name} in; default ./{default_name}.")
+    return click.option(
+        "-o",
+        "--output",
+        default=None,
+        metavar="PATH",
+        help=f"The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing "
+        f"directory to write {default_name} in; default ./{default_name}.",
+    )
 
 
 def _parse_size(ctx, param, value: str | None) -> tuple[float, float] | None:
@@ -642,11 +806,20 @@ def _parse_size(ctx, param, value: str | None) -> tuple[float, float] | None:
 
 def _figure_options(f):
     """--size and --dpi, passed to the command as ``size`` and ``dpi``."""
-    f = click.option("--dpi", type=click.IntRange(10, 2400), default=None,
-                     help=f"Dots per inch of a PNG (and of the pictures inside a PDF or SVG)  [default: {DPI}]")(f)
-    return click.option("--size", default=None, metavar="WxH", callback=_parse_size,
-                        help=f"Figure size in inches, e.g. 3.4x2.6  [default: {SIZE[0]}x{SIZE[1]}; a row of clusters: "
-                             f"3.6 per cluster + 1 by 4.2]")(f)
+    f = click.option(
+        "--dpi",
+        type=click.IntRange(10, 2400),
+        default=None,
+        help=f"Dots per inch of a PNG (and of the pictures inside a PDF or SVG)  [default: {DPI}]",
+    )(f)
+    return click.option(
+        "--size",
+        default=None,
+        metavar="WxH",
+        callback=_parse_size,
+        help=f"Figure size in inches, e.g. 3.4x2.6  [default: {SIZE[0]}x{SIZE[1]}; a row of clusters: "
+        f"3.6 per cluster + 1 by 4.2]",
+    )(f)
 
 
 def parse_ns(values) -> set[int] | None:
@@ -658,8 +831,9 @@ def parse_ns(values) -> set[int] | None:
             try:
                 out.add(int(part))
             except ValueError:
-                raise click.BadParameter(f"{part!r} is not an integer (give e.g. --n 9 or --n 8,9,10)",
-                                         param_hint="'--n'") from None
+                raise click.BadParameter(
+                    f"{part!r} is not an integer (give e.g. --n 9 or --n 8,9,10)", param_hint="'--n'"
+                ) from None
     return out or None
 
 
@@ -776,8 +950,16 @@ def counts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size
         counts, (restricted, partial) = load_counts(s, ns_), _incomplete(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=path, restricted=restricted,
-           partial=partial, size=size, dpi=dpi, paper=paper_totals(counts, restricted))
+    _write(
+        plot_counts,
+        {n: sum(d.values()) for n, d in counts.items()},
+        path=path,
+        restricted=restricted,
+        partial=partial,
+        size=size,
+        dpi=dpi,
+        paper=paper_totals(counts, restricted),
+    )
 
 
 @plot.command("gaps", short_help="Cumulative distribution of the minimum gaps, one line per n.")
@@ -809,25 +991,55 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, si
         counts, (restricted, partial) = load_counts(s, ns_), _incomplete(s)
     if not counts:
         raise click.ClickException(_nothing(ns_))
-    _write(plot_by_contacts, counts, path=path, restricted=restricted, partial=partial, size=size, dpi=dpi,
-           paper=paper_tables(counts, restricted))
+    _write(
+        plot_by_contacts,
+        counts,
+        path=path,
+        restricted=restricted,
+        partial=partial,
+        size=size,
+        dpi=dpi,
+        paper=paper_tables(counts, restricted),
+    )
 
 
 @plot.command("cluster", short_help="Clusters in 3D, side by side: spheres, contacts, the closest gap.")
 @click.argument("cluster_ids", metavar="ID...", type=int, nargs=-1, required=True)
 @db_option
-@click.option("--color-by", type=click.Choice(list(COLOR_BY)), default="degree", show_default=True,
-              help="Colour the spheres by their number of contacts (degree), height z, or distance from the "
-                   "centroid.")
-@click.option("--style", type=click.Choice(STYLES), default="spheres", show_default=True,
-              help="spheres: to scale; sticks: small spheres, so that every contact shows.")
+@click.option(
+    "--color-by",
+    type=click.Choice(list(COLOR_BY)),
+    default="degree",
+    show_default=True,
+    help="Colour the spheres by their number of contacts (degree), height z, or distance from the centroid.",
+)
+@click.option(
+    "--style",
+    type=click.Choice(STYLES),
+    default="spheres",
+    show_default=True,
+    help="spheres: to scale; sticks: small spheres, so that every contact shows.",
+)
 @click.option("--labels", is_flag=True, help="Number the spheres (as in the cluster's coordinates and contacts).")
-@click.option("-o", "--output", default=None, metavar="PATH",
-              help="The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing directory; "
-                   "default ./cluster-ID[-ID...].png.")
+@click.option(
+    "-o",
+    "--output",
+    default=None,
+    metavar="PATH",
+    help="The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing directory; "
+    "default ./cluster-ID[-ID...].png.",
+)
 @_figure_options
-def cluster_cmd(cluster_ids: tuple[int, ...], db_url: str | None, color_by: str, style: str, labels: bool,
-                output: str | None, size, dpi) -> None:
+def cluster_cmd(
+    cluster_ids: tuple[int, ...],
+    db_url: str | None,
+    color_by: str,
+    style: str,
+    labels: bool,
+    output: str | None,
+    size,
+    dpi,
+) -> None:
     """Clusters ID... in 3D, side by side: spheres coloured by a per-sphere property, contacts as sticks,
     and the closest pair of spheres not in contact dashed, with its gap.  Clusters with one contact
     graph (the geometries of one graph, say) are turned to lie alike on a common contact triangle
@@ -847,16 +1059,34 @@ def cluster_cmd(cluster_ids: tuple[int, ...], db_url: str | None, color_by: str,
     titles = [f"cluster {cid}: n = {n}, {m} contacts (3n−6{m - (3 * n - 6):+d})" for cid, _, n, m, _ in rows]
     try:
         if len(rows) == 1:
-            plot_cluster(*clusters[0], path, values=values[0], label=label[0], title=titles[0], style=style,
-                         labels=labels, size=size, dpi=dpi)
+            plot_cluster(
+                *clusters[0],
+                path,
+                values=values[0],
+                label=label[0],
+                title=titles[0],
+                style=style,
+                labels=labels,
+                size=size,
+                dpi=dpi,
+            )
         else:
             same = aligned(clusters) is not None
             if same:
                 titles = [f"cluster {cid} (embedding {e})" for cid, _, _, _, e in rows]
             n, m = rows[0][2], rows[0][3]
-            plot_clusters(clusters, path, values=values, label=label[0], titles=titles,
-                          title=f"one contact graph: n = {n}, {m} contacts, aligned on a contact triangle"
-                          if same else None, style=style, labels=labels, size=size, dpi=dpi)
+            plot_clusters(
+                clusters,
+                path,
+                values=values,
+                label=label[0],
+                titles=titles,
+                title=f"one contact graph: n = {n}, {m} contacts, aligned on a contact triangle" if same else None,
+                style=style,
+                labels=labels,
+                size=size,
+                dpi=dpi,
+            )
     except OSError as e:
         raise click.ClickException(f"cannot write {path}: {e.strerror or e}") from None
     click.echo(str(path))
@@ -865,11 +1095,22 @@ def cluster_cmd(cluster_ids: tuple[int, ...], db_url: str | None, color_by: str,
 @plot.command("all", short_help="counts, gaps and contacts figures into a directory.")
 @db_option
 @n_option
-@click.option("-o", "--output", default=None, metavar="DIR",
-              help="An existing directory to write counts.png, gaps.png and contacts.png in (each replaced "
-                   "whole); default the current directory.")
-@click.option("--format", "fmt", type=click.Choice(FORMATS), default="png", show_default=True,
-              help="Write counts.FORMAT, gaps.FORMAT and contacts.FORMAT.")
+@click.option(
+    "-o",
+    "--output",
+    default=None,
+    metavar="DIR",
+    help="An existing directory to write counts.png, gaps.png and contacts.png in (each replaced "
+    "whole); default the current directory.",
+)
+@click.option(
+    "--format",
+    "fmt",
+    type=click.Choice(FORMATS),
+    default="png",
+    show_default=True,
+    help="Write counts.FORMAT, gaps.FORMAT and contacts.FORMAT.",
+)
 @_figure_options
 def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: str, size, dpi) -> None:
     """counts.png, gaps.png and contacts.png (or .pdf, .svg), from one read of the database."""
@@ -881,12 +1122,27 @@ def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: st
     if not counts:
         raise click.ClickException(_nothing(ns_))
     options = {"size": size, "dpi": dpi}
-    _write(plot_counts, {n: sum(d.values()) for n, d in counts.items()}, path=directory / names["counts"],
-           restricted=restricted, partial=partial, paper=paper_totals(counts, restricted), **options)
+    _write(
+        plot_counts,
+        {n: sum(d.values()) for n, d in counts.items()},
+        path=directory / names["counts"],
+        restricted=restricted,
+        partial=partial,
+        paper=paper_totals(counts, restricted),
+        **options,
+    )
     if gaps:
         _write(plot_gap_cdf, gaps, path=directory / names["gaps"], **options)
     else:  # only clusters in which every pair touches (n <= 4)
-        click.echo(f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; "
-                   f"{names['gaps']} not written", err=True)
-    _write(plot_by_contacts, counts, path=directory / names["contacts"], restricted=restricted, partial=partial,
-           paper=paper_tables(counts, restricted), **options)
+        click.echo(
+            f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; {names['gaps']} not written", err=True
+        )
+    _write(
+        plot_by_contacts,
+        counts,
+        path=directory / names["contacts"],
+        restricted=restricted,
+        partial=partial,
+        paper=paper_tables(counts, restricted),
+        **options,
+    )

@@ -84,14 +84,23 @@ def _static() -> ColumnElement:
 def _geometries() -> ColumnElement:
     """How many stored clusters share this one's contact graph (itself included)."""
     other = aliased(ClusterRow)
-    return (select(func.count()).where(other.n == ClusterRow.n, other.certificate == ClusterRow.certificate)
-            .correlate(ClusterRow).scalar_subquery())
+    return (
+        select(func.count())
+        .where(other.n == ClusterRow.n, other.certificate == ClusterRow.certificate)
+        .correlate(ClusterRow)
+        .scalar_subquery()
+    )
 
 
 def _paths(conds: Callable[[], tuple]) -> Callable[[], ColumnElement]:
     """The number of paths (transitions with a direction) that satisfy ``conds``, over every run."""
-    return lambda: (select(func.count()).select_from(Transition).where(Transition.direction != 0, *conds())
-                    .correlate(ClusterRow).scalar_subquery())
+    return lambda: (
+        select(func.count())
+        .select_from(Transition)
+        .where(Transition.direction != 0, *conds())
+        .correlate(ClusterRow)
+        .scalar_subquery()
+    )
 
 
 _paths_out = _paths(lambda: (Transition.source_id == ClusterRow.id,))
@@ -116,25 +125,33 @@ KEYS: dict[str, Key] = {
     "margin": _column("margin", float, "smallest eigenvalue of the best stress combination", nullable=True),
     "certificate": _column("certificate", str, "contact graph key (hex)"),
     "rigid_kind": _column("rigid_kind", str, "first-order or prestress"),
-    "rigid_method": _column("rigid_method", str, "test that decided: first-order, single-flex, single-stress, e_k, sdp"),
+    "rigid_method": _column(
+        "rigid_method", str, "test that decided: first-order, single-flex, single-stress, e_k, sdp"
+    ),
     "found_in_run": _column("found_in_run", int, "run that first stored it", nullable=True),
     "excess": Key(int, "contacts - (3n-6)", expr=_excess),
     "hypostatic": Key(bool, "excess < 0", expr=lambda: _excess() < 0),
     "isostatic": Key(bool, "excess = 0", expr=lambda: _excess() == 0),
     "hyperstatic": Key(bool, "excess > 0", expr=lambda: _excess() > 0),
     "static": Key(str, "hypostatic, isostatic or hyperstatic", expr=_static),
-    "lattice": _column("lattice", str, "close-packed lattice: fcc, hcp, both (two layers), random (stacking), 2d, "
-                                       "or none", nullable=True),
-    "close_packed": Key(bool, "a fragment of a close-packed lattice (lattice is not none)",
-                        expr=_lattice_in(*LATTICES)),
+    "lattice": _column(
+        "lattice",
+        str,
+        "close-packed lattice: fcc, hcp, both (two layers), random (stacking), 2d, or none",
+        nullable=True,
+    ),
+    "close_packed": Key(
+        bool, "a fragment of a close-packed lattice (lattice is not none)", expr=_lattice_in(*LATTICES)
+    ),
     "fcc": Key(bool, "a fragment of fcc (lattice fcc or both)", expr=_lattice_in("fcc", "both")),
     "hcp": Key(bool, "a fragment of hcp (lattice hcp or both)", expr=_lattice_in("hcp", "both")),
     "geometries": Key(int, "clusters with this contact graph (1: its adjacency has one geometry)", expr=_geometries),
     "paths_out": Key(int, "paths followed from it, all runs", expr=_paths_out),
     "paths_in": Key(int, "paths from other clusters that reached it, all runs", expr=_paths_in),
     "circular": Key(int, "paths from it that came back to it", expr=_circular),
-    "reached": Key(bool, "some path from another cluster reaches it (false: only a seed)",
-                   expr=lambda: _paths_in() > 0),
+    "reached": Key(
+        bool, "some path from another cluster reaches it (false: only a seed)", expr=lambda: _paths_in() > 0
+    ),
     "run": Key(int, "in the frontier of run R (run=R, run!=R)", where=_in_run, ops=EQUALITY),
 }
 ALIASES: dict[str, str] = {"m": "contacts"}
@@ -188,8 +205,10 @@ def parse_value(key: str, text: str) -> Any:
 def parse_term(text: str) -> Term:
     m = _TERM.match(text.strip())
     if not m:
-        raise SelectionError(f"cannot read {text.strip()!r}: expected key, !key, not key, or key OP value "
-                             f"(OP one of {' '.join(OPERATORS)})")
+        raise SelectionError(
+            f"cannot read {text.strip()!r}: expected key, !key, not key, or key OP value "
+            f"(OP one of {' '.join(OPERATORS)})"
+        )
     name, op, raw, negated = m["key"], m["op"], m["value"], bool(m["neg"])
     key, k = resolve(name)
     if op is None:
@@ -199,8 +218,9 @@ def parse_term(text: str) -> Term:
             return Term(key, "=" if negated else "!=", None)
         raise SelectionError(f"{key} is not a boolean key: write {key}=VALUE or {key}<VALUE etc.")
     if negated:
-        raise SelectionError(f"cannot negate a comparison in {text.strip()!r}: '!' and 'not' go with a bare key, "
-                             "e.g. !singular")
+        raise SelectionError(
+            f"cannot negate a comparison in {text.strip()!r}: '!' and 'not' go with a bare key, e.g. !singular"
+        )
     if op not in OPERATORS:
         raise SelectionError(f"bad operator {op!r} in {text.strip()!r}: use one of {' '.join(OPERATORS)}")
     if op not in k.allowed:
@@ -259,11 +279,16 @@ def order_by(sort: str | None) -> list:
     return [(expr.desc() if descending else expr.asc()).nulls_last(), ClusterRow.id]
 
 
-def query(selection: str | None = None, sort: str | None = None, limit: int | None = None,
-          n: int | None = None) -> Select:
+def query(
+    selection: str | None = None, sort: str | None = None, limit: int | None = None, n: int | None = None
+) -> Select:
     """SELECT the clusters of a selection (and of ``n`` if given), in order."""
-    q = (select(ClusterRow).options(with_expression(ClusterRow.geometries, _geometries()))
-         .where(where(selection)).order_by(*order_by(sort)))
+    q = (
+        select(ClusterRow)
+        .options(with_expression(ClusterRow.geometries, _geometries()))
+        .where(where(selection))
+        .order_by(*order_by(sort))
+    )
     if n is not None:
         q = q.where(ClusterRow.n == n)
     return q if limit is None else q.limit(limit)
@@ -284,15 +309,32 @@ def links(s: Session, cluster_id: int) -> dict:
     """What the database holds about a cluster besides its row: the paths
     leaving it (by outcome), the paths reaching it, and the runs whose frontier
     holds it."""
-    leaving = dict(s.execute(select(Transition.outcome, func.count())
-                             .where(Transition.source_id == cluster_id, Transition.direction != 0)
-                             .group_by(Transition.outcome).order_by(Transition.outcome)).all())
-    reaching, sources = s.execute(select(func.count(), func.count(Transition.source_id.distinct()))
-                                  .where(Transition.target_id == cluster_id, Transition.direction != 0)).one()
-    runs = [{"run": r, "n": n, "run_status": rs, "expansion": es, "paths": p}
-            for r, n, rs, es, p in s.execute(
-                select(ExpansionRow.run_id, Run.n, Run.status, ExpansionRow.status, ExpansionRow.paths)
-                .join(Run, Run.id == ExpansionRow.run_id)
-                .where(ExpansionRow.cluster_id == cluster_id).order_by(ExpansionRow.run_id))]
-    return {"paths_leaving": sum(leaving.values()), "leaving_by_outcome": leaving,
-            "paths_reaching": reaching, "reached_from": sources, "runs": runs}
+    leaving = dict(
+        s.execute(
+            select(Transition.outcome, func.count())
+            .where(Transition.source_id == cluster_id, Transition.direction != 0)
+            .group_by(Transition.outcome)
+            .order_by(Transition.outcome)
+        ).all()
+    )
+    reaching, sources = s.execute(
+        select(func.count(), func.count(Transition.source_id.distinct())).where(
+            Transition.target_id == cluster_id, Transition.direction != 0
+        )
+    ).one()
+    runs = [
+        {"run": r, "n": n, "run_status": rs, "expansion": es, "paths": p}
+        for r, n, rs, es, p in s.execute(
+            select(ExpansionRow.run_id, Run.n, Run.status, ExpansionRow.status, ExpansionRow.paths)
+            .join(Run, Run.id == ExpansionRow.run_id)
+            .where(ExpansionRow.cluster_id == cluster_id)
+            .order_by(ExpansionRow.run_id)
+        )
+    ]
+    return {
+        "paths_leaving": sum(leaving.values()),
+        "leaving_by_outcome": leaving,
+        "paths_reaching": reaching,
+        "reached_from": sources,
+        "runs": runs,
+    }

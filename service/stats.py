@@ -26,8 +26,12 @@ SMALLEST = 10
 
 def _by(s: Session, n: int, *where) -> dict[int, int]:
     """Clusters of n satisfying ``where``, by number of contacts."""
-    q = (select(ClusterRow.contacts, func.count()).where(ClusterRow.n == n, *where)
-         .group_by(ClusterRow.contacts).order_by(ClusterRow.contacts))
+    q = (
+        select(ClusterRow.contacts, func.count())
+        .where(ClusterRow.n == n, *where)
+        .group_by(ClusterRow.contacts)
+        .order_by(ClusterRow.contacts)
+    )
     return {int(m): int(c) for m, c in s.execute(q)}
 
 
@@ -38,8 +42,13 @@ def _lattices(s: Session, n: int) -> dict[str, int]:
 
 def _multi_embedding(s: Session, n: int) -> dict[str, int]:
     """{number of geometries: number of contact graphs having that many}, for 2 or more."""
-    per_graph = (select(func.count().label("k")).where(ClusterRow.n == n)
-                 .group_by(ClusterRow.certificate).having(func.count() > 1).subquery())
+    per_graph = (
+        select(func.count().label("k"))
+        .where(ClusterRow.n == n)
+        .group_by(ClusterRow.certificate)
+        .having(func.count() > 1)
+        .subquery()
+    )
     q = select(per_graph.c.k, func.count()).group_by(per_graph.c.k).order_by(per_graph.c.k)
     return {str(int(k)): int(c) for k, c in s.execute(q)}
 
@@ -47,20 +56,36 @@ def _multi_embedding(s: Session, n: int) -> dict[str, int]:
 def _paths(s: Session, n: int) -> dict:
     """Counts over the transitions that start at clusters of n."""
     src = aliased(ClusterRow)
-    base = select(func.count()).select_from(Transition).join(src, src.id == Transition.source_id).where(
-        src.n == n, Transition.direction != 0)
+    base = (
+        select(func.count())
+        .select_from(Transition)
+        .join(src, src.id == Transition.source_id)
+        .where(src.n == n, Transition.direction != 0)
+    )
     followed = s.execute(base).scalar_one()
     circular = s.execute(base.where(Transition.outcome == CIRCULAR)).scalar_one()
-    reached_by_path = (select(Transition.target_id).where(Transition.direction != 0,
-                                                          Transition.target_id != Transition.source_id))
-    unreached = s.execute(select(ClusterRow.id).where(ClusterRow.n == n, ClusterRow.id.not_in(reached_by_path))
-                          .order_by(ClusterRow.id)).scalars().all()
+    reached_by_path = select(Transition.target_id).where(
+        Transition.direction != 0, Transition.target_id != Transition.source_id
+    )
+    unreached = (
+        s.execute(
+            select(ClusterRow.id)
+            .where(ClusterRow.n == n, ClusterRow.id.not_in(reached_by_path))
+            .order_by(ClusterRow.id)
+        )
+        .scalars()
+        .all()
+    )
     return {"paths": followed, "circular_paths": circular, "unreached": list(unreached)}
 
 
 def _gaps(s: Session, n: int) -> list[dict]:
-    q = (select(ClusterRow.id, ClusterRow.contacts, ClusterRow.min_gap).where(ClusterRow.n == n, ClusterRow.min_gap.is_not(None))
-         .order_by(ClusterRow.min_gap, ClusterRow.id).limit(SMALLEST))
+    q = (
+        select(ClusterRow.id, ClusterRow.contacts, ClusterRow.min_gap)
+        .where(ClusterRow.n == n, ClusterRow.min_gap.is_not(None))
+        .order_by(ClusterRow.min_gap, ClusterRow.id)
+        .limit(SMALLEST)
+    )
     return [{"id": i, "contacts": m, "min_gap": g} for i, m, g in s.execute(q)]
 
 
@@ -86,32 +111,41 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
         gaps = _gaps(s, nn)
         paths = _paths(s, nn)
         singular = _by(s, nn, ClusterRow.singular.is_(True))
-        out.append({
-            "n": nn,
-            "complete": nn not in restricted and nn not in partial,  # a full run of n is complete
-            "min_contacts": restricted.get(nn),
-            "total": total,
-            "by_contacts": {str(m): c for m, c in by_contacts.items()},
-            "hypostatic": sum(c for m, c in by_contacts.items() if m < iso),
-            "isostatic": by_contacts.get(iso, 0),
-            "hyperstatic": sum(c for m, c in by_contacts.items() if m > iso),
-            "singular": sum(singular.values()),
-            "singular_by_contacts": {str(m): c for m, c in singular.items()},
-            "close_packed": sum(lattices.values()),
-            "close_packed_by_contacts": {str(m): c for m, c in _by(
-                s, nn, ClusterRow.lattice.is_not(None), ClusterRow.lattice != NOT_CLOSE_PACKED).items()},
-            "lattice": dict(sorted(lattices.items())),
-            "unclassified": unclassified,
-            "multi_embedding": _multi_embedding(s, nn),
-            "min_gap": gaps[0]["min_gap"] if gaps else None,
-            "smallest_gaps": gaps,
-            "circular_paths": paths["circular_paths"],
-            "paths": paths["paths"],
-            "unreached": paths["unreached"],
-            "fit": None if fit is None else {"b": fit["b"], "predicted": fit["b"] * math.factorial(nn - 5)}
-            if nn >= 5 else None,
-            "paper": against_paper(nn, by_contacts, restricted.get(nn)),
-        })
+        out.append(
+            {
+                "n": nn,
+                "complete": nn not in restricted and nn not in partial,  # a full run of n is complete
+                "min_contacts": restricted.get(nn),
+                "total": total,
+                "by_contacts": {str(m): c for m, c in by_contacts.items()},
+                "hypostatic": sum(c for m, c in by_contacts.items() if m < iso),
+                "isostatic": by_contacts.get(iso, 0),
+                "hyperstatic": sum(c for m, c in by_contacts.items() if m > iso),
+                "singular": sum(singular.values()),
+                "singular_by_contacts": {str(m): c for m, c in singular.items()},
+                "close_packed": sum(lattices.values()),
+                "close_packed_by_contacts": {
+                    str(m): c
+                    for m, c in _by(
+                        s, nn, ClusterRow.lattice.is_not(None), ClusterRow.lattice != NOT_CLOSE_PACKED
+                    ).items()
+                },
+                "lattice": dict(sorted(lattices.items())),
+                "unclassified": unclassified,
+                "multi_embedding": _multi_embedding(s, nn),
+                "min_gap": gaps[0]["min_gap"] if gaps else None,
+                "smallest_gaps": gaps,
+                "circular_paths": paths["circular_paths"],
+                "paths": paths["paths"],
+                "unreached": paths["unreached"],
+                "fit": None
+                if fit is None
+                else {"b": fit["b"], "predicted": fit["b"] * math.factorial(nn - 5)}
+                if nn >= 5
+                else None,
+                "paper": against_paper(nn, by_contacts, restricted.get(nn)),
+            }
+        )
     return out
 
 
@@ -122,11 +156,15 @@ def _titled(title: str, cols: list[str], rows: list[list]) -> str:
 def format_stats(d: dict) -> str:
     """The tables of one n, as text."""
     n, iso = d["n"], 3 * d["n"] - 6
-    head = f"n = {n}: {d['total']} rigid clusters ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, " \
-           f"{d['hyperstatic']} hyperstatic)"
+    head = (
+        f"n = {n}: {d['total']} rigid clusters ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, "
+        f"{d['hyperstatic']} hyperstatic)"
+    )
     if d.get("min_contacts") is not None:
-        head = f"n = {n}: {d['total']} rigid clusters with at least {d['min_contacts']} contacts (runs restricted " \
-               f"by --min-contacts: not every cluster of n = {n}, and left out of the fit)"
+        head = (
+            f"n = {n}: {d['total']} rigid clusters with at least {d['min_contacts']} contacts (runs restricted "
+            f"by --min-contacts: not every cluster of n = {n}, and left out of the fit)"
+        )
     elif not d["complete"]:
         head = f"n = {n}: {d['total']} rigid clusters so far (partial: no full run of n = {n} is complete)"
     if d["fit"] is not None:
@@ -134,36 +172,56 @@ def format_stats(d: dict) -> str:
     paper = (d.get("paper") or {}).get("by_contacts")
     contacts = sorted({int(m) for m in d["by_contacts"]} | {int(m) for m in paper or ()})
     cols = ["contacts", "3n-6+", "clusters"] + (["paper"] if paper is not None else []) + ["singular", "close-packed"]
-    rows = [[m, f"{m - iso:+d}", d["by_contacts"].get(str(m), 0)]
-            + ([paper.get(str(m), 0)] if paper is not None else [])
-            + [d["singular_by_contacts"].get(str(m), 0), d["close_packed_by_contacts"].get(str(m), 0)]
-            for m in contacts]
-    rows.append(["total", "", d["total"]] + ([d["paper"]["total"]] if paper is not None else [])
-                + [d["singular"], d["close_packed"]])
+    rows = [
+        [m, f"{m - iso:+d}", d["by_contacts"].get(str(m), 0)]
+        + ([paper.get(str(m), 0)] if paper is not None else [])
+        + [d["singular_by_contacts"].get(str(m), 0), d["close_packed_by_contacts"].get(str(m), 0)]
+        for m in contacts
+    ]
+    rows.append(
+        ["total", "", d["total"]]
+        + ([d["paper"]["total"]] if paper is not None else [])
+        + [d["singular"], d["close_packed"]]
+    )
     parts = [head, _titled("clusters, singular clusters and close-packed fragments by number of contacts:", cols, rows)]
     said = verdict(n, d.get("paper"), d["complete"], d.get("min_contacts"))
     if said is not None:
         parts.append(said)
     if d["close_packed"]:
-        parts.append(_titled("close-packed fragments by lattice:", ["lattice", "clusters"],
-                                [[k, v] for k, v in d["lattice"].items()]))
+        parts.append(
+            _titled(
+                "close-packed fragments by lattice:", ["lattice", "clusters"], [[k, v] for k, v in d["lattice"].items()]
+            )
+        )
     else:
         parts.append("close-packed fragments: none")
     if d["unclassified"]:
         parts.append(f"{d['unclassified']} clusters are not classified yet: run `packings db backfill`")
     if d["multi_embedding"]:
-        parts.append(_titled("adjacency matrices with more than one geometry:", ["geometries", "adjacency matrices"],
-                                [[k, v] for k, v in d["multi_embedding"].items()]))
+        parts.append(
+            _titled(
+                "adjacency matrices with more than one geometry:",
+                ["geometries", "adjacency matrices"],
+                [[k, v] for k, v in d["multi_embedding"].items()],
+            )
+        )
     else:
         parts.append("adjacency matrices with more than one geometry: none")
     if d["smallest_gaps"]:
         parts.append(f"smallest gap: {d['min_gap']:.6g}")
-        parts.append(_titled(f"the {len(d['smallest_gaps'])} smallest gaps:", ["cluster", "contacts", "gap"],
-                                [[g["id"], g["contacts"], f"{g['min_gap']:.6g}"] for g in d["smallest_gaps"]]))
+        parts.append(
+            _titled(
+                f"the {len(d['smallest_gaps'])} smallest gaps:",
+                ["cluster", "contacts", "gap"],
+                [[g["id"], g["contacts"], f"{g['min_gap']:.6g}"] for g in d["smallest_gaps"]],
+            )
+        )
     unreached = d["unreached"]
     shown = ", ".join(map(str, unreached[:10])) + (", ..." if len(unreached) > 10 else "")
-    parts.append(f"paths followed: {d['paths']}; circular paths: {d['circular_paths']}; "
-                 f"clusters no path reaches: {len(unreached)}" + (f" (ids {shown})" if unreached else ""))
+    parts.append(
+        f"paths followed: {d['paths']}; circular paths: {d['circular_paths']}; "
+        f"clusters no path reaches: {len(unreached)}" + (f" (ids {shown})" if unreached else "")
+    )
     return "\n".join(parts)
 
 
@@ -178,6 +236,7 @@ def format_fit(fit: dict | None) -> str:
     """One line on the fit of the totals to b·(n−5)!."""
     if fit is None:
         return "fit of the totals to b·(n−5)!: no n to fit"
-    return (f"fit of the totals to b·(n−5)!: b = {fit['b']:.3f} over {fit['points']} values of n "
-            f"(rms log residual {fit['rms_log_residual']:.3f}; the paper's totals give about 2.5)")
-
+    return (
+        f"fit of the totals to b·(n−5)!: b = {fit['b']:.3f} over {fit['points']} values of n "
+        f"(rms log residual {fit['rms_log_residual']:.3f}; the paper's totals give about 2.5)"
+    )

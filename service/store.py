@@ -37,7 +37,6 @@ from sqlalchemy import Connection, bindparam, case, func, insert, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from packings.service.db import READONLY, insert_many, transaction_locks
-from packings.service.owners import busy, coordinator_alive
 from packings.service.models import (
     COMPLETE,
     DONE,
@@ -56,6 +55,7 @@ from packings.service.models import (
     remember_core_cluster,
     utcnow,
 )
+from packings.service.owners import busy, coordinator_alive
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.identity import alignment, certificate_key, embedding_position, find_match
@@ -101,27 +101,51 @@ _contacts_json = functools.lru_cache(maxsize=65536)(_format_contacts)
 # The statements a task runs for every expansion, built once: building one costs about as much as
 # running it on SQLite.  Core statements on the tables, so that no ORM object is made per row.
 _E, _C, _R, _T = ExpansionRow.__table__, ClusterRow.__table__, Run.__table__, Transition.__table__
-_TASKS = (select(_E.c.id, _E.c.status, _E.c.lease_token, _E.c.run_id, _E.c.cluster_id, _C.c.n, _C.c.coords,
-                 _C.c.contact_list, _R.c.params)
-          .join_from(_E, _C, _C.c.id == _E.c.cluster_id).join(_R, _R.c.id == _E.c.run_id)
-          .where(_E.c.id.in_(bindparam("eids", expanding=True))))
-_STORED = (select(_C.c.id, _C.c.certificate, _C.c.embedding, _C.c.coords, _C.c.contact_list, _C.c.found_in_run)
-           .where(_C.c.n == bindparam("n"), _C.c.certificate.in_(bindparam("certs", expanding=True)))
-           .order_by(_C.c.certificate, _C.c.embedding))
+_TASKS = (
+    select(
+        _E.c.id,
+        _E.c.status,
+        _E.c.lease_token,
+        _E.c.run_id,
+        _E.c.cluster_id,
+        _C.c.n,
+        _C.c.coords,
+        _C.c.contact_list,
+        _R.c.params,
+    )
+    .join_from(_E, _C, _C.c.id == _E.c.cluster_id)
+    .join(_R, _R.c.id == _E.c.run_id)
+    .where(_E.c.id.in_(bindparam("eids", expanding=True)))
+)
+_STORED = (
+    select(_C.c.id, _C.c.certificate, _C.c.embedding, _C.c.coords, _C.c.contact_list, _C.c.found_in_run)
+    .where(_C.c.n == bindparam("n"), _C.c.certificate.in_(bindparam("certs", expanding=True)))
+    .order_by(_C.c.certificate, _C.c.embedding)
+)
 _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
-    _E.c.run_id == bindparam("run"), _E.c.cluster_id.in_(bindparam("ids", expanding=True)))
+    _E.c.run_id == bindparam("run"), _E.c.cluster_id.in_(bindparam("ids", expanding=True))
+)
 _INSERT_CLUSTER = insert(_C)
 _RENUMBER = update(_C).where(_C.c.id == bindparam("cid")).values(embedding=bindparam("new_embedding"))
 _INSERT_EXPANSION = insert(_E)
 #: a transition's values, in this order (as tuples: see :func:`insert_transitions`)
-TRANSITION_COLUMNS = ("run_id", "source_id", "broken", "direction", "outcome", "target_id", "steps", "new_contacts",
-                      "target_labels")
+TRANSITION_COLUMNS = (
+    "run_id",
+    "source_id",
+    "broken",
+    "direction",
+    "outcome",
+    "target_id",
+    "steps",
+    "new_contacts",
+    "target_labels",
+)
 #: the paths that arrived at these clusters and can be retraced from them (transitions.target_labels), of
 #: every run: a condition on run_id would let SQLite search the unique index (run_id, ...), every
 #: transition of the run, instead of ix_transitions_target; the caller keeps its run's
-_ARRIVALS = (select(_T.c.run_id, _T.c.target_id, _T.c.source_id, _T.c.broken, _T.c.new_contacts, _T.c.steps,
-                    _T.c.target_labels)
-             .where(_T.c.target_id.in_(bindparam("cids", expanding=True)), _T.c.target_labels.is_not(None)))
+_ARRIVALS = select(
+    _T.c.run_id, _T.c.target_id, _T.c.source_id, _T.c.broken, _T.c.new_contacts, _T.c.steps, _T.c.target_labels
+).where(_T.c.target_id.in_(bindparam("cids", expanding=True)), _T.c.target_labels.is_not(None))
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -190,13 +214,23 @@ def stored_by_key(session: Session | Connection, keys) -> dict[tuple[int, str], 
     by_n: dict[int, set[str]] = {}
     for n, cert in keys:
         by_n.setdefault(n, set()).add(cert)
-    return {(n, cert): rows for n, certs in sorted(by_n.items())
-            for cert, rows in stored_with(session, n, certs).items()}
+    return {
+        (n, cert): rows for n, certs in sorted(by_n.items()) for cert, rows in stored_with(session, n, certs).items()
+    }
 
 
-def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity, run_id: int | None, tol_d: float,
-                    rows: list[Stored] | None = None, *, found_by: str, source_id: int | None,
-                    values: dict | None = None) -> tuple[int, bool]:
+def insert_or_match(
+    session: Session | Connection,
+    c: CoreCluster,
+    rig: Rigidity,
+    run_id: int | None,
+    tol_d: float,
+    rows: list[Stored] | None = None,
+    *,
+    found_by: str,
+    source_id: int | None,
+    values: dict | None = None,
+) -> tuple[int, bool]:
     """The id of the stored cluster equal to ``c`` (same certificate, same
     geometry within ``tol_d``), inserting it if there is none.  The caller
     holds the certificate's lock (:func:`lock_certificates`).  ``rows`` are the
@@ -222,9 +256,10 @@ def insert_or_match(session: Session | Connection, c: CoreCluster, rig: Rigidity
         session.execute(_RENUMBER, {"cid": r.id, "new_embedding": r.embedding})
     if values is None:
         values = cluster_values(c, rig)
-    result = session.execute(_INSERT_CLUSTER, {
-        **values, "embedding": embedding, "found_in_run": run_id,
-        "found_by": found_by, "source_id": source_id})
+    result = session.execute(
+        _INSERT_CLUSTER,
+        {**values, "embedding": embedding, "found_in_run": run_id, "found_by": found_by, "source_id": source_id},
+    )
     cid = int(result.inserted_primary_key[0])
     remember_core_cluster(c.n, values["coords"], values["contact_list"], c)  # read back as c, labelled already
     rows[embedding:] = [Stored(cid, embedding, c, run_id), *moved]
@@ -333,9 +368,14 @@ def _back_to_pending(retry: bool) -> dict:
     """The values that put a leased expansion back to pending, the attempt its lease took given back
     (its coordinator or its worker, not it, stopped); with ``retry``, counted as an infrastructure
     retry (``expansions.retries``)."""
-    return dict(status=PENDING, lease_owner=None, lease_token=None, leased_at=None,
-                attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
-                retries=ExpansionRow.retries + int(retry))
+    return dict(
+        status=PENDING,
+        lease_owner=None,
+        lease_token=None,
+        leased_at=None,
+        attempts=case((ExpansionRow.attempts > 0, ExpansionRow.attempts - 1), else_=0),
+        retries=ExpansionRow.retries + int(retry),
+    )
 
 
 def _unlease(s: Session, run_id: int, *where, retry: bool = False) -> int:
@@ -384,8 +424,9 @@ def claim(Session_: sessionmaker, run_id: int, owner: str, k: int) -> list[tuple
         return out
 
 
-def release(Session_: sessionmaker, expansion_id: int, token: str, error: str, max_attempts: int,
-            isolated: bool = False) -> str | None:
+def release(
+    Session_: sessionmaker, expansion_id: int, token: str, error: str, max_attempts: int, isolated: bool = False
+) -> str | None:
     """A task failed, and this counts against the expansion: back to pending, or ``failed`` after
     ``max_attempts``.  ``isolated``: its task ran it alone, after an infrastructure fault, and was
     lost again (counted in ``isolated_failures`` too).
@@ -413,11 +454,14 @@ def put_back(Session_: sessionmaker, leases: list[tuple[int, str]], error: str) 
     if not leases:
         return 0
     with Session_.begin() as s:
-        return sum(s.execute(
-            update(ExpansionRow)
-            .where(ExpansionRow.id == eid, ExpansionRow.status == LEASED, ExpansionRow.lease_token == token)
-            .values(**_back_to_pending(retry=True), error=error[-16000:])
-        ).rowcount for eid, token in leases)
+        return sum(
+            s.execute(
+                update(ExpansionRow)
+                .where(ExpansionRow.id == eid, ExpansionRow.status == LEASED, ExpansionRow.lease_token == token)
+                .values(**_back_to_pending(retry=True), error=error[-16000:])
+            ).rowcount
+            for eid, token in leases
+        )
 
 
 def frontier(s: Session, run_id: int) -> dict[str, int]:
@@ -430,8 +474,10 @@ def frontier(s: Session, run_id: int) -> dict[str, int]:
 def faults(s: Session, run_id: int) -> dict[str, int]:
     """The run's infrastructure retries (expansions put back, uncounted) and isolated failures."""
     retries, isolated = s.execute(
-        select(func.coalesce(func.sum(ExpansionRow.retries), 0), func.coalesce(func.sum(ExpansionRow.isolated_failures), 0))
-        .where(ExpansionRow.run_id == run_id)).one()
+        select(
+            func.coalesce(func.sum(ExpansionRow.retries), 0), func.coalesce(func.sum(ExpansionRow.isolated_failures), 0)
+        ).where(ExpansionRow.run_id == run_id)
+    ).one()
     return {"retries": int(retries), "isolated_failures": int(isolated)}
 
 
@@ -464,19 +510,32 @@ def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
     if not tokens:
         return {}
     with Session_() as s:
-        rows = [row for row in s.execute(_TASKS, {"eids": sorted(tokens)}).all()
-                if row.status == LEASED and row.lease_token == tokens[row.id]]
+        rows = [
+            row
+            for row in s.execute(_TASKS, {"eids": sorted(tokens)}).all()
+            if row.status == LEASED and row.lease_token == tokens[row.id]
+        ]
         came: dict[tuple[int, int], list[tuple]] = {}
         wanted = {(row.run_id, row.cluster_id) for row in rows}
         if wanted:
             for run_id, target, source, broken, new, steps, labels in s.execute(
-                    _ARRIVALS, {"cids": sorted({cid for _, cid in wanted})}):
+                _ARRIVALS, {"cids": sorted({cid for _, cid in wanted})}
+            ):
                 if (run_id, target) in wanted:
                     came.setdefault((run_id, target), []).append(
-                        (source, json.loads(broken), json.loads(new), steps, json.loads(labels)))
-    return {row.id: Task(row.id, row.run_id, row.cluster_id, core_cluster(row.n, row.coords, row.contact_list),
-                         _params(row.params), tuple(came.get((row.run_id, row.cluster_id), ())))
-            for row in rows}
+                        (source, json.loads(broken), json.loads(new), steps, json.loads(labels))
+                    )
+    return {
+        row.id: Task(
+            row.id,
+            row.run_id,
+            row.cluster_id,
+            core_cluster(row.n, row.coords, row.contact_list),
+            _params(row.params),
+            tuple(came.get((row.run_id, row.cluster_id), ())),
+        )
+        for row in rows
+    }
 
 
 @functools.lru_cache(maxsize=64)
@@ -491,8 +550,9 @@ def distinct_endpoints(ex: CoreExpansion) -> tuple[list[tuple[CoreCluster, Rigid
     endpoint's index which of them it is."""
     first = ex.distinct()
     position = {i: k for k, i in enumerate(first)}
-    distinct = [(ex.endpoints[i].cluster, ex.endpoints[i].rigidity, certificate_key(ex.endpoints[i].cluster))
-                for i in first]
+    distinct = [
+        (ex.endpoints[i].cluster, ex.endpoints[i].rigidity, certificate_key(ex.endpoints[i].cluster)) for i in first
+    ]
     which = {i: position[j] for i, j in enumerate(ex.same_as) if j is not None}
     return distinct, which
 
@@ -564,10 +624,22 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         # of it is seen by others before the commit, and all of it is rolled back if anything below fails.
         live = []
         for k, (f, distinct, which, outcomes) in enumerate(prepared):
-            done = s.execute(_DONE, {
-                "eid": f.task.expansion_id, "token": f.token, "status": DONE, "finished_at": utcnow(),
-                "lease_owner": None, "lease_token": None, "outcomes": outcomes,
-                "paths": f.expansion.paths_followed, "seconds": f.seconds, "worker": worker, "error": None})
+            done = s.execute(
+                _DONE,
+                {
+                    "eid": f.task.expansion_id,
+                    "token": f.token,
+                    "status": DONE,
+                    "finished_at": utcnow(),
+                    "lease_owner": None,
+                    "lease_token": None,
+                    "outcomes": outcomes,
+                    "paths": f.expansion.paths_followed,
+                    "seconds": f.seconds,
+                    "worker": worker,
+                    "error": None,
+                },
+            )
             if done.rowcount == 1:
                 live.append((k, f, distinct, which))
         if not live:
@@ -584,8 +656,17 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ids, new_clusters = [], 0
             for j, (c, rig, cert) in enumerate(distinct):
                 rows = stored[(c.n, cert)]
-                cid, is_new = insert_or_match(s, c, rig, task.run_id, task.params.tol_d, rows,
-                                              found_by=FOUND_PATH, source_id=task.cluster_id, values=values.get((k, j)))
+                cid, is_new = insert_or_match(
+                    s,
+                    c,
+                    rig,
+                    task.run_id,
+                    task.params.tol_d,
+                    rows,
+                    found_by=FOUND_PATH,
+                    source_id=task.cluster_id,
+                    values=values.get((k, j)),
+                )
                 ids.append(cid)
                 if is_new:
                     by_id[cid] = c  # the stored row's core cluster (insert_or_match)
@@ -598,16 +679,21 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
             labels = _target_labels(ex, targets, by_id, task.params.tol_d)
             transitions.append(_transition_rows(task, ex, targets, labels))
-            summaries[k] = {"expansion": task.expansion_id, "new_clusters": new_clusters,
-                            "paths": ex.paths_followed, "seconds": f.seconds}
+            summaries[k] = {
+                "expansion": task.expansion_id,
+                "new_clusters": new_clusters,
+                "paths": ex.paths_followed,
+                "seconds": f.seconds,
+            }
         for run_id in sorted(inserted.keys() | others.keys()):
             ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
         insert_transitions(s, chain.from_iterable(transitions))
     return summaries
 
 
-def _target_labels(ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, CoreCluster],
-                   tol_d: float) -> dict[int, str]:
+def _target_labels(
+    ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, CoreCluster], tol_d: float
+) -> dict[int, str]:
     """transitions.target_labels of the attempts of ``ex`` that a path of their target may retrace
     (:meth:`packings.workers.expand.Expansion.retraceable`): each endpoint relabelled onto its target as
     stored (``by_id``: the core clusters of the rows the write-back matched or inserted), as JSON; and of
@@ -623,12 +709,20 @@ def _target_labels(ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, 
     return out
 
 
-def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int],
-                     labels: dict[int, str]) -> Iterator[tuple]:
+def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int], labels: dict[int, str]) -> Iterator[tuple]:
     """The transitions of ``ex``, one row (:data:`TRANSITION_COLUMNS`) per attempt, made as they are inserted."""
     for i, e in enumerate(ex.endpoints):
-        yield (task.run_id, task.cluster_id, contacts_json(e.broken), e.direction, e.outcome, targets.get(i),
-               e.steps, contacts_json(e.new_contacts), labels.get(i))
+        yield (
+            task.run_id,
+            task.cluster_id,
+            contacts_json(e.broken),
+            e.direction,
+            e.outcome,
+            targets.get(i),
+            e.steps,
+            contacts_json(e.new_contacts),
+            labels.get(i),
+        )
 
 
 def insert_transitions(conn: Connection, rows: Iterable[tuple]) -> None:
@@ -690,7 +784,9 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
     total: Counter = Counter()
     paths = 0
     for outcomes, p in s.execute(
-        select(ExpansionRow.outcomes, ExpansionRow.paths).where(ExpansionRow.run_id == run_id, ExpansionRow.status == DONE)
+        select(ExpansionRow.outcomes, ExpansionRow.paths).where(
+            ExpansionRow.run_id == run_id, ExpansionRow.status == DONE
+        )
     ):
         total.update(json.loads(outcomes))
         paths += p or 0

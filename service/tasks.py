@@ -40,8 +40,11 @@ def run_expansion(Session_, expansion_id: int, token: str, worker: str = "", Rea
     ones: the lease is checked again when the result is written).
     """
     task = store.load_task(Reader or Session_, expansion_id, token)
-    summary = None if task is None else store.record_expansions(
-        Session_, [run_loaded(task, token)], worker or process_name())[0]
+    summary = (
+        None
+        if task is None
+        else store.record_expansions(Session_, [run_loaded(task, token)], worker or process_name())[0]
+    )
     return summary if summary is not None else stale(expansion_id)
 
 

@@ -14,16 +14,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def benchmark(*args: str) -> dict:
-    r = subprocess.run([sys.executable, "-m", "benchmarks", *args, "--json"], cwd=ROOT, capture_output=True,
-                       text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", *args, "--json"], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
 
 
 def enumerate_into(url: str, n: int, *args: str) -> subprocess.CompletedProcess:
     """``packings enumerate n`` into the database ``url`` on one worker, which must succeed."""
-    r = subprocess.run([sys.executable, "-m", "packings.service.cli", "enumerate", str(n), *args, "--db", url, "--workers", "1"],
-                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", "enumerate", str(n), *args, "--db", url, "--workers", "1"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     return r
 
@@ -45,7 +51,9 @@ def test_the_paths_benchmark_compares_the_backends_on_the_same_paths():
     assert report["first_call_seconds"] > 0.0
     assert [r["n"] for r in report["rows"]] == [10, 12, 14]
     for r in report["rows"]:
-        assert r["paths"] > 0 and r["same_outcome"] == r["paths"] and 0.0 < r["median_ms_compiled"] < r["median_ms_numpy"]
+        assert (
+            r["paths"] > 0 and r["same_outcome"] == r["paths"] and 0.0 < r["median_ms_compiled"] < r["median_ms_numpy"]
+        )
 
 
 def test_the_soak_benchmark_reports_faults_against_an_undisturbed_run():
@@ -86,8 +94,9 @@ def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
 def test_the_classes_benchmark_expands_as_a_restricted_run_does():
     """--max-break and --min-contacts expand as `enumerate --max-break K --min-contacts M` would: n = 9's singular
     cluster, whose 21 contacts get pairs too in a full run, gets its 21 single breaks only."""
-    report = benchmark("classes", "--n", "9", "--sample", "1", "--no-numpy", "--no-every", "--max-break", "1",
-                       "--min-contacts", "21")
+    report = benchmark(
+        "classes", "--n", "9", "--sample", "1", "--no-numpy", "--no-every", "--max-break", "1", "--min-contacts", "21"
+    )
     assert report["max_break"] == 1 and report["min_contacts"] == 21
     rows = {r["class"]: r for r in report["rows"]}
     assert rows["singular"]["subsets_min"] == rows["singular"]["subsets_max"] == 21
@@ -110,7 +119,9 @@ def test_the_classes_benchmark_times_following_the_paths_of_held_subsets_too(tmp
     url = f"sqlite:///{tmp_path / 'c.db'}"
     restricted = ("--min-contacts", "29", "--max-break", "3")
     enumerate_into(url, 11, *restricted, "--quiet")
-    [row] = benchmark("classes", "--n", "11", "--db", url, *restricted, "--sample", "1", "--no-numpy", "--no-every")["rows"]
+    [row] = benchmark("classes", "--n", "11", "--db", url, *restricted, "--sample", "1", "--no-numpy", "--no-every")[
+        "rows"
+    ]
     assert row["class"] == "hyperstatic" and row["held"] > 100
     assert row["mean_ms_unheld"] > 0 and row["unheld_ratio"] > 0 and row["unheld_clusters_differing"] == 0
 
@@ -148,13 +159,23 @@ def test_the_classes_benchmark_times_the_kernels_of_another_file_against_the_cur
     other = benchmark("classes", "--n", "8", "--sample", "2", "--no-numpy", "--against", str(shim))
     [row] = other["rows"]
     assert row["attempts"] == 2 * 18 and row["against_attempts_differing"] > 0
-    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(tmp_path / "none.py")],
-                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(tmp_path / "none.py")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "no such file" in r.stderr
     broken = tmp_path / "broken.py"
     broken.write_text("def follow_steps(:\n")
-    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(broken)],
-                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "classes", "--n", "8", "--against", str(broken)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and r.stderr.strip().startswith("--against: cannot load") and "Traceback" not in r.stderr
 
 
@@ -196,10 +217,18 @@ def test_the_floors_of_the_non_regular_share():
     from benchmarks.classes import floors
 
     def row(name, seconds, stressed, probes):
-        return {"class": name, "run_s": seconds, "parts": {"stressed": {"share": stressed}, "probes": {"share": probes}}}
+        return {
+            "class": name,
+            "run_s": seconds,
+            "parts": {"stressed": {"share": stressed}, "probes": {"share": probes}},
+        }
 
-    rows = [row("regular", 60.0, 0.0, 0.0), row("singular", 20.0, 0.5, 0.25), row("hypostatic", 10.0, 0.5, 0.3),
-            row("hyperstatic", 30.0, 0.2, 0.1)]
+    rows = [
+        row("regular", 60.0, 0.0, 0.0),
+        row("singular", 20.0, 0.5, 0.25),
+        row("hypostatic", 10.0, 0.5, 0.3),
+        row("hyperstatic", 30.0, 0.2, 0.1),
+    ]
     f = floors(rows, "run_s")
     assert f["share"] == 60.0 / 120.0
     left = 20.0 * 0.25 + 10.0 * 0.2 + 30.0 * 0.7  # 28
@@ -211,14 +240,18 @@ def test_the_parts_of_expand_are_timed_by_wrappers_that_are_put_back():
     """Under the wrappers of --parts expand gives the same attempts, to the last bit, as without them; the paths'
     parts add up to no more than the paths; and the functions wrapped are the package's again afterwards."""
     from benchmarks.classes import _attempt_keys, _instrumented, _parts
-    from packings.workers import expand, paths
-    from packings.workers import dimension
+    from packings.workers import dimension, expand, paths
     from packings.workers.params import Params
     from packings.workers.seeds import seed_cluster
 
     def wrapped():
-        return expand.PathStart.follow, paths._endpoint, paths._svd_tangent, paths._compiled.follow_steps, \
-            dimension._probe
+        return (
+            expand.PathStart.follow,
+            paths._endpoint,
+            paths._svd_tangent,
+            paths._compiled.follow_steps,
+            dimension._probe,
+        )
 
     params = Params()
     before = wrapped()
@@ -292,10 +325,16 @@ def test_the_classes_benchmark_reads_a_stored_catalogue(tmp_path):
     enumerate_into(url, 8, "--quiet")
     report = benchmark("classes", "--n", "8", "--db", url, "--sample", "2", "--no-numpy")
     assert report["source"] == url and [(r["class"], r["clusters"], r["sampled"]) for r in report["rows"]] == [
-        ("regular", 13, 2)]
+        ("regular", 13, 2)
+    ]
     assert "mean_ms_numpy" not in report["rows"][0] and report["rows"][0]["share_numba"] == 1.0
-    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "no clusters of n = 9" in r.stderr
 
 
@@ -305,7 +344,10 @@ def test_the_memory_benchmark_reports_what_one_expansion_holds():
     assert row["n"] == 10 and row["contacts"] == 24 and row["attempts"] == 24
     # a close-packed fragment has symmetries: most of its paths are images of the few followed
     assert row["paths_by_symmetry"] > row["paths"] > 0
-    assert row["rigid_endpoints"] >= row["distinct"] > 0 and row["paths"] + row["paths_by_symmetry"] >= row["rigid_endpoints"]
+    assert (
+        row["rigid_endpoints"] >= row["distinct"] > 0
+        and row["paths"] + row["paths_by_symmetry"] >= row["rigid_endpoints"]
+    )
     assert 0 < row["retained_mib"] <= row["traced_peak_mib"] and row["retained_bytes_per_attempt"] > 0
     assert row["max_rss_mib_after"] >= row["max_rss_mib_before"] > 0
 
@@ -348,14 +390,21 @@ def test_the_classes_benchmark_gives_each_cluster_the_paths_that_had_arrived_whe
     row, singular = report["rows"]
     assert report["arrivals"] == "run" and report["run"] == run["run"]
     assert (row["class"], row["sampled"], row["run_expanded"], singular["class"], singular["run_expanded"]) == (
-        "regular", 51, 51, "singular", 1)
+        "regular",
+        51,
+        51,
+        "singular",
+        1,
+    )
     assert row["paths_retraced_each"] == row["run_paths_retraced_each"] == took / 51
     assert singular["paths_retraced_each"] == singular["run_paths_retraced_each"] == 0
     assert row["run_s"] > 0 and row["run_share"] + singular["run_share"] == pytest.approx(1.0)
-    none = benchmark("classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every",
-                     "--arrivals", "none")["rows"][0]
-    last = benchmark("classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every",
-                     "--arrivals", "all")["rows"][0]
+    none = benchmark(
+        "classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every", "--arrivals", "none"
+    )["rows"][0]
+    last = benchmark(
+        "classes", "--n", "9", "--db", url, "--sample", "60", "--no-numpy", "--no-every", "--arrivals", "all"
+    )["rows"][0]
     assert none["paths_retraced_each"] == 0 < row["paths_retraced_each"] < last["paths_retraced_each"]
 
 
@@ -368,15 +417,25 @@ def test_the_classes_benchmark_reads_when_each_task_read_its_clusters():
 
     t = dt.datetime(2026, 1, 1)
     ms = dt.timedelta(milliseconds=1)
-    rows = [(1, "a", t + 1000 * ms, 0.5), (2, "a", t + 1001 * ms, 0.25), (3, "b", t + 1001 * ms, 0.1),
-            (4, "a", t + 1400 * ms, 0.1), (5, "a", None, None)]
+    rows = [
+        (1, "a", t + 1000 * ms, 0.5),
+        (2, "a", t + 1001 * ms, 0.25),
+        (3, "b", t + 1001 * ms, 0.1),
+        (4, "a", t + 1400 * ms, 0.1),
+        (5, "a", None, None),
+    ]
     assert _loaded(rows) == {1: t + 250 * ms, 2: t + 250 * ms, 3: t + 901 * ms, 4: t + 1300 * ms}
 
 
 def test_the_classes_benchmark_refuses_arrivals_without_a_run_of_the_same_parameters(run_of_9):
     url, _ = run_of_9
-    r = subprocess.run([sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url, "--max-break", "1"],
-                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--db", url, "--max-break", "1"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "no complete run of n = 9 with --max-break 1" in r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
 
@@ -386,8 +445,9 @@ def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both
     report = benchmark("retrace", "--n", "9", "--db", url)
     assert report["paths_followed"] == diagnostics["paths_followed"]
     assert report["paths_retraced"] == diagnostics["paths_retraced"] > 0
-    assert report["attempts_with_direction"] == (diagnostics["paths_followed"] + diagnostics["paths_by_symmetry"]
-                                                 + diagnostics["paths_retraced"])
+    assert report["attempts_with_direction"] == (
+        diagnostics["paths_followed"] + diagnostics["paths_by_symmetry"] + diagnostics["paths_retraced"]
+    )
     # the run took from the other end most of the paths it could: not where the path back's cluster was
     # expanded before the path arrived, and a symmetry's images count as paths_by_symmetry instead
     assert report["retracing"] >= report["paths_retraced"] >= 0.5 * report["retracing"]
@@ -396,8 +456,13 @@ def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both
     assert report["rule_fails"] == report["no_reverse"] == 0
     # one path of each pair is counted: at most half of the attempts between the clusters counted
     assert 0 < 2 * report["retracing"] <= report["retraceable"] <= report["attempts_with_direction"]
-    r = subprocess.run([sys.executable, "-m", "benchmarks", "retrace", "--n", "10", "--db", url], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "retrace", "--n", "10", "--db", url],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "no complete run of n = 10" in r.stderr
 
 
@@ -412,6 +477,11 @@ def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
     assert 0 < row["record_mib"] <= row["traced_peak_mib"]
     assert row["stored"] <= row["record_clusters"] <= row["stored"] + row["decided"]
     assert 0 < row["record_bytes_per_cluster"] < 288
-    r = subprocess.run([sys.executable, "-m", "benchmarks", "memory", "--glued", "--n", "9"], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "memory", "--glued", "--n", "9"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and "--glued needs --db" in r.stderr

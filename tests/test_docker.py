@@ -223,11 +223,15 @@ def _compose_client() -> list[str] | None:
 def test_docker_compose_config_accepts_the_file():
     client = _compose_client()
     if client is None:
-        reason = ("the docker client is missing" if shutil.which("docker") is None
-                  else "the docker client has no compose plugin")
+        reason = (
+            "the docker client is missing"
+            if shutil.which("docker") is None
+            else "the docker client has no compose plugin"
+        )
         pytest.skip(f"{reason}; cannot run `docker compose config` (needs no engine, but needs Compose v2)")
-    r = subprocess.run([*client, "-f", str(COMPOSE), "config", "-q"], capture_output=True, text=True, timeout=60,
-                       cwd=ROOT)
+    r = subprocess.run(
+        [*client, "-f", str(COMPOSE), "config", "-q"], capture_output=True, text=True, timeout=60, cwd=ROOT
+    )
     # stderr too: a wrapper script may lose compose's exit status, and a warning is worth fixing
     assert r.returncode == 0 and not r.stderr.strip(), r.stderr
 
@@ -247,5 +251,3 @@ def test_every_copied_path_exists_and_is_not_ignored():
             assert (ROOT / src).exists(), f"{word} {src}: no such path in the repository"
             if src != ".":
                 assert not ignored(src, patterns), f"{word} {src}: excluded by .dockerignore"
-
-

@@ -52,7 +52,13 @@ def graph() -> dict[str, set[str]]:
 
 def test_the_package_has_the_modules_it_should():
     g = graph()
-    assert {"packings", "packings.service.api", "packings.service.cli", "packings.workers", "packings.workers.paths"} <= set(g)
+    assert {
+        "packings",
+        "packings.service.api",
+        "packings.service.cli",
+        "packings.workers",
+        "packings.workers.paths",
+    } <= set(g)
     assert (PACKAGE / "migrations" / "env.py").is_file()
 
 
@@ -90,8 +96,9 @@ def test_the_numerics_import_nothing_of_the_service():
             top = name.split(".")[0]
             assert top not in SERVICE_ONLY, f"{module_name(path)} imports {name}"
             if top == "packings":
-                assert name == "packings.workers" or name.startswith("packings.workers."), \
+                assert name == "packings.workers" or name.startswith("packings.workers."), (
                     f"{module_name(path)} imports {name}"
+                )
 
 
 def test_the_import_graph_has_no_loop():
@@ -106,7 +113,7 @@ def test_the_import_graph_has_no_loop():
         stack.append(m)
         for d in sorted(g[m]):
             if state.get(d) == 1:
-                loop = stack[stack.index(d):] + [d]
+                loop = stack[stack.index(d) :] + [d]
                 raise AssertionError("import loop: " + " -> ".join(loop))
             if d not in state:
                 visit(d)

@@ -166,7 +166,12 @@ def _gram(D, mask, ptr, idx, sign, scale, G):
             k = idx[p]
             for q in range(p, ptr[s + 1]):
                 l = idx[q]
-                v = sign[p] * sign[q] * scale * (m0 * D[k, 0] * D[l, 0] + m1 * D[k, 1] * D[l, 1] + m2 * D[k, 2] * D[l, 2])
+                v = (
+                    sign[p]
+                    * sign[q]
+                    * scale
+                    * (m0 * D[k, 0] * D[l, 0] + m1 * D[k, 1] * D[l, 1] + m2 * D[k, 2] * D[l, 2])
+                )
                 G[k, l] += v
                 if l != k:
                     G[l, k] += v
@@ -892,11 +897,14 @@ def _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard
     iteration.  Returns (x, status, iterations, sum f^2, normal-equation steps,
     retried).  ``order`` as in _newton_step.
     """
-    x, st, it, fsq, nn = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall, order)
+    x, st, it, fsq, nn = _newton_core(
+        x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, stall, order
+    )
     if st == NEWTON_OK or nn == 0:
         return x, st, it, fsq, nn, False
-    x, st, it, fsq, nn2 = _newton_core(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, NO_NORMAL, ws,
-                                       stall, order)
+    x, st, it, fsq, nn2 = _newton_core(
+        x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, NO_NORMAL, ws, stall, order
+    )
     return x, st, it, fsq, nn + nn2, True
 
 
@@ -910,7 +918,9 @@ def newton(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, st
     least squares).
     """
     ws = _workspace(x0.size, edges, A.shape[0])
-    return _newton_ws(x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, np.zeros(1, np.int64), stall)
+    return _newton_ws(
+        x0, edges, free, mask, A, b, tol, dx_max, max_iter, polish, guard, ws, np.zeros(1, np.int64), stall
+    )
 
 
 @numba.njit(**_JIT)
@@ -1096,8 +1106,9 @@ def follow_steps(
     while steps < max_steps:
         for c in range(n3):
             xp[c] = x[c] + h * t[c]
-        xn, st, _, _, nn, retried = _newton_ws(xp, edges, free, mask, noA, nob, tol, dx_max, max_iter, False, guard, ws,
-                                               order)
+        xn, st, _, _, nn, retried = _newton_ws(
+            xp, edges, free, mask, noA, nob, tol, dx_max, max_iter, False, guard, ws, order
+        )
         stats[1] += 1
         stats[2] += nn
         if retried:
@@ -1216,8 +1227,9 @@ def close_at_hit(x, keep, pairs, hit, free, mask, upper, tol, dx_max, max_iter, 
             cons[r, 0] = pairs[p, 0]
             cons[r, 1] = pairs[p, 1]
             r += 1
-    xn, st, _, fsq, _, _ = newton(x, cons, free, mask, np.zeros((0, n3)), np.zeros(0), tol, dx_max, max_iter, True,
-                                  guard)
+    xn, st, _, fsq, _, _ = newton(
+        x, cons, free, mask, np.zeros((0, n3)), np.zeros(0), tol, dx_max, max_iter, True, guard
+    )
     d = pair_distances_flat(xn, upper)
     if st != NEWTON_OK or not _max_move(xn, x) <= tol_a0:
         return (CH_REJECTED if e == 1 else CH_PYTHON), xn, d

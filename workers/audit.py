@@ -29,6 +29,7 @@ NOT_RIGID = "not-rigid"  #: projected, no overlap, but the rigidity test fails (
 DOES_NOT_PROJECT = "does-not-project"  #: Newton's method found no point with every contact and the pairs
 OVERLAP = "overlap"  #: projected, but two spheres then overlap by more than tol_a
 
+
 @dataclass(frozen=True)
 class NearPair:
     """A pair of spheres that do not touch (distance >= 1 + tol_a) but are within tol_a0 of touching."""
@@ -89,8 +90,9 @@ def with_contacts_added(cluster: Cluster, pairs, params: Params) -> Added:
         raise ValueError("cluster has no triangle of contacts to pin")
     free = kernels.free_coordinates(cluster.n, tri)
     x = kernels.to_frame(cluster.coords, tri).ravel()
-    closed = close_pairs(x, cluster.edges(), np.array(pairs, dtype=np.int64).reshape(-1, 2), free,
-                         params.with_(tol_a0=np.inf))
+    closed = close_pairs(
+        x, cluster.edges(), np.array(pairs, dtype=np.int64).reshape(-1, 2), free, params.with_(tol_a0=np.inf)
+    )
     if closed is None:
         return Added(pairs, DOES_NOT_PROJECT)
     coords = closed[0].reshape(-1, 3)

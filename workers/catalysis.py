@@ -100,8 +100,10 @@ def sub_cluster(parent: Cluster, kept) -> Cluster:
 
 def _without_sphere(parent: Cluster, s: int) -> Cluster:
     """``sub_cluster`` of every sphere of ``parent`` but s, in order: the contacts renumbered stay sorted."""
-    return Cluster.of_normal(np.concatenate((parent.coords[:s], parent.coords[s + 1:])),
-                             tuple(pair(i - (i > s), j - (j > s)) for i, j in parent.contacts if i != s and j != s))
+    return Cluster.of_normal(
+        np.concatenate((parent.coords[:s], parent.coords[s + 1 :])),
+        tuple(pair(i - (i > s), j - (j > s)) for i, j in parent.contacts if i != s and j != s),
+    )
 
 
 def remainder(parent: Cluster, deleted, params: Params) -> Remainder:
@@ -252,7 +254,7 @@ class Seen:
         self._keys = table = np.zeros((2 * len(self._keys), 2), np.uint64)
         mask = np.uint64(len(table) - 1)
         for start in range(0, len(live), GROW_CHUNK):
-            keys = live[start:start + GROW_CHUNK]
+            keys = live[start : start + GROW_CHUNK]
             pos = keys[:, 0] & mask
             while keys.size:
                 free = np.flatnonzero((table[pos, 0] == 0) & (table[pos, 1] == 0))
@@ -322,7 +324,7 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
         adjacent[edges[:, 0], edges[:, 1]] = True
         adjacent[edges[:, 1], edges[:, 0]] = True
         # row s: every sphere's contacts once s is deleted (s itself counted as enough)
-        left = adjacent.sum(axis=1) - adjacent[:cluster.n]
+        left = adjacent.sum(axis=1) - adjacent[: cluster.n]
         left[np.arange(cluster.n), np.arange(cluster.n)] = 3
         movable = np.flatnonzero(left.min(axis=1) >= 3)  # the others are not rigid (remainder, step 2)
         if not movable.size:
@@ -336,8 +338,9 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
         cells = seen.cells(np.sort(d[rows[movable], cols[movable]], axis=1))
         new = []
         for q, s in enumerate(movable.tolist()):
-            graph = adjacency_certificate(n - 1, [[j - (j > s) for j in above[i] if j != s]
-                                                  for i in range(n) if i != s])
+            graph = adjacency_certificate(
+                n - 1, [[j - (j > s) for j in above[i] if j != s] for i in range(n) if i != s]
+            )
             new.append((s, seen.add_cells(graph, cells[q])))
         fresh = [s for s, f in new if f]
         floppy = _floppy(parent, edges, adjacent, d, params, fresh) if fresh and measured else {}
@@ -345,9 +348,18 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
             if not f:
                 yield Moved(s, tri, side, None)
             elif s in floppy:
-                yield Moved(s, tri, side, Remainder((s,), tuple(i for i in range(n) if i != s),
-                                                    _without_sphere(parent, s), NOT_RIGID,
-                                                    rigidity_without_stress(floppy[s])))
+                yield Moved(
+                    s,
+                    tri,
+                    side,
+                    Remainder(
+                        (s,),
+                        tuple(i for i in range(n) if i != s),
+                        _without_sphere(parent, s),
+                        NOT_RIGID,
+                        rigidity_without_stress(floppy[s]),
+                    ),
+                )
             else:
                 yield Moved(s, tri, side, remainder(parent, (s,), params))
 
@@ -357,8 +369,9 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
 NEAR_ROOM = 1e-9
 
 
-def _floppy(parent: Cluster, edges: np.ndarray, adjacent: np.ndarray, d: np.ndarray, params: Params,
-            spheres: list[int]) -> dict[int, int]:
+def _floppy(
+    parent: Cluster, edges: np.ndarray, adjacent: np.ndarray, d: np.ndarray, params: Params, spheres: list[int]
+) -> dict[int, int]:
     """The flexes of those remainders of the glued cluster ``parent`` without one sphere of ``spheres`` that
     :func:`remainder` calls floppy with no self-stress (its contacts certified independent,
     :func:`packings.workers.kernels.regular_flexes`, and fewer than its free coordinates), where that is

@@ -118,7 +118,7 @@ _ASSIGN_TOL = 0.25 / _SQ3
 
 
 def static_class(n: int, m: int) -> str:
-    """"hypostatic", "isostatic" or "hyperstatic": ``m`` relative to ``3n - 6``."""
+    """ "hypostatic", "isostatic" or "hyperstatic": ``m`` relative to ``3n - 6``."""
     excess = m - (3 * n - 6)
     return STATIC[0] if excess < 0 else STATIC[1] if excess == 0 else STATIC[2]
 
@@ -235,7 +235,7 @@ def _off_lattice_distance(p: np.ndarray, tol: float) -> bool:
 
 
 def lattice_type(coords: np.ndarray, contacts, tol: float = 1e-4) -> str | None:
-    """"fcc", "hcp", "both", "random", "2d", or None if not a close-packed fragment.
+    """ "fcc", "hcp", "both", "random", "2d", or None if not a close-packed fragment.
 
     ``coords`` are the n x 3 centres of unit-diameter spheres, ``contacts``
     pairs (i, j) at distance ~1 (only used to find a contact triangle).  A

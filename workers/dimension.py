@@ -12,7 +12,6 @@ from packings.workers import kernels
 from packings.workers.params import Params
 from packings.workers.rigidity import PRESTRESS, Rigidity, prestress_test, rigidity_from_null_spaces, stress_forms
 
-
 RIGID_PART = "rigid-part"  #: the method of a dimension, or an endpoint's verdict, decided by :func:`rigid_part`
 
 
@@ -192,8 +191,9 @@ SUPPORT_NONZERO = 1e-3
 SUPPORT_ZERO = 1e-6
 
 
-def rigid_part(x: np.ndarray, edges: np.ndarray, basis: StressBasis, tol_n: float,
-               guard: float = COUNT_GUARD) -> np.ndarray | None:
+def rigid_part(
+    x: np.ndarray, edges: np.ndarray, basis: StressBasis, tol_n: float, guard: float = COUNT_GUARD
+) -> np.ndarray | None:
     """The spheres of an infinitesimally rigid part of the framework that holds every self-stress of R
     (``basis``: its self-stresses and the bounds on its singular values, from an SVD of R,
     :meth:`StressBasis.of`, or read off a larger matrix's, :func:`left_after_breaking`), or None where none
@@ -347,8 +347,9 @@ def _rank_of_wb(basis: StressBasis, w: np.ndarray, tol_n: float, guard: float) -
     return int(np.count_nonzero(nonzero))
 
 
-def ranks_after_breaking(basis: StressBasis, subsets: list[tuple[int, ...]], tol_n: float,
-                         guard: float = COUNT_GUARD) -> np.ndarray | None:
+def ranks_after_breaking(
+    basis: StressBasis, subsets: list[tuple[int, ...]], tol_n: float, guard: float = COUNT_GUARD
+) -> np.ndarray | None:
     """rank(W_B) for each B in ``subsets`` (all of one size k > 1), as :func:`counts_after_breaking` counts it
     without vectors, or -1 where it gives None; None where R's own count is in doubt (it gives None for all).
 
@@ -383,7 +384,9 @@ def tangent_after_breaking(basis: StressBasis, rows, tol_n: float, guard: float 
     return after_breaking(basis, rows, tol_n, guard)[1]
 
 
-def after_breaking(basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD) -> tuple[tuple[int, int] | None, np.ndarray | None]:
+def after_breaking(
+    basis: StressBasis, rows, tol_n: float, guard: float = COUNT_GUARD
+) -> tuple[tuple[int, int] | None, np.ndarray | None]:
     """(:func:`counts_after_breaking`, :func:`tangent_after_breaking`) from one SVD of W_B."""
     k, f, s = len(rows), basis.flexes, basis.W.shape[1]
     vectors = f + k - s == 1 and basis.pinv is not None and basis.V is not None

@@ -125,12 +125,12 @@ def kantorovich(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float
     if rest.size:
         dr = kernels.pair_distances_flat(x, edges[rest])
         others = float(np.max(np.abs(f[rest]) + RESIDUAL_ROUNDING + 2.0 * dr * move + move * move))
-    return Exact(PROVED if gap is None or gap > 0.0 else GAP, h=h, radius=radius, unique=unique, gap=gap,
-                 others=others)
+    return Exact(PROVED if gap is None or gap > 0.0 else GAP, h=h, radius=radius, unique=unique, gap=gap, others=others)
 
 
-def root_exists(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float = DEFAULT.tol_n,
-                sigma_min: float | None = None) -> bool:
+def root_exists(
+    x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: float = DEFAULT.tol_n, sigma_min: float | None = None
+) -> bool:
     """Whether :func:`kantorovich` proves a root near ``x`` (``.exists``), cheaply where it can.
 
     ``sigma_min``: a lower bound of the smallest singular value of R_f that the caller already has

@@ -155,8 +155,14 @@ class Expansion:
         often is not what following it gives (docs/method.md, "Paths followed from one end only")."""
         e = self.endpoints[i]
         r = e.rigidity
-        if not (self.first_order_rigid and e.outcome == RIGID and e.cluster is not None and r is not None
-                and r.flexes == 0 and len(e.new_contacts) > 0):
+        if not (
+            self.first_order_rigid
+            and e.outcome == RIGID
+            and e.cluster is not None
+            and r is not None
+            and r.flexes == 0
+            and len(e.new_contacts) > 0
+        ):
             return False
         regular = 3 * self.source.n - 6
         return self.source.m == regular or (e.cluster.m == regular and r.stresses == 0)
@@ -170,7 +176,11 @@ class Expansion:
     @property
     def widened_paths(self) -> int:
         """Paths whose set was more than one-dimensional after the first step (and went on)."""
-        return sum(1 for e in self.endpoints if e.first_step_dim is not None and e.first_step_dim > 1 and e.outcome != DIMENSION_CHANGED)
+        return sum(
+            1
+            for e in self.endpoints
+            if e.first_step_dim is not None and e.first_step_dim > 1 and e.outcome != DIMENSION_CHANGED
+        )
 
     def outcomes(self) -> Counter:
         return Counter(e.outcome for e in self.endpoints)
@@ -204,7 +214,11 @@ def cluster_rank(cluster: Cluster, params: Params) -> int:
     edges = cluster.edges()
     tri = contact_triangle(edges)
     x = kernels.to_frame(cluster.coords, tri).ravel()
-    return 3 * cluster.n - 6 - kernels.null_spaces(x, edges, kernels.free_coordinates(cluster.n, tri), params.tol_n).V.shape[1]
+    return (
+        3 * cluster.n
+        - 6
+        - kernels.null_spaces(x, edges, kernels.free_coordinates(cluster.n, tri), params.tol_n).V.shape[1]
+    )
 
 
 @dataclass(frozen=True)
@@ -246,8 +260,9 @@ class _Orbits:
         at = {p: q for q, p in enumerate(cluster.contacts)}
         self.perms = perms[1:]
         #: the contact index each contact goes to under each symmetry but the identity (first)
-        self.moves = np.array([[at[pair(int(t[i]), int(t[j]))] for i, j in cluster.contacts] for t in self.perms],
-                              dtype=np.int64).reshape(len(self.perms), cluster.m)
+        self.moves = np.array(
+            [[at[pair(int(t[i]), int(t[j]))] for i, j in cluster.contacts] for t in self.perms], dtype=np.int64
+        ).reshape(len(self.perms), cluster.m)
 
     def firsts(self, chunk: list[tuple[int, ...]]) -> list[tuple[tuple[int, ...], np.ndarray] | None]:
         """For each subset of ``chunk`` (subsets of one size, each sorted): None if it is the first of its orbit;
@@ -288,9 +303,15 @@ def _lexicographic_min(images: np.ndarray, own: np.ndarray) -> tuple[np.ndarray,
 _BATCH = 1024
 
 
-def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms: np.ndarray | None = None,
-              arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None,
-              source: dict | None = None, held: bool = True) -> Iterator[Endpoint | PathStart | Image]:
+def _attempts(
+    cluster: Cluster,
+    params: Params,
+    first_order: bool = True,
+    perms: np.ndarray | None = None,
+    arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None,
+    source: dict | None = None,
+    held: bool = True,
+) -> Iterator[Endpoint | PathStart | Image]:
     """Every (broken subset, direction) of ``cluster`` in order: an Endpoint where no path is followed, else a PathStart.
 
     Given the cluster's symmetries ``perms`` (:func:`packings.workers.identity.symmetries`), a subset that
@@ -369,8 +390,11 @@ def _attempts(cluster: Cluster, params: Params, first_order: bool = True, perms:
             firsts = orbits.firsts(chunk) if orbits is not None else [None] * len(chunk)
             ranks: dict[tuple[int, ...], int] = {}
             if batched:
-                tried = [idx for idx, first in zip(chunk, firsts) if first is None and not own_sides.intersection(
-                    pairs[q] for q in idx)]
+                tried = [
+                    idx
+                    for idx, first in zip(chunk, firsts)
+                    if first is None and not own_sides.intersection(pairs[q] for q in idx)
+                ]
                 got = ranks_after_breaking(own, tried, params.tol_n)
                 if got is not None:
                     ranks = dict(zip(tried, got.tolist()))
@@ -443,8 +467,14 @@ def path_starts(cluster: Cluster, params: Params) -> list[PathStart]:
     return [a for a in _attempts(cluster, params) if isinstance(a, PathStart)]
 
 
-def expand(cluster: Cluster, params: Params, first_order: bool = True, symmetric: bool = True,
-           arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None, held: bool = True) -> Expansion:
+def expand(
+    cluster: Cluster,
+    params: Params,
+    first_order: bool = True,
+    symmetric: bool = True,
+    arrivals: Mapping[tuple[tuple[int, int], ...], Arrival] | None = None,
+    held: bool = True,
+) -> Expansion:
     """Break every admissible subset of contacts of ``cluster`` and follow every path.
 
     A pure function of its inputs.  For every subset B whose removal leaves a
@@ -527,8 +557,19 @@ def _image(e: Endpoint, broken: tuple[tuple[int, int], ...], relabel: np.ndarray
         c = Cluster(coords, _pairs(t, e.cluster.contacts))
     if e.reached is not None:
         reached = _relabelled(e.reached, t)
-    return Endpoint(broken, e.direction, e.outcome, e.dim, e.steps, c, e.rigidity, _pairs(t, e.new_contacts),
-                    e.first_step_dim, image=True, reached=reached)
+    return Endpoint(
+        broken,
+        e.direction,
+        e.outcome,
+        e.dim,
+        e.steps,
+        c,
+        e.rigidity,
+        _pairs(t, e.new_contacts),
+        e.first_step_dim,
+        image=True,
+        reached=reached,
+    )
 
 
 def _relabelled(a: Arrival, t: list[int]) -> Arrival:
@@ -540,8 +581,9 @@ def _relabelled(a: Arrival, t: list[int]) -> Arrival:
     return Arrival(_pairs(t, a.contacts), a.target, _pairs(t, a.formed), a.steps, tuple(labels))
 
 
-def _closed(found: Mapping[tuple[tuple[int, int], ...], Arrival],
-            perms: np.ndarray) -> dict[tuple[tuple[int, int], ...], Arrival]:
+def _closed(
+    found: Mapping[tuple[tuple[int, int], ...], Arrival], perms: np.ndarray
+) -> dict[tuple[tuple[int, int], ...], Arrival]:
     """The arrivals ``found`` with their images under the symmetries ``perms`` of the cluster (a symmetry
     takes the path back of one to the path back of its image), so that the first subset of each orbit,
     the one followed, has one whenever a member does; contacts given disagreeing ones have none."""
@@ -606,5 +648,7 @@ def warm_up(apart: bool = True) -> float:
     kernels.floppy_without(c.coords, edges, np.array([0]), np.array([left]), params.tol_n)
     for s in (1.0, -1.0):
         follow_path(x, keep, broken, s * v, free, params)
-    same_geometry(c, Cluster(c.coords[::-1] + 1.0, tuple((c.n - 1 - j, c.n - 1 - i) for i, j in c.contacts)), params.tol_d)
+    same_geometry(
+        c, Cluster(c.coords[::-1] + 1.0, tuple((c.n - 1 - j, c.n - 1 - i) for i, j in c.contacts)), params.tol_d
+    )
     return time.perf_counter() - start

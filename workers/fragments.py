@@ -95,8 +95,10 @@ def layer_bound(n: int, layers: int) -> int:
     def best(left: int, layers_left: int, last: int) -> int:  # the rest, after a layer of ``last`` spheres
         if layers_left == 0:
             return 0 if left == 0 else -(10**9)
-        return max(_in_layer(a) + _between(last, a) + best(left - a, layers_left - 1, a)
-                   for a in range(1, left - layers_left + 2))
+        return max(
+            _in_layer(a) + _between(last, a) + best(left - a, layers_left - 1, a)
+            for a in range(1, left - layers_left + 2)
+        )
 
     return best(n, layers, 0)
 
@@ -123,8 +125,12 @@ _IN_LAYER = ((1, 0), (-1, 0), (0, 1), (0, -1), (1, -1), (-1, 1))  #: (di, dj) of
 @functools.lru_cache(maxsize=None)
 def _across(p: int, q: int) -> tuple[tuple[int, int], ...]:
     """(di, dj) of the three sites of a layer in position q touching a site of the adjacent layer in position p."""
-    return tuple((di, dj) for di in range(-2, 3) for dj in range(-2, 3)
-                 if abs(np.linalg.norm(np.append(di * _A1 + dj * _A2 + _SHIFT[q] - _SHIFT[p], _H)) - 1.0) < 1e-9)
+    return tuple(
+        (di, dj)
+        for di in range(-2, 3)
+        for dj in range(-2, 3)
+        if abs(np.linalg.norm(np.append(di * _A1 + dj * _A2 + _SHIFT[q] - _SHIFT[p], _H)) - 1.0) < 1e-9
+    )
 
 
 def _grown(n: int, t: list[int], most_layers: int) -> tuple[np.ndarray, np.ndarray]:
@@ -217,7 +223,7 @@ def close_packed(n: int, min_contacts: int, params: Params = DEFAULT) -> list[Fr
     for positions, members in sorted(by_stack.items()):
         frags = rows[members, most:].astype(np.int64)
         for a in range(0, len(frags), 4096):
-            x = _coordinates(positions, frags[a:a + 4096])
+            x = _coordinates(positions, frags[a : a + 4096])
             for key, xb in zip(_keys(x), x):
                 if key in seen:
                     continue

@@ -296,8 +296,7 @@ def _same_geometry_canonical(a: _Canonical, b: _Canonical, autos: np.ndarray, to
     # increase the max difference: a safe cheap rejection on the sorted distances, then the same for
     # each automorphism s (b's distances relabelled by s), then the alignment; all in one kernel call.
     bound = 4.0 * tol_d
-    return kernels.some_automorphism_aligns(a.x, b.x, a.dist, b.dist, a.sorted_dist, b.sorted_dist, autos,
-                                            bound, tol_d)
+    return kernels.some_automorphism_aligns(a.x, b.x, a.dist, b.dist, a.sorted_dist, b.sorted_dist, autos, bound, tol_d)
 
 
 def same_geometry(a: Cluster, b: Cluster, tol_d: float) -> bool:

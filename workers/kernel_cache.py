@@ -76,8 +76,13 @@ def compile_apart() -> bool:
     if kernels_cached() is not False:
         return False
     try:
-        done = subprocess.run([sys.executable, "-c", COMPILE], stdin=subprocess.DEVNULL,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
+        done = subprocess.run(
+            [sys.executable, "-c", COMPILE],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            check=False,
+        )
     except OSError:
         return False
     return done.returncode == 0 and kernels_cached() is True

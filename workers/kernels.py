@@ -268,7 +268,15 @@ def project(
     """
     if _backend == "numba":
         return project_compiled(
-            x0, edges, free, tol=tol, dx_max=dx_max, max_iter=max_iter, extra=extra, polish=polish, stall=stall,
+            x0,
+            edges,
+            free,
+            tol=tol,
+            dx_max=dx_max,
+            max_iter=max_iter,
+            extra=extra,
+            polish=polish,
+            stall=stall,
             tol_n=tol_n,
         )
     return project_numpy(
@@ -310,7 +318,17 @@ def project_compiled(
     g = guard_threshold(DEFAULT.tol_n if tol_n is None else tol_n)
     compiled = _numba()
     xn, status, it, fsq, _, _ = compiled.newton(
-        x, _i64(edges), free, free_mask(x.size, free), a, b, float(tol), float(dx_max), int(max_iter), bool(polish), float(g),
+        x,
+        _i64(edges),
+        free,
+        free_mask(x.size, free),
+        a,
+        b,
+        float(tol),
+        float(dx_max),
+        int(max_iter),
+        bool(polish),
+        float(g),
         int(stall),
     )
     return Projection(xn, status == compiled.NEWTON_OK, int(it), float(fsq))
@@ -485,8 +503,9 @@ def regular_flexes(x: np.ndarray, edges: np.ndarray, free: np.ndarray, tol_n: fl
 FLOPPY_GUARD_ROOM = 4.0
 
 
-def floppy_without(coords: np.ndarray, edges: np.ndarray, spheres: np.ndarray, triangles: np.ndarray,
-                   tol_n: float) -> np.ndarray:
+def floppy_without(
+    coords: np.ndarray, edges: np.ndarray, spheres: np.ndarray, triangles: np.ndarray, tol_n: float
+) -> np.ndarray:
     """For each sphere s of ``spheres``: the flexes (> 0) of the cluster ``coords`` (n x 3, contacts ``edges``)
     without s where :func:`regular_flexes` would certify them, pinned by its contact triangle ``triangles[q]``
     (in its own labels: the spheres after s one lower) after :func:`to_frame`; -1 where that is not certain
@@ -495,9 +514,13 @@ def floppy_without(coords: np.ndarray, edges: np.ndarray, spheres: np.ndarray, t
     spheres = as_kernel_array(spheres, np.int64, (-1,))
     if _backend != "numba":
         return np.full(spheres.size, -1, dtype=np.int64)
-    return _numba().floppy_without(_f64(coords).reshape(-1, 3), _i64(edges), spheres,
-                                   as_kernel_array(triangles, np.int64, (-1, 3)),
-                                   FLOPPY_GUARD_ROOM * guard_threshold(tol_n))
+    return _numba().floppy_without(
+        _f64(coords).reshape(-1, 3),
+        _i64(edges),
+        spheres,
+        as_kernel_array(triangles, np.int64, (-1, 3)),
+        FLOPPY_GUARD_ROOM * guard_threshold(tol_n),
+    )
 
 
 @dataclass(frozen=True)
@@ -551,9 +574,17 @@ def pair_distances_flat(x: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->i", d, d))
 
 
-def some_automorphism_aligns(ax: np.ndarray, bx: np.ndarray, adist: np.ndarray, bdist: np.ndarray,
-                             asorted: np.ndarray, bsorted: np.ndarray, autos: np.ndarray, bound: float,
-                             tol_d: float) -> bool:
+def some_automorphism_aligns(
+    ax: np.ndarray,
+    bx: np.ndarray,
+    adist: np.ndarray,
+    bdist: np.ndarray,
+    asorted: np.ndarray,
+    bsorted: np.ndarray,
+    autos: np.ndarray,
+    bound: float,
+    tol_d: float,
+) -> bool:
     """Whether two clusters in canonical order are the same geometry under some automorphism.
 
     ``ax``, ``bx``: centred coordinates (n x 3); ``adist``, ``bdist``: their pair-distance matrices;

@@ -10,7 +10,9 @@ RIGID = "rigid"  #: ended at a rigid cluster
 FLOPPY = "floppy"  #: ended where new contacts form but the cluster is not rigid
 UNDECIDED_END = "undecided"  #: ended at a cluster the pre-stress test could not decide
 UNPROVED = "unproved"  #: ended at a point first-order rigid by the test but near no provable root (docs/method.md)
-PROJECTION_FAILED = "projection-failed"  #: no projection with any subset of the new contacts, or a step could not be projected
+PROJECTION_FAILED = (
+    "projection-failed"  #: no projection with any subset of the new contacts, or a step could not be projected
+)
 DIMENSION_CHANGED = "dimension-changed"  #: the path could not go on: its set was no longer one-dimensional
 SHORTENS = "shortens"  #: the direction shortens a broken contact (the spheres would overlap)
 OVERLAP = "overlap"  #: the projected endpoint has overlapping spheres

@@ -12,6 +12,7 @@ import numpy as np
 from packings.workers import kernels
 from packings.workers.cluster import contacts_from_distances, pair_set, upper_pairs
 from packings.workers.dimension import RIGID_PART, StressBasis, rigid_part, solution_dimension
+from packings.workers.exact import SVD_ROUNDING, root_exists
 from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, named here too
     DIMENSION_CHANGED,
     FLOPPY,
@@ -23,16 +24,17 @@ from packings.workers.outcomes import (  # noqa: F401 - the outcomes of a path, 
     UNDECIDED_END,
     UNPROVED,
 )
-from packings.workers.exact import SVD_ROUNDING, root_exists
 from packings.workers.params import Params
 from packings.workers.rigidity import (
     FIRST_ORDER,
-    FLOPPY as FLOPPY_KIND,
     UNDECIDED,
     UNRESOLVED_METHOD,
     Rigidity,
     rigidity_from_null_spaces,
     rigidity_without_stress,
+)
+from packings.workers.rigidity import (
+    FLOPPY as FLOPPY_KIND,
 )
 
 try:  # numba is a dependency; without it (or with a broken install) the reference still runs
@@ -198,12 +200,16 @@ def _follow_numpy(x, keep, broken, tangent, free, params: Params, steps_on) -> P
 
 
 #: Path outcomes by the status codes of the compiled loop.
-_COMPILED_OUTCOMES = {
-    _compiled.ST_PROJECTION_FAILED: PROJECTION_FAILED,
-    _compiled.ST_SHORTENS: SHORTENS,
-    _compiled.ST_DIMENSION_CHANGED: DIMENSION_CHANGED,
-    _compiled.ST_TOO_LONG: TOO_LONG,
-} if _compiled is not None else {}
+_COMPILED_OUTCOMES = (
+    {
+        _compiled.ST_PROJECTION_FAILED: PROJECTION_FAILED,
+        _compiled.ST_SHORTENS: SHORTENS,
+        _compiled.ST_DIMENSION_CHANGED: DIMENSION_CHANGED,
+        _compiled.ST_TOO_LONG: TOO_LONG,
+    }
+    if _compiled is not None
+    else {}
+)
 
 
 def _follow_compiled(x, keep, broken, tangent, free, params: Params, steps_on) -> PathEnd:
@@ -265,8 +271,16 @@ def max_move(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.einsum("ij,ij->i", d, d)).max(initial=0.0))
 
 
-def approach_contact(x0: np.ndarray, x1: np.ndarray, keep: np.ndarray, pairs: np.ndarray, hit: np.ndarray,
-                     free: np.ndarray, params: Params, max_iter: int = 100) -> np.ndarray | None:
+def approach_contact(
+    x0: np.ndarray,
+    x1: np.ndarray,
+    keep: np.ndarray,
+    pairs: np.ndarray,
+    hit: np.ndarray,
+    free: np.ndarray,
+    params: Params,
+    max_iter: int = 100,
+) -> np.ndarray | None:
     """The point of the path through x0 and x1 (consecutive points on {f_keep = 0}) where the first
     approaching pair touches; ``pairs`` are the non-contact pairs, ``hit`` marks those that stopped
     the path at x1.
@@ -324,8 +338,9 @@ def approach_contact(x0: np.ndarray, x1: np.ndarray, keep: np.ndarray, pairs: np
     return None
 
 
-def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.ndarray,
-                params: Params) -> tuple[np.ndarray, tuple[tuple[int, int], ...]] | None:
+def close_pairs(
+    x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.ndarray, params: Params
+) -> tuple[np.ndarray, tuple[tuple[int, int], ...]] | None:
     """Project x onto the contacts ``edges`` and the pairs ``extra``; (x', contacts of x') or None.
 
     The paper's procedure at a path's end: project onto the enlarged constraint set, deleting
@@ -373,8 +388,9 @@ def close_pairs(x: np.ndarray, edges: np.ndarray, extra: np.ndarray, free: np.nd
 _ROUND_OFF = 1e-28
 
 
-def _refined(pr: kernels.Projection, edges: np.ndarray, free: np.ndarray, x0: np.ndarray,
-             params: Params) -> np.ndarray | None:
+def _refined(
+    pr: kernels.Projection, edges: np.ndarray, free: np.ndarray, x0: np.ndarray, params: Params
+) -> np.ndarray | None:
     """A polished projection's point, refined along its flexes where it is singular
     (:func:`packings.workers.kernels.refine_singular`) so that two copies of one singular cluster agree far
     below tol_d; None if the refined point lies further than tol_a0 from x0 in some sphere.
@@ -402,8 +418,9 @@ def near_pairs(x: np.ndarray, contacts, tol: float, candidates: np.ndarray | Non
     return close[[tuple(p) not in touching for p in close.tolist()]]
 
 
-def resolve_near_pairs(x: np.ndarray, contacts, free: np.ndarray, params: Params,
-                       candidates: np.ndarray | None = None) -> tuple[np.ndarray, tuple[tuple[int, int], ...], Rigidity] | None:
+def resolve_near_pairs(
+    x: np.ndarray, contacts, free: np.ndarray, params: Params, candidates: np.ndarray | None = None
+) -> tuple[np.ndarray, tuple[tuple[int, int], ...], Rigidity] | None:
     """The rigid cluster that x (flat, pinned frame) becomes with its pairs within tol_a0 of
     touching as contacts, or None.
 
@@ -463,8 +480,11 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
         if overlaps(xe, params):
             return PathEnd(OVERLAP, steps, coords, contacts, new_contacts=_formed(contacts, keep))
     rig = endpoint_rigidity(xe, contacts, free, params)
-    outcome = RIGID if rig.rigid else (
-        UNPROVED if rig.method == UNPROVED_METHOD else UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
+    outcome = (
+        RIGID
+        if rig.rigid
+        else (UNPROVED if rig.method == UNPROVED_METHOD else UNDECIDED_END if rig.kind == UNDECIDED else FLOPPY)
+    )
     return PathEnd(outcome, steps, coords, contacts, rig, _formed(contacts, keep))
 
 
@@ -522,12 +542,17 @@ def _contacts(x: np.ndarray, tol_a: float) -> tuple[tuple[int, int], ...]:
 UNPROVED_METHOD = "unproved"  #: Rigidity.method of a first-order verdict Kantorovich's theorem did not bear out
 
 
-def _held_by_a_rigid_part(rig: Rigidity, x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float) -> bool:
+def _held_by_a_rigid_part(
+    rig: Rigidity, x: np.ndarray, edges: np.ndarray, ns: kernels.NullSpaces, tol_n: float
+) -> bool:
     """Whether the pre-stress test found no definite combination (not merely one whose margin the
     coordinates leave in doubt, method ``unresolved``) and every self-stress lies in a rigid part.  An
     undecided verdict of that test has flexes and stresses both."""
-    return (rig.kind == UNDECIDED and rig.method != UNRESOLVED_METHOD
-            and rigid_part(x, edges, StressBasis.of(ns, tol_n, pinv=False), tol_n) is not None)
+    return (
+        rig.kind == UNDECIDED
+        and rig.method != UNRESOLVED_METHOD
+        and rigid_part(x, edges, StressBasis.of(ns, tol_n, pinv=False), tol_n) is not None
+    )
 
 
 def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params) -> Rigidity:

@@ -106,7 +106,9 @@ def sdp_margin(Q: np.ndarray) -> float | None:
     P = sp.csc_matrix((nz, nz))
     settings = clarabel.DefaultSettings()
     settings.verbose = False
-    solver = clarabel.DefaultSolver(P, q.copy(), A, rhs.copy(), [clarabel.NonnegativeConeT(2 * b), clarabel.PSDTriangleConeT(a)], settings)
+    solver = clarabel.DefaultSolver(
+        P, q.copy(), A, rhs.copy(), [clarabel.NonnegativeConeT(2 * b), clarabel.PSDTriangleConeT(a)], settings
+    )
     sol = solver.solve()
     if str(sol.status) not in ("Solved", "AlmostSolved"):
         return None
@@ -146,8 +148,13 @@ def rigidity_without_stress(flexes: int) -> Rigidity:
     return Rigidity(False, FLOPPY, flexes, 0, "no-stress")
 
 
-def rigidity_from_null_spaces(ns: kernels.NullSpaces, edges: np.ndarray, params: Params,
-                              x: np.ndarray | None = None, free: np.ndarray | None = None) -> Rigidity:
+def rigidity_from_null_spaces(
+    ns: kernels.NullSpaces,
+    edges: np.ndarray,
+    params: Params,
+    x: np.ndarray | None = None,
+    free: np.ndarray | None = None,
+) -> Rigidity:
     """The rigidity test of docs/method.md given V and W.
 
     With the point ``x`` (flat, pinned frame) and its ``free`` coordinates, a pre-stress verdict
@@ -238,8 +245,10 @@ class FirstTriangles:
             nbr.setdefault(i, set()).add(j)
             nbr.setdefault(j, set()).add(i)
         self.triangles = [(i, j, k) for i, j in sorted(contacts) for k in sorted(nbr[i] & nbr[j])]
-        self.rows = np.array([(at[(i, j)], at[(min(i, k), max(i, k))], at[(min(j, k), max(j, k))])
-                              for i, j, k in self.triangles], dtype=np.int64).reshape(-1, 3)
+        self.rows = np.array(
+            [(at[(i, j)], at[(min(i, k), max(i, k))], at[(min(j, k), max(j, k))]) for i, j, k in self.triangles],
+            dtype=np.int64,
+        ).reshape(-1, 3)
         self.m = len(contacts)
 
     def after_deleting(self, idx) -> tuple[int, int, int] | None:

@@ -65,13 +65,27 @@ def lattice_sites(kind: str, radius: float = 3.5) -> np.ndarray:
     of the origin, which is a site."""
     r = int(np.ceil(2 * radius)) + 1
     if kind == "fcc":  # the integer points with an even sum, scaled so that neighbours are 1 apart
-        g = np.array([(i, j, k) for i in range(-r, r + 1) for j in range(-r, r + 1) for k in range(-r, r + 1)
-                      if (i + j + k) % 2 == 0], dtype=float) / np.sqrt(2.0)
+        g = np.array(
+            [
+                (i, j, k)
+                for i in range(-r, r + 1)
+                for j in range(-r, r + 1)
+                for k in range(-r, r + 1)
+                if (i + j + k) % 2 == 0
+            ],
+            dtype=float,
+        ) / np.sqrt(2.0)
     elif kind == "hcp":  # triangular layers A B A B ..., sqrt(2/3) apart, B over the centres of A's triangles
         a1, a2 = np.array([1.0, 0.0, 0.0]), np.array([0.5, np.sqrt(3) / 2, 0.0])
         shift = (a1 + a2) / 3.0
-        g = np.array([i * a1 + j * a2 + (shift if layer % 2 else 0.0) + [0.0, 0.0, layer * np.sqrt(2.0 / 3.0)]
-                      for layer in range(-r, r + 1) for i in range(-2 * r, 2 * r + 1) for j in range(-2 * r, 2 * r + 1)])
+        g = np.array(
+            [
+                i * a1 + j * a2 + (shift if layer % 2 else 0.0) + [0.0, 0.0, layer * np.sqrt(2.0 / 3.0)]
+                for layer in range(-r, r + 1)
+                for i in range(-2 * r, 2 * r + 1)
+                for j in range(-2 * r, 2 * r + 1)
+            ]
+        )
     else:
         raise ValueError(f"unknown lattice {kind!r}: fcc or hcp")
     return g[np.linalg.norm(g, axis=1) <= radius + 1e-9]
@@ -150,8 +164,10 @@ def seed_cluster(n: int, params: Params = DEFAULT) -> Cluster:
             return c
         listed = listed_seed(n, params.min_contacts, params)
         if listed is None:
-            raise ValueError(f"no cluster of {n} spheres with at least {params.min_contacts} contacts to start "
-                             "from: no rigid close-packed fragment has that many")
+            raise ValueError(
+                f"no cluster of {n} spheres with at least {params.min_contacts} contacts to start "
+                "from: no rigid close-packed fragment has that many"
+            )
         return listed
     c = tetrahedron()
     while c.n < n:
@@ -162,4 +178,3 @@ def seed_cluster(n: int, params: Params = DEFAULT) -> Cluster:
     if not rig.rigid:  # pragma: no cover - a sphere glued to three touching spheres of a rigid cluster is rigid
         raise RuntimeError("seed cluster is not rigid")
     return c
-

@@ -17,14 +17,15 @@ cluster that neither rule places (none is expected) is 'seed' with no source.  f
 that gave existing rows a value (SQLite cannot drop it without rebuilding the table); the service
 names found_by in every insert.
 """
+
 from typing import Sequence, Union
 
-from alembic import op
 import sqlalchemy as sa
 
+from alembic import op
 
-revision: str = '0003'
-down_revision: Union[str, None] = '0002'
+revision: str = "0003"
+down_revision: Union[str, None] = "0002"
 branch_labels: Union[str, Sequence[str], None] = None
 depends_on: Union[str, Sequence[str], None] = None
 
@@ -33,14 +34,20 @@ def upgrade() -> None:
     # Plain ALTER TABLE ... ADD COLUMN on both backends: SQLite adds a column with an inline REFERENCES
     # (and a NOT NULL column with a default) in place, where batch mode would rebuild the table, which
     # with foreign keys on (packings.db) cannot be dropped while expansions and transitions refer to it.
-    op.add_column('clusters', sa.Column('found_by', sa.String(length=16), nullable=False, server_default='path'))
+    op.add_column("clusters", sa.Column("found_by", sa.String(length=16), nullable=False, server_default="path"))
     if op.get_bind().dialect.name == "sqlite":  # Alembic adds no constraint to a SQLite table in place
-        op.execute("ALTER TABLE clusters ADD COLUMN source_id INTEGER "
-                   "CONSTRAINT fk_clusters_source_id REFERENCES clusters (id)")
+        op.execute(
+            "ALTER TABLE clusters ADD COLUMN source_id INTEGER "
+            "CONSTRAINT fk_clusters_source_id REFERENCES clusters (id)"
+        )
     else:
-        op.add_column('clusters', sa.Column('source_id', sa.Integer(),
-                                            sa.ForeignKey('clusters.id', name='fk_clusters_source_id'), nullable=True))
-    op.create_index('ix_clusters_source', 'clusters', ['source_id'], unique=False)
+        op.add_column(
+            "clusters",
+            sa.Column(
+                "source_id", sa.Integer(), sa.ForeignKey("clusters.id", name="fk_clusters_source_id"), nullable=True
+            ),
+        )
+    op.create_index("ix_clusters_source", "clusters", ["source_id"], unique=False)
     # a run's seed: the cluster of its first expansion, if the run stored it (start_run)
     # (the first expansions of all runs found once, not once per cluster: a correlated form of this
     # query took minutes on an n = 12 catalogue)
@@ -58,15 +65,15 @@ def upgrade() -> None:
 
 
 def downgrade() -> None:
-    op.drop_index('ix_clusters_source', table_name='clusters')
+    op.drop_index("ix_clusters_source", table_name="clusters")
     if op.get_bind().dialect.name == "sqlite":
         # SQLite drops a column in place (3.35+), but not one with a REFERENCES clause: rebuild the table
         # (as 0002's downgrade does; env.py switches foreign keys off around it, so rows that refer to
         # clusters do not stop it)
-        with op.batch_alter_table('clusters', recreate='always') as batch:
-            batch.drop_column('source_id')
-            batch.drop_column('found_by')
+        with op.batch_alter_table("clusters", recreate="always") as batch:
+            batch.drop_column("source_id")
+            batch.drop_column("found_by")
         return
-    op.drop_constraint('fk_clusters_source_id', 'clusters', type_='foreignkey')
-    op.drop_column('clusters', 'source_id')
-    op.drop_column('clusters', 'found_by')
+    op.drop_constraint("fk_clusters_source_id", "clusters", type_="foreignkey")
+    op.drop_column("clusters", "source_id")
+    op.drop_column("clusters", "found_by")

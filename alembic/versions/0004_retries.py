@@ -9,22 +9,23 @@ its worker (or its coordinator was), without using up an attempt; isolated_failu
 its task, run alone after such a fault, was lost again, which counts as an attempt
 (packings.service.coordinator).  Existing rows start at 0.
 """
+
 from typing import Sequence, Union
 
-from alembic import op
 import sqlalchemy as sa
 
+from alembic import op
 
-revision: str = '0004'
-down_revision: Union[str, None] = '0003'
+revision: str = "0004"
+down_revision: Union[str, None] = "0003"
 branch_labels: Union[str, Sequence[str], None] = None
 depends_on: Union[str, Sequence[str], None] = None
 
 
 def upgrade() -> None:
     # plain ADD COLUMN on both backends (SQLite adds a NOT NULL column with a default in place)
-    op.add_column('expansions', sa.Column('retries', sa.Integer(), nullable=False, server_default='0'))
-    op.add_column('expansions', sa.Column('isolated_failures', sa.Integer(), nullable=False, server_default='0'))
+    op.add_column("expansions", sa.Column("retries", sa.Integer(), nullable=False, server_default="0"))
+    op.add_column("expansions", sa.Column("isolated_failures", sa.Integer(), nullable=False, server_default="0"))
 
 
 def downgrade() -> None:

@@ -12,15 +12,16 @@ default), the smaller first; geometries that agree within the resolution keep th
 This revision renumbers the stored clusters so; no schema changes.  Downgrade leaves the numbers
 as they are (they are valid numbers under the old rule too).
 """
+
 from typing import Sequence, Union
 
-from alembic import context, op
 import numpy as np
 import sqlalchemy as sa
 
+from alembic import context, op
 
-revision: str = '0005'
-down_revision: Union[str, None] = '0004'
+revision: str = "0005"
+down_revision: Union[str, None] = "0004"
 branch_labels: Union[str, Sequence[str], None] = None
 depends_on: Union[str, Sequence[str], None] = None
 
@@ -42,16 +43,20 @@ def _precedes(a: np.ndarray, b: np.ndarray) -> bool:
 
 def upgrade() -> None:
     if context.is_offline_mode():  # the new numbers come from the stored coordinates
-        op.execute("-- 0005 renumbers clusters.embedding from the stored coordinates: run it on the database "
-                   "(packings db upgrade); an empty database has nothing to renumber")
+        op.execute(
+            "-- 0005 renumbers clusters.embedding from the stored coordinates: run it on the database "
+            "(packings db upgrade); an empty database has nothing to renumber"
+        )
         return
     bind = op.get_bind()
-    groups = bind.execute(sa.text(
-        "SELECT n, certificate FROM clusters GROUP BY n, certificate HAVING count(*) > 1")).all()
+    groups = bind.execute(
+        sa.text("SELECT n, certificate FROM clusters GROUP BY n, certificate HAVING count(*) > 1")
+    ).all()
     for n, cert in groups:
-        rows = bind.execute(sa.text(
-            "SELECT id, coords FROM clusters WHERE n = :n AND certificate = :cert ORDER BY embedding"),
-            {"n": n, "cert": cert}).all()
+        rows = bind.execute(
+            sa.text("SELECT id, coords FROM clusters WHERE n = :n AND certificate = :cert ORDER BY embedding"),
+            {"n": n, "cert": cert},
+        ).all()
         ordered: list[tuple[int, np.ndarray]] = []
         for id_, coords in rows:  # inserted one by one in the old order, as the store inserts them
             d = _sorted_distances(n, bytes(coords))
@@ -60,8 +65,10 @@ def upgrade() -> None:
         # through negative numbers, so that no two rows share a key between two statements
         for k, (id_, _) in enumerate(ordered):
             bind.execute(sa.text("UPDATE clusters SET embedding = :e WHERE id = :id"), {"e": -1 - k, "id": id_})
-        bind.execute(sa.text("UPDATE clusters SET embedding = -1 - embedding WHERE n = :n AND certificate = :cert"),
-                     {"n": n, "cert": cert})
+        bind.execute(
+            sa.text("UPDATE clusters SET embedding = -1 - embedding WHERE n = :n AND certificate = :cert"),
+            {"n": n, "cert": cert},
+        )
 
 
 def downgrade() -> None:

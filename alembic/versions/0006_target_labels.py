@@ -11,14 +11,15 @@ For that it keeps, with such a transition, the relabelling of its endpoint onto 
 of the endpoint is sphere target_labels[i] of B (JSON).  Rows stored before stay NULL: their paths are
 followed again where needed.
 """
+
 from typing import Sequence, Union
 
-from alembic import op
 import sqlalchemy as sa
 
+from alembic import op
 
-revision: str = '0006'
-down_revision: Union[str, None] = '0005'
+revision: str = "0006"
+down_revision: Union[str, None] = "0005"
 branch_labels: Union[str, Sequence[str], None] = None
 depends_on: Union[str, Sequence[str], None] = None
 

@@ -38,8 +38,10 @@ def _pg_available() -> str | None:
             eng.dispose()
             _pg_problem.append("")
         except Exception as e:  # noqa: BLE001 - any failure means "no server here"
-            _pg_problem.append(f"no PostgreSQL at {PG_ADMIN} ({str(e).splitlines()[0][:120]}); "
-                               "set PACKINGS_TEST_PG to an admin URL to run these tests")
+            _pg_problem.append(
+                f"no PostgreSQL at {PG_ADMIN} ({str(e).splitlines()[0][:120]}); "
+                "set PACKINGS_TEST_PG to an admin URL to run these tests"
+            )
     return _pg_problem[0] or None
 
 

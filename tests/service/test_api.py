@@ -19,8 +19,13 @@ from tests.service.conftest import fill_database
 
 
 def cli_json(url: str, *args: str):
-    r = subprocess.run([sys.executable, "-m", "packings.service.cli", *args, "--db", url, "--json"], capture_output=True,
-                       text=True, timeout=300, check=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", *args, "--db", url, "--json"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
     return json.loads(r.stdout)
 
 
@@ -60,7 +65,9 @@ def test_bad_selections_fail_before_anything_is_read(cat):
 def test_a_row_is_the_stored_cluster_bit_for_bit(cat, filled):
     row = cat.get(3)
     with filled.connect() as conn:
-        blob, pairs, n, m = conn.execute(text("SELECT coords, contact_list, n, contacts FROM clusters WHERE id = 3")).one()
+        blob, pairs, n, m = conn.execute(
+            text("SELECT coords, contact_list, n, contacts FROM clusters WHERE id = 3")
+        ).one()
     assert row.coords.dtype == np.float64 and row.coords.shape == (n, 3)
     assert row.coords.astype("<f8").tobytes() == bytes(blob)
     assert row.contacts.shape == (m, 2) and row.contacts.dtype.kind == "i"
@@ -168,8 +175,9 @@ def test_a_script_that_enumerates_outside_the_main_guard_is_told_why_in_one_line
     tmp.mkdir()
     env = {**os.environ, "TMPDIR": str(tmp)}
     env.pop("PACKINGS_UNGUARDED_MARK", None)
-    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                       env=env)
+    r = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path, env=env
+    )
     assert r.returncode != 0
     last = r.stderr.splitlines()[-1]
     assert "the local Dask cluster failed to start" in last and last.endswith(UNGUARDED), r.stderr
@@ -178,10 +186,13 @@ def test_a_script_that_enumerates_outside_the_main_guard_is_told_why_in_one_line
     assert r.stderr.count("Traceback") <= 1  # the script's own: the PackingsError it did not catch
     assert list(tmp.glob("packings-unguarded-*")) == []
     guarded = script.with_name("guarded.py")
-    guarded.write_text(f"import packings\nif __name__ == '__main__':\n"
-                       f"    print(packings.enumerate(7, {url!r}, workers=1, progress=False).total)\n")
-    r = subprocess.run([sys.executable, str(guarded)], capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                       env=env)
+    guarded.write_text(
+        f"import packings\nif __name__ == '__main__':\n"
+        f"    print(packings.enumerate(7, {url!r}, workers=1, progress=False).total)\n"
+    )
+    r = subprocess.run(
+        [sys.executable, str(guarded)], capture_output=True, text=True, timeout=600, cwd=tmp_path, env=env
+    )
     assert (r.returncode, r.stdout.split()[-1:], UNGUARDED in r.stderr) == (0, ["5"], False), r.stderr
     assert list(tmp.glob("packings-unguarded-*")) == []
 
@@ -241,8 +252,12 @@ def test_a_run_held_by_a_live_coordinator_is_refused_before_anything_starts(engi
     monkeypatch.setattr(packings.service.dask_cluster, "dask_client", no_dask)
     with pytest.raises(PackingsError, match="being driven by coordinator"):
         packings.enumerate(8, url, workers=1, progress=False)
-    r = subprocess.run([sys.executable, "-m", "packings.service.cli", "enumerate", "8", "--db", url], capture_output=True,
-                       text=True, timeout=300)
+    r = subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", "enumerate", "8", "--db", url],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [r.stderr.strip()] and "being driven by coordinator" in r.stderr
 
@@ -257,14 +272,19 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
 
     url = engine.url.render_as_string(hide_password=False)
     S = sessions(engine)
-    dead = f"{socket.gethostname()}:{2 ** 22 + 12345}:gone"  # above Linux's largest pid: no such process
+    dead = f"{socket.gethostname()}:{2**22 + 12345}:gone"  # above Linux's largest pid: no such process
     store.start_run(S, 7, Params(), dead)
     with packings.connect(url) as cat:
         assert cat.runs()[0]["status"] == "interrupted"
         assert cat.stats(7)[0]["complete"] is False
         assert cat.fit() is None and cat.stats(7)[0]["fit"] is None  # a partial count is never fitted
-    text = subprocess.run([sys.executable, "-m", "packings.service.cli", "stats", "--db", url], capture_output=True,
-                          text=True, timeout=300, check=True).stdout
+    text = subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", "stats", "--db", url],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    ).stdout
     assert "n = 7: 1 rigid clusters so far (partial" in text
     store.start_run(S, 7, Params(), f"{socket.gethostname()}:{os.getpid()}:live")  # taken over by a live one
     with packings.connect(url) as cat:
@@ -289,8 +309,13 @@ def test_a_complete_run_capped_by_max_break_is_partial(engine):
         assert [r["status"] for r in cat.runs()] == ["complete", "complete"]
         assert [(d["n"], d["complete"]) for d in cat.stats()] == [(7, True), (8, False)]
         assert cat.fit()["ns"] == [7] and cat.stats(8)[0]["fit"]["predicted"] == pytest.approx(6 * cat.fit()["b"])
-    text = subprocess.run([sys.executable, "-m", "packings.service.cli", "stats", "--db", url], capture_output=True,
-                          text=True, timeout=300, check=True).stdout
+    text = subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", "stats", "--db", url],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    ).stdout
     assert "(partial: no full run of n = 8 is complete)" in text
 
 
@@ -312,8 +337,13 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
     assert stats[9]["total"] == 52 and not stats[9]["complete"]
     assert fit["ns"] == [7, 8] and fit == fit_all({7: {15: 5}, 8: {18: 13}})
     assert stats[8]["fit"]["b"] == stats[9]["fit"]["b"] == fit["b"]
-    text = subprocess.run([sys.executable, "-m", "packings.service.cli", "stats", "--db", url], capture_output=True,
-                          text=True, timeout=300, check=True).stdout
+    text = subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", "stats", "--db", url],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    ).stdout
     assert "n = 9: 52 rigid clusters with at least 21 contacts (runs restricted by --min-contacts" in text
     assert "as the paper at every number of contacts, with at least 21 contacts: 52 (" in text
     assert stats[9]["paper"]["by_contacts"] == {"21": 52} and stats[9]["paper"]["same"] is True
@@ -321,7 +351,10 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
     fig = plot_counts({7: 5, 8: 13, 9: 52}, restricted={9: 21})
     [ax] = fig.axes
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
-        "rigid clusters", "clusters with ≥ M contacts only (--min-contacts M)", f"fit {fit['b']:.2f}·(n − 5)!  (n = 7–8)"]
+        "rigid clusters",
+        "clusters with ≥ M contacts only (--min-contacts M)",
+        f"fit {fit['b']:.2f}·(n − 5)!  (n = 7–8)",
+    ]
     assert "52\n(≥ 21)" in [t.get_text() for t in ax.texts]
     fill_database(engine, 9)  # a full run of n = 9: no longer restricted
     with packings.connect(url) as cat:
@@ -329,10 +362,25 @@ def test_runs_restricted_by_min_contacts_are_shown_as_such_and_left_out_of_the_f
 
 
 def test_a_restricted_run_with_no_seed_that_has_enough_contacts_is_refused_in_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "packings.service.cli", "enumerate", "10", "--min-contacts", "26", "--db",
-                        f"sqlite:///{tmp_path / 'x.db'}"], capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "packings.service.cli",
+            "enumerate",
+            "10",
+            "--min-contacts",
+            "26",
+            "--db",
+            f"sqlite:///{tmp_path / 'x.db'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode != 0 and r.stdout == ""
     assert r.stderr.strip().splitlines() == [
         "packings: error: no cluster of 10 spheres with at least 26 contacts to start from: no rigid close-packed "
-        "fragment has that many"], r.stderr
+        "fragment has that many"
+    ], r.stderr
     assert not (tmp_path / "x.db").exists()  # refused before anything is created

@@ -10,14 +10,14 @@ import pytest
 
 from packings.service.audit import audit, format_audit
 from packings.service.db import sessions
-from tests.service.querydb import filled_catalog
-from tests.service.test_query_cli import ok, one_line_error, run
-from tests.workers.test_audit import near_misses, two_geometries
 from packings.workers.audit import RIGID, near_pairs, with_contacts_added
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.identity import certificate_key, geometry_distance
 from packings.workers.params import DEFAULT, Params
 from packings.workers.rigidity import PRESTRESS, Rigidity, rigidity
+from tests.service.querydb import filled_catalog
+from tests.service.test_query_cli import ok, one_line_error, run
+from tests.workers.test_audit import near_misses, two_geometries
 
 catalog = filled_catalog(7, 8)
 
@@ -85,8 +85,7 @@ def test_a_junk_near_copy_is_reported_with_the_cluster_it_copies(engine):
     assert r.near_copies == {j: [real_id] for j in junk_ids}
     for j in junk_ids:
         rows = [x for x in r.near if x.id == j]
-        assert len(rows) == 3 and all(x.status == RIGID and x.match == real_id and x.new_contacts == 33
-                                      for x in rows)
+        assert len(rows) == 3 and all(x.status == RIGID and x.match == real_id and x.new_contacts == 33 for x in rows)
         assert [len(x.pairs) for x in rows] == [1, 1, 2] and all(2e-4 < x.gap < 2.5e-4 for x in rows)
         assert all(x.n == 12 and x.contacts == 31 for x in rows)
     # the two near misses are also two geometries of one contact graph 3.4e-5 apart: list (c)
@@ -97,9 +96,11 @@ def test_a_junk_near_copy_is_reported_with_the_cluster_it_copies(engine):
     # and no root of their contact equations is proved near either (list (d)); the real cluster's is
     assert [(x.id, x.status) for x in r.unproved] == [(j, "too-far") for j in junk_ids]
     assert r.exact[12].clusters == 3 and r.exact[12].proved == 1
-    assert text.splitlines()[-1] == ("not clean: 2 clusters with a near pair, 2 of them near copies of stored "
-                                     f"clusters: {junk_ids[0]} -> {real_id}, {junk_ids[1]} -> {real_id}; "
-                                     "1 pair of close geometries; 2 clusters with no flex and no root proved")
+    assert text.splitlines()[-1] == (
+        "not clean: 2 clusters with a near pair, 2 of them near copies of stored "
+        f"clusters: {junk_ids[0]} -> {real_id}, {junk_ids[1]} -> {real_id}; "
+        "1 pair of close geometries; 2 clusters with no flex and no root proved"
+    )
 
 
 def test_a_near_pair_whose_cluster_is_not_stored_says_so(engine):
@@ -109,8 +110,10 @@ def test_a_near_pair_whose_cluster_is_not_stored_says_so(engine):
     assert all(x.status == RIGID and x.match is None for x in r.near) and r.near_copies == {}
     assert "not stored" in format_audit(r)
     assert [x.id for x in r.unproved] == [junk_id]
-    assert format_audit(r).splitlines()[-1] == ("not clean: 1 cluster with a near pair, 0 of them near copies of "
-                                                "stored clusters; 1 cluster with no flex and no root proved")
+    assert format_audit(r).splitlines()[-1] == (
+        "not clean: 1 cluster with a near pair, 0 of them near copies of "
+        "stored clusters; 1 cluster with no flex and no root proved"
+    )
 
 
 # --------------------------------------------------------------------------- close geometries
@@ -197,13 +200,24 @@ def test_small_prestress_margins_against_the_runs_tol_psd(engine):
 def test_audit_command_text_and_json(catalog):
     text = ok("audit", "--db", catalog.url)
     assert [line.split(":")[0] for line in text.splitlines() if ": " in line and not line.startswith("audit")] == [
-        "near pairs (gap < tol_a0)", "pre-stress margins (< 10 tol_psd)",
-        "close geometries of one contact graph (< 100 tol_d)", "exact clusters (Kantorovich; clusters with no flex)"]
+        "near pairs (gap < tol_a0)",
+        "pre-stress margins (< 10 tol_psd)",
+        "close geometries of one contact graph (< 100 tol_d)",
+        "exact clusters (Kantorovich; clusters with no flex)",
+    ]
     assert text.splitlines()[-1] == "clean"
     d = json.loads(ok("audit", "--n", "7", "--json", "--db", catalog.url))
     exact = d.pop("exact")
-    assert d == {"tolerances": {"7": {"tol_a0": 1e-3, "tol_psd": 1e-5, "tol_d": 1e-5}}, "near": [], "prestress": [],
-                 "close": [], "unproved": [], "unseparated": [], "near_copies": {}, "clean": True}
+    assert d == {
+        "tolerances": {"7": {"tol_a0": 1e-3, "tol_psd": 1e-5, "tol_d": 1e-5}},
+        "near": [],
+        "prestress": [],
+        "close": [],
+        "unproved": [],
+        "unseparated": [],
+        "near_copies": {},
+        "clean": True,
+    }
     assert list(exact) == ["7"] and exact["7"]["clusters"] == exact["7"]["proved"] == 5
 
 

@@ -12,13 +12,26 @@ from sqlalchemy import func, select, text
 from packings.service import store
 from packings.service.catalysis import NoParents, catalyse, close_packed_pass, count_stored, covered
 from packings.service.db import sessions
-from packings.service.models import (COMPLETE, DONE, FOUND_CATALYSIS, FOUND_CLOSE_PACKED, FOUND_SEED, PASS_DELETED, PASS_GLUED,
-                             PENDING, RUNNING, CatalysisPass, ClusterRow, ExpansionRow, Run)
-from tests.service.conftest import fill_database
-from tests.service.test_db import cli, one_line_error
+from packings.service.models import (
+    COMPLETE,
+    DONE,
+    FOUND_CATALYSIS,
+    FOUND_CLOSE_PACKED,
+    FOUND_SEED,
+    PASS_DELETED,
+    PASS_GLUED,
+    PENDING,
+    RUNNING,
+    CatalysisPass,
+    ClusterRow,
+    ExpansionRow,
+    Run,
+)
 from packings.workers.cluster import Cluster as Core
 from packings.workers.params import Params
 from packings.workers.rigidity import rigidity
+from tests.service.conftest import fill_database
+from tests.service.test_db import cli, one_line_error
 
 DATA = Path(__file__).parent.parent / "data"
 
@@ -62,7 +75,11 @@ def _complete_after_the_seed(engine, n: int) -> int:
     S = sessions(engine)
     info = store.start_run(S, n, Params(), "test:0:seed")
     with S.begin() as s:
-        s.execute(ExpansionRow.__table__.update().where(ExpansionRow.run_id == info.id).values(status=DONE, outcomes="{}", paths=0))
+        s.execute(
+            ExpansionRow.__table__.update()
+            .where(ExpansionRow.run_id == info.id)
+            .values(status=DONE, outcomes="{}", paths=0)
+        )
     assert store.finish_run(S, info.id, "test:0:seed", 0.0) == COMPLETE
     return info.id
 
@@ -129,7 +146,9 @@ def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_pa
     assert [found_by[i] for i in ids] == [FOUND_SEED, FOUND_CATALYSIS, FOUND_CATALYSIS, "path", "path"]
     assert (second["after"], second["parents"], second["last_parent"], second["new"]) == (ids[2], 2, ids[4], [])
     assert [(x.run_id, x.kind, x.spheres, x.after, x.last_parent, x.parents, x.new) for x in records] == [
-        (run7, PASS_GLUED, 1, 0, ids[2], 3, 2), (run7, PASS_GLUED, 1, ids[2], ids[4], 2, 0)]
+        (run7, PASS_GLUED, 1, 0, ids[2], 3, 2),
+        (run7, PASS_GLUED, 1, ids[2], ids[4], 2, 0),
+    ]
     assert all(x.finished_at >= x.started_at for x in records)
     assert covered(S, run7) == ids[4] and count_stored(S, 7, ids[4]) == 0
     again = json.loads(cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url).stdout)
@@ -247,8 +266,15 @@ def test_the_lost_cluster_of_11_is_found_from_its_parent_of_12(engine):
     parent = Core(np.array(data["parent"]["coords"]), tuple(map(tuple, data["parent"]["contacts"])))
     S = sessions(engine)
     with S.begin() as s:
-        pid, _ = store.insert_or_match(s, parent, rigidity(parent.coords, parent.contacts, Params()), None,
-                                       Params().tol_d, found_by="path", source_id=None)
+        pid, _ = store.insert_or_match(
+            s,
+            parent,
+            rigidity(parent.coords, parent.contacts, Params()),
+            None,
+            Params().tol_d,
+            found_by="path",
+            source_id=None,
+        )
     r = catalyse(S, 11, Params())
     lost = [f for f in r.new if tuple(f.deleted) == tuple(data["deleted"])]
     assert len(lost) == 1 and (lost[0].contacts, lost[0].lattice, lost[0].parent_id) == (26, "hcp", pid)
@@ -265,8 +291,9 @@ def _glued_parent_of_11(engine):
     c = Core(np.array(data["cluster"]["coords"]), tuple(map(tuple, data["cluster"]["contacts"])))
     S = sessions(engine)
     with S.begin() as s:
-        pid, _ = store.insert_or_match(s, c, rigidity(c.coords, c.contacts, Params()), None, Params().tol_d,
-                                       found_by="path", source_id=None)
+        pid, _ = store.insert_or_match(
+            s, c, rigidity(c.coords, c.contacts, Params()), None, Params().tol_d, found_by="path", source_id=None
+        )
     return data, S, pid
 
 
@@ -283,8 +310,7 @@ def test_moving_one_sphere_stores_the_lost_cluster_of_11_from_a_cluster_of_11(en
     assert (f.contacts, f.lattice, f.parent_id) == (26, "hcp", pid)
     with S() as s:
         row = s.get(ClusterRow, f.id)
-        assert (row.n, row.found_by, row.source_id, row.certificate) == (11, FOUND_CATALYSIS, pid,
-                                                                          data["certificate"])
+        assert (row.n, row.found_by, row.source_id, row.certificate) == (11, FOUND_CATALYSIS, pid, data["certificate"])
         assert s.execute(text("SELECT count(*) FROM expansions WHERE cluster_id = :i"), {"i": row.id}).scalar() == 1
         stored = s.execute(select(func.count()).select_from(ClusterRow)).scalar_one()
     again = catalyse(S, 11, Params(), glued=True)
@@ -334,8 +360,10 @@ def _dask_pass(engine, n: int, batch: int = 200, **kw):
     from packings.service.plugin import DatabasePlugin
 
     plugin = DatabasePlugin(url_of(engine))
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         client.register_plugin(plugin)
         return catalyse(sessions(engine), n, Params(), batch=batch, client=client, plugin=plugin.name, **kw)
 
@@ -381,8 +409,9 @@ def test_a_task_carries_the_parents_ids_alone_and_stores_what_it_found(engine, m
     """A pass on Dask workers submits each batch as a list of cluster ids (the scheduler and the coordinator
     never hold the parents' coordinates), and the task stores the lost cluster of 11 itself: nothing is
     stored outside a worker."""
-    import packings.service.catalysis as catalysis_module
     from distributed import Client, get_worker
+
+    import packings.service.catalysis as catalysis_module
 
     data, S, pid = _glued_parent_of_11(engine)
     submitted, real_submit, real_store = [], Client.submit, catalysis_module._store
@@ -398,8 +427,9 @@ def test_a_task_carries_the_parents_ids_alone_and_stores_what_it_found(engine, m
     monkeypatch.setattr(Client, "submit", submit)
     monkeypatch.setattr(catalysis_module, "_store", store_in_a_worker_only)
     r = _dask_pass(engine, 11, batch=1, glued=True)
-    lost = [f for f in r.new if (f.parent_id, f.moved_onto, f.deleted) == (pid, tuple(data["triangle"]),
-                                                                            (data["sphere"],))]
+    lost = [
+        f for f in r.new if (f.parent_id, f.moved_onto, f.deleted) == (pid, tuple(data["triangle"]), (data["sphere"],))
+    ]
     assert len(lost) == 1 and (lost[0].contacts, lost[0].lattice) == (26, "hcp")
     assert r.rigid == len(r.new) + r.already_stored
     assert submitted and all(name == "catalysis_task" for name, _ in submitted)
@@ -435,7 +465,8 @@ def test_the_coordinator_of_a_pass_on_worker_processes_loads_no_numerical_code(e
         "                                                   'packings.workers.paths', 'packings.workers._compiled')\n"
         "                                       if m in sys.modules)}))\n"
         "if __name__ == '__main__':\n"
-        "    main()\n")
+        "    main()\n"
+    )
     import subprocess
     import sys
 

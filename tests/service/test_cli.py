@@ -8,8 +8,9 @@ import pytest
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=600,
-                          cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=600, cwd=cwd
+    )
 
 
 def test_enumerate_prints_the_table(sqlite_url):
@@ -90,10 +91,13 @@ def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command(where):
     """SIGTERM (and Ctrl-C's SIGINT) whose handler runs inside a finalizer, or inside the report of another
     finalizer's error, where Python swallows what it raises, still stops the command at once: its one line
     and exit status, no traceback, not a command that goes on to its end with exit status 0."""
-    for name, status, line in (("SIGTERM", 143, "packings: terminated (SIGTERM); run the same command to resume"),
-                               ("SIGINT", 130, "packings: interrupted; run the same command to resume")):
-        r = subprocess.run([sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name, where], capture_output=True,
-                           text=True, timeout=60)
+    for name, status, line in (
+        ("SIGTERM", 143, "packings: terminated (SIGTERM); run the same command to resume"),
+        ("SIGINT", 130, "packings: interrupted; run the same command to resume"),
+    ):
+        r = subprocess.run(
+            [sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name, where], capture_output=True, text=True, timeout=60
+        )
         assert r.returncode == status, (name, r.stdout, r.stderr)
         assert "ran to its end" not in r.stdout
         assert r.stderr.strip().splitlines() == [line], (name, r.stderr)

@@ -20,7 +20,6 @@ from packings.service.dashboard import Watcher
 from packings.service.db import make_engine
 from tests.service.test_enumerate import _free_port, done_count, packings, wait_for
 
-
 CHROMIUM = shutil.which("chromium")
 
 
@@ -41,9 +40,24 @@ def _database_now(url: str) -> dict:
 def test_the_page_shows_the_run_as_the_database_has_it(db_url):
     port = _free_port()
     # n = 11, not 10: n = 10's run ends about two seconds after it starts, before the page is read
-    proc = subprocess.Popen([sys.executable, "-m", "packings.service.cli", "enumerate", "11", "--db", db_url, "--workers", "2",
-                             "--dashboard-address", f"127.0.0.1:{port}"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "packings.service.cli",
+            "enumerate",
+            "11",
+            "--db",
+            db_url,
+            "--workers",
+            "2",
+            "--dashboard-address",
+            f"127.0.0.1:{port}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for(lambda: done_count(db_url) >= 20, proc)
         time.sleep(1.5)  # a read of the database by the page's thread since
@@ -83,9 +97,25 @@ def test_the_page_draws_in_a_browser(sqlite_url):
     """Headless Chromium draws the page during a run: the run's numbers, and no script error.  n = 11, which
     lasts long enough (n = 10 can end, and its dashboard with it, before the browser has loaded the page)."""
     port = _free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "packings.service.cli", "enumerate", "11", "--db", sqlite_url,
-                             "--workers", "2", "--quiet", "--dashboard-address", f"127.0.0.1:{port}"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "packings.service.cli",
+            "enumerate",
+            "11",
+            "--db",
+            sqlite_url,
+            "--workers",
+            "2",
+            "--quiet",
+            "--dashboard-address",
+            f"127.0.0.1:{port}",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         wait_for(lambda: done_count(sqlite_url) >= 5, proc)
         drawn = render(f"http://127.0.0.1:{port}/packings", wait=3.0)

@@ -10,13 +10,27 @@ from pathlib import Path
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
-from packings.service.db import DatabaseError, current_revision, head_revision, make_engine, migrate, open_database, parse_url
+from packings.service.db import (
+    DatabaseError,
+    current_revision,
+    head_revision,
+    make_engine,
+    migrate,
+    open_database,
+    parse_url,
+)
 from packings.service.models import Base
 
 
 def cli(*args, cwd=None, env=None):
-    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True,
-                          timeout=600, cwd=cwd, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+        env=env,
+    )
 
 
 def one_line_error(r) -> str:
@@ -104,20 +118,23 @@ def test_db_upgrade_and_version(db_url):
     assert r.returncode == 0, r.stderr
 
 
-@pytest.mark.parametrize("url, words", [
-    ("sqlite//packings.db", "malformed database URL"),
-    ("mysql://root@localhost/x", "unsupported database"),
-    ("postgresql://nobody@127.0.0.1:1/nothing", "cannot connect"),
-    ("sqlite:////nonexistent-dir/sub/packings.db", "does not exist"),
-    # a database that only this process would see: the workers could not (refused before Dask starts)
-    ("sqlite://", "in-memory SQLite database"),
-    ("sqlite:///", "in-memory SQLite database"),
-    ("sqlite:///:memory:", "in-memory SQLite database"),
-    ("sqlite+aiosqlite:///x.db", "asyncio driver"),
-    ("postgresql+asyncpg://u@127.0.0.1/test", "asyncio driver"),
-    ("postgresql+pg8000://u@127.0.0.1/test", "'postgresql+pg8000' is not installed"),
-    ("postgresql+nosuch://u@127.0.0.1/test", "unknown database driver"),
-])
+@pytest.mark.parametrize(
+    "url, words",
+    [
+        ("sqlite//packings.db", "malformed database URL"),
+        ("mysql://root@localhost/x", "unsupported database"),
+        ("postgresql://nobody@127.0.0.1:1/nothing", "cannot connect"),
+        ("sqlite:////nonexistent-dir/sub/packings.db", "does not exist"),
+        # a database that only this process would see: the workers could not (refused before Dask starts)
+        ("sqlite://", "in-memory SQLite database"),
+        ("sqlite:///", "in-memory SQLite database"),
+        ("sqlite:///:memory:", "in-memory SQLite database"),
+        ("sqlite+aiosqlite:///x.db", "asyncio driver"),
+        ("postgresql+asyncpg://u@127.0.0.1/test", "asyncio driver"),
+        ("postgresql+pg8000://u@127.0.0.1/test", "'postgresql+pg8000' is not installed"),
+        ("postgresql+nosuch://u@127.0.0.1/test", "unknown database driver"),
+    ],
+)
 def test_bad_database_urls_are_one_line(url, words, tmp_path):
     r = cli("enumerate", "6", "--db", url, "--quiet", cwd=tmp_path)
     assert words in one_line_error(r)
@@ -200,9 +217,9 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     Either way the connection's busy timeout is the configured one afterwards."""
     import threading
 
-    import packings.service.db
     from sqlalchemy.exc import OperationalError
 
+    import packings.service.db
     from packings.service.db import sessions
 
     eng = open_database(sqlite_url, create=True)
@@ -245,9 +262,6 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     eng.dispose()
 
 
-
-
-
 def _how_found(engine) -> dict[int, tuple[str, int | None]]:
     with engine.connect() as c:
         return {i: (f, s) for i, f, s in c.execute(text("SELECT id, found_by, source_id FROM clusters"))}
@@ -262,8 +276,10 @@ def _copy_as_0002(source, target) -> None:
     with source.connect() as src, target.begin() as dst:
         for name in ("runs", "clusters", "expansions", "transitions"):
             table = old.tables[name]
-            rows = [{k: v for k, v in r.items() if k in table.c}
-                    for r in src.execute(Base.metadata.tables[name].select()).mappings()]
+            rows = [
+                {k: v for k, v in r.items() if k in table.c}
+                for r in src.execute(Base.metadata.tables[name].select()).mappings()
+            ]
             dst.execute(table.insert(), rows)
 
 
@@ -293,7 +309,10 @@ def test_revision_0003_backfills_how_stored_clusters_were_found(engine, tmp_path
         assert _how_found(target) == written
         cols = {c["name"]: c for c in inspect(target).get_columns("clusters")}
         assert not cols["found_by"]["nullable"] and cols["source_id"]["nullable"]
-        fks = {tuple(fk["constrained_columns"]): fk["referred_table"] for fk in inspect(target).get_foreign_keys("clusters")}
+        fks = {
+            tuple(fk["constrained_columns"]): fk["referred_table"]
+            for fk in inspect(target).get_foreign_keys("clusters")
+        }
         assert fks[("source_id",)] == "clusters"
         with pytest.raises(Exception, match="(?i)foreign key"):  # source_id must name a stored cluster
             with target.begin() as c:
@@ -344,9 +363,13 @@ def test_db_upgrade_migrates_a_0002_database_holding_clusters(engine, tmp_path):
 
 def _table_counts(engine) -> dict:
     with engine.connect() as c:
-        out = {t: c.execute(text(f"SELECT count(*) FROM {t}")).scalar() for t in ("runs", "clusters", "expansions",
-                                                                               "transitions")}
-        out["by_contacts"] = sorted(c.execute(text("SELECT n, contacts, count(*) FROM clusters GROUP BY n, contacts")).all())
+        out = {
+            t: c.execute(text(f"SELECT count(*) FROM {t}")).scalar()
+            for t in ("runs", "clusters", "expansions", "transitions")
+        }
+        out["by_contacts"] = sorted(
+            c.execute(text("SELECT n, contacts, count(*) FROM clusters GROUP BY n, contacts")).all()
+        )
         out["done"] = c.execute(text("SELECT count(*) FROM expansions WHERE status = 'done'")).scalar()
     return out
 

@@ -24,13 +24,15 @@ from packings.workers.params import Params
 
 
 def packings(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True,
-                          timeout=1800, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=1800, **kw
+    )
 
 
 def start(*args):
-    return subprocess.Popen([sys.executable, "-m", "packings.service.cli", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "packings.service.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
 
 
 @pytest.fixture(scope="module")
@@ -68,7 +70,9 @@ def done_count(url: str) -> int:
     engine = make_engine(url)
     try:
         with sessions(engine)() as s:
-            return s.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == "done")).scalar()
+            return s.execute(
+                select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == "done")
+            ).scalar()
     except Exception:  # noqa: BLE001 - the schema may not exist yet
         return 0
     finally:
@@ -231,13 +235,29 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
     port, dash = _free_port(), _free_port()
     address = f"tcp://127.0.0.1:{port}"
     # the scheduler serves the packings page of the database it is told (README: many machines)
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
-                               "--dashboard-address", f"127.0.0.1:{dash}", "--preload", "packings.service.dashboard"],
-                              stderr=subprocess.DEVNULL, env={**os.environ, "PACKINGS_DB": db_url})]
+    procs = [
+        subprocess.Popen(
+            [
+                dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--dashboard-address",
+                f"127.0.0.1:{dash}",
+                "--preload",
+                "packings.service.dashboard",
+            ],
+            stderr=subprocess.DEVNULL,
+            env={**os.environ, "PACKINGS_DB": db_url},
+        )
+    ]
     try:
         _wait_until_listening(port)  # as an operator starts the scheduler before pointing anything at it
-        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads", "1"],
-                                      stderr=subprocess.DEVNULL))
+        procs.append(
+            subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads", "1"], stderr=subprocess.DEVNULL)
+        )
         r = packings("db", "upgrade", "--db", db_url)
         assert r.returncode == 0, r.stderr
         r = packings("enumerate", "8", "--db", db_url, "--scheduler", address, "--json")
@@ -279,10 +299,14 @@ def test_failing_tasks_are_retried_through_dask_then_reported(engine, monkeypatc
     def broken(cluster, params, arrivals=()):
         raise FloatingPointError("injected failure")
 
-    monkeypatch.setattr(packings.service.tasks, "expand", broken)  # threads of this process: the patch reaches the tasks
+    monkeypatch.setattr(
+        packings.service.tasks, "expand", broken
+    )  # threads of this process: the patch reaches the tasks
     url = engine.url.render_as_string(hide_password=False)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         result = run_enumeration(engine, url, 6, Params(), client, max_attempts=2)
     assert result.status == "incomplete"
     assert result.errors == ["expansion 1: FloatingPointError: injected failure"]
@@ -310,7 +334,9 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
     victim = explore(8).clusters[3]
     real_expand, real_task = packings.service.tasks.expand, packings.service.coordinator.expand_task
     batches: list[list[int]] = []
-    monkeypatch.setattr(packings.service.tasks, "seen_batches", batches, raising=False)  # tasks are pickled: reach it by module
+    monkeypatch.setattr(
+        packings.service.tasks, "seen_batches", batches, raising=False
+    )  # tasks are pickled: reach it by module
 
     def failing(cluster, p, arrivals=()):
         if same_geometry(cluster, victim, p.tol_d):
@@ -324,12 +350,16 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
     monkeypatch.setattr(packings.service.tasks, "expand", failing)
     monkeypatch.setattr(packings.service.coordinator, "expand_task", recording)
     url = engine.url.render_as_string(hide_password=False)
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         result = run_enumeration(engine, url, 8, params, client, max_attempts=2, per_worker=1, batch=4)
     assert result.status == "incomplete"
     with sessions(engine)() as s:
-        rows = s.execute(select(ExpansionRow, ClusterRow).join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)).all()
+        rows = s.execute(
+            select(ExpansionRow, ClusterRow).join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
+        ).all()
     failed = [(e, c) for e, c in rows if e.status == "failed"]
     assert len(failed) == 1 and same_geometry(failed[0][1].to_core(), victim, params.tol_d)
     e = failed[0][0]
@@ -381,9 +411,14 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
         return RunResult(1, n, "complete", {}, {}, 0.0, False)
 
     monkeypatch.setattr(packings.service.coordinator, "run_enumeration", fake_run)
-    monkeypatch.setattr(packings.service.dask_cluster, "dask_client",
-                        lambda *a, **kw: nullcontext(SimpleNamespace(client=None, revive_workers=lambda: 0)))
-    r = CliRunner().invoke(packings.service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"])
+    monkeypatch.setattr(
+        packings.service.dask_cluster,
+        "dask_client",
+        lambda *a, **kw: nullcontext(SimpleNamespace(client=None, revive_workers=lambda: 0)),
+    )
+    r = CliRunner().invoke(
+        packings.service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"]
+    )
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
 
@@ -403,8 +438,10 @@ def test_each_worker_compiles_the_kernels_when_it_joins(engine):
 
         return dask_worker.plugins[plugin.name].warm_up_seconds, len(c.newton.signatures), len(c.residual.signatures)
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         client.register_plugin(plugin)
         seen = client.run(compiled)
     assert len(seen) == 2
@@ -439,8 +476,13 @@ def _worker_origin():
     import os
 
     preload = sys.modules.get("packings.service.preload")
-    return (os.getppid(), preload is not None, getattr(preload, "warm_up_seconds", 0.0),
-            os.environ.get("OMP_NUM_THREADS"), os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+    return (
+        os.getppid(),
+        preload is not None,
+        getattr(preload, "warm_up_seconds", 0.0),
+        os.environ.get("OMP_NUM_THREADS"),
+        os.environ.get("MALLOC_TRIM_THRESHOLD_"),
+    )
 
 
 @pytest.fixture
@@ -454,8 +496,10 @@ def fresh_dask_config(monkeypatch):
     dask.config.refresh()
 
 
-@pytest.mark.skipif("forkserver" not in __import__("multiprocessing").get_all_start_methods(),
-                    reason="this platform has no fork server: local workers are spawned")
+@pytest.mark.skipif(
+    "forkserver" not in __import__("multiprocessing").get_all_start_methods(),
+    reason="this platform has no fork server: local workers are spawned",
+)
 def test_a_local_clusters_workers_are_forked_warm_from_one_fork_server(engine, fresh_dask_config):
     """The local cluster's workers are forked from one fork server that imported the tasks' modules and
     warmed the kernels up before (packings.service.preload), not spawned by this process to import it all each
@@ -498,8 +542,10 @@ def test_a_chosen_start_method_is_kept(engine, fresh_dask_config):
 def test_the_command_line_starts_the_workers_before_loading_the_kernels():
     """What ``packings enumerate`` imports before it starts its local cluster (the command line and the
     worker plugin) leaves out the numerical code: the workers start while it is loaded."""
-    code = ("import sys, packings.service.cli, packings.service.plugin; "
-            "print(sorted(m for m in ('numba', 'packings.workers.expand', 'packings.workers.kernels', 'packings.service.store') if m in sys.modules))")
+    code = (
+        "import sys, packings.service.cli, packings.service.plugin; "
+        "print(sorted(m for m in ('numba', 'packings.workers.expand', 'packings.workers.kernels', 'packings.service.store') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -507,8 +553,10 @@ def test_the_command_line_starts_the_workers_before_loading_the_kernels():
 def test_the_command_line_loads_light_so_that_the_fork_server_starts_first():
     """Importing the command line loads none of SQLAlchemy, numpy, Dask (0.3 s in all): `packings
     enumerate` starts its workers' fork server before it loads them, and the commands load what they use."""
-    code = ("import sys, packings.service.cli; "
-            "print(sorted(m for m in ('sqlalchemy', 'numpy', 'dask', 'distributed') if m in sys.modules))")
+    code = (
+        "import sys, packings.service.cli; "
+        "print(sorted(m for m in ('sqlalchemy', 'numpy', 'dask', 'distributed') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
@@ -574,9 +622,11 @@ def test_the_coordinator_keeps_few_of_the_messages_it_sent(fresh_dask_config, en
         for i in range(dc.LOG_LENGTH + 60):  # one at a time: a message (a batch) each way per task
             assert client.submit(_one, i, key=f"one-{i}").result() == i
         scheduler = local.cluster.scheduler
-        held = [len(client.scheduler_comm.recent_message_log),
-                *(len(b.recent_message_log) for b in scheduler.stream_comms.values()),
-                *(len(b.recent_message_log) for b in scheduler.client_comms.values())]
+        held = [
+            len(client.scheduler_comm.recent_message_log),
+            *(len(b.recent_message_log) for b in scheduler.stream_comms.values()),
+            *(len(b.recent_message_log) for b in scheduler.client_comms.values()),
+        ]
     if env is None:
         assert max(held) <= dc.LOG_LENGTH
     else:
@@ -669,9 +719,14 @@ def test_ctrl_c_is_one_line_and_exit_130_and_the_run_resumes(db_url, reference10
     can finish in the moment between the test seeing its fifth expansion done and the signal."""
     import os
 
-    proc = subprocess.Popen([sys.executable, "-m", "packings.service.cli", "enumerate", "10", "--db", db_url, "--workers", "2",
-                             "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True, preexec_fn=_sigint_by_default)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "packings.service.cli", "enumerate", "10", "--db", db_url, "--workers", "2", "--quiet"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=_sigint_by_default,
+    )
     try:
         wait_for(lambda: done_count(db_url) >= 5, proc)
         os.killpg(proc.pid, signal.SIGINT)
@@ -719,8 +774,20 @@ def test_a_run_restricted_to_many_contacts_finds_the_papers_clusters_with_that_m
     close-packed fragment with 28 contacts) finds the paper's 20 clusters with 28 contacts and the one
     with 29, and nothing with fewer."""
     url = f"sqlite:///{tmp_path / 'g.db'}"
-    r = packings("enumerate", "11", "--min-contacts", "28", "--max-break", "3", "--db", url, "--workers", "2",
-                 "--json", "--quiet")
+    r = packings(
+        "enumerate",
+        "11",
+        "--min-contacts",
+        "28",
+        "--max-break",
+        "3",
+        "--db",
+        url,
+        "--workers",
+        "2",
+        "--json",
+        "--quiet",
+    )
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     want = {m: c for m, c in paper_counts["clusters_by_contacts"]["11"].items() if int(m) >= 28}

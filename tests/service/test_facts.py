@@ -13,11 +13,11 @@ import pytest
 from sqlalchemy import select, text
 
 from packings.service.models import ClusterRow, Transition
-from tests.service.querydb import filled_catalog
-from tests.service.test_query_cli import ok, one_line_error, run, run_many
 from packings.workers.classify import lattice_type, static_class
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.params import DEFAULT
+from tests.service.querydb import filled_catalog
+from tests.service.test_query_cli import ok, one_line_error, run, run_many
 
 catalog = filled_catalog(7, 8)
 
@@ -71,8 +71,11 @@ def store_clusters(engine, clusters) -> list[int]:
     ids = []
     with Session_.begin() as s:
         for c in clusters:
-            ids.append(store.insert_or_match(s, c, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d,
-                                             found_by="seed", source_id=None)[0])
+            ids.append(
+                store.insert_or_match(
+                    s, c, rigidity(c.coords, c.contacts, DEFAULT), None, DEFAULT.tol_d, found_by="seed", source_id=None
+                )[0]
+            )
     return ids
 
 
@@ -104,8 +107,17 @@ def test_facts_are_stored_selected_and_exported(engine, tmp_path):
     assert rec["static"] == "isostatic" and rec["excess"] == 0  # the bipyramid: 15 = 3*7-6
     fcc = json.loads(ok("select", "lattice=fcc", "--json", "--db", u))
     assert [o["id"] for o in fcc] == [ids["fcc"]]
-    counts = {"close_packed": 2, "!close_packed": 1, "fcc": 1, "hcp": 1, "lattice=none": 1, "hyperstatic": 2,
-              "static=hyperstatic,lattice=hcp": 1, "n=13,close_packed,contacts=36": 2, "geometries=1": 3}
+    counts = {
+        "close_packed": 2,
+        "!close_packed": 1,
+        "fcc": 1,
+        "hcp": 1,
+        "lattice=none": 1,
+        "hyperstatic": 2,
+        "static=hyperstatic,lattice=hcp": 1,
+        "n=13,close_packed,contacts=36": 2,
+        "geometries=1": 3,
+    }
     for (sel, expected), r in zip(counts.items(), run_many(*(["select", k, "--count", "--db", u] for k in counts))):
         assert r.returncode == 0, r.stderr
         assert int(r.stdout) == expected, sel
@@ -142,8 +154,12 @@ def test_two_geometries_of_one_contact_graph_are_counted(engine):
     text = ok("stats", "--n", "11", "--db", u)
     assert "geometries  adjacency matrices\n         2                   1" in text
     # two clusters and no run: far from the paper's table, and said to be partial
-    assert "fewer than the paper: 0 with 25 contacts (the paper 2), 0 with 26 contacts (the paper 18), 2 with 27 " \
-           "contacts (the paper 1618)" in text and text.count("(partial") == 2
+    assert (
+        "fewer than the paper: 0 with 25 contacts (the paper 2), 0 with 26 contacts (the paper 18), 2 with 27 "
+        "contacts (the paper 1618)"
+        in text
+        and text.count("(partial") == 2
+    )
     (n6,) = json.loads(ok("stats", "--n", "6", "--json", "--db", u))
     assert n6["multi_embedding"] == {} and n6["lattice"] == {"both": 1}
 
@@ -181,11 +197,15 @@ def test_stats_json_agrees_with_the_rows(catalog, rows, paper_counts):
         by_contacts = Counter(c.contacts for c in mine)
         assert d["total"] == len(mine) and d["by_contacts"] == {str(m): k for m, k in sorted(by_contacts.items())}
         assert d["singular"] == sum(c.singular for c in mine)
-        assert d["singular_by_contacts"] == {str(m): k for m, k in sorted(Counter(c.contacts for c in mine
-                                                                                  if c.singular).items())}
+        assert d["singular_by_contacts"] == {
+            str(m): k for m, k in sorted(Counter(c.contacts for c in mine if c.singular).items())
+        }
         statics = Counter(static_class(c.n, c.contacts) for c in mine)
-        assert (d["hypostatic"], d["isostatic"], d["hyperstatic"]) == \
-            (statics["hypostatic"], statics["isostatic"], statics["hyperstatic"])
+        assert (d["hypostatic"], d["isostatic"], d["hyperstatic"]) == (
+            statics["hypostatic"],
+            statics["isostatic"],
+            statics["hyperstatic"],
+        )
         cp = [c for c in mine if c.lattice != "none"]
         assert d["close_packed"] == len(cp) and d["lattice"] == dict(sorted(Counter(c.lattice for c in cp).items()))
         assert d["close_packed_by_contacts"] == {str(m): k for m, k in sorted(Counter(c.contacts for c in cp).items())}
@@ -207,11 +227,21 @@ def test_stats_json_agrees_with_the_rows(catalog, rows, paper_counts):
 
 def test_stats_prints_the_tables(catalog):
     out = ok("stats", "--db", catalog.url)
-    for words in ("n = 7: 5 rigid clusters", "n = 8: 13 rigid clusters", "singular", "close-packed",
-                  "adjacency matrices with more than one geometry", "smallest gap", "smallest gaps",
-                  "circular paths", "fit of the totals to b·(n−5)!", "contacts  3n-6+  clusters  paper  singular",
-                  "     18     +0        13     13", "as the paper at every number of contacts: 5 (Holmes-Cerfon",
-                  "as the paper at every number of contacts: 13 (Holmes-Cerfon"):
+    for words in (
+        "n = 7: 5 rigid clusters",
+        "n = 8: 13 rigid clusters",
+        "singular",
+        "close-packed",
+        "adjacency matrices with more than one geometry",
+        "smallest gap",
+        "smallest gaps",
+        "circular paths",
+        "fit of the totals to b·(n−5)!",
+        "contacts  3n-6+  clusters  paper  singular",
+        "     18     +0        13     13",
+        "as the paper at every number of contacts: 5 (Holmes-Cerfon",
+        "as the paper at every number of contacts: 13 (Holmes-Cerfon",
+    ):
         assert words in out, words
 
 
@@ -223,10 +253,12 @@ def test_path_keys_agree_with_the_transitions(catalog, rows):
     circ = Counter(t.source_id for t in moving if t.outcome == "circular")
     records = json.loads(ok("select", "--json", "--db", catalog.url))
     assert len(records) == len(clusters)
-    sel = {"paths_out>0": sum(1 for c in clusters if out[c.id] > 0),
-           "circular>0": sum(1 for c in clusters if circ[c.id] > 0),
-           "!reached": sum(1 for c in clusters if into[c.id] == 0),
-           "paths_in>=3": sum(1 for c in clusters if into[c.id] >= 3)}
+    sel = {
+        "paths_out>0": sum(1 for c in clusters if out[c.id] > 0),
+        "circular>0": sum(1 for c in clusters if circ[c.id] > 0),
+        "!reached": sum(1 for c in clusters if into[c.id] == 0),
+        "paths_in>=3": sum(1 for c in clusters if into[c.id] >= 3),
+    }
     for (s, expected), r in zip(sel.items(), run_many(*(["select", s, "--count", "--db", catalog.url] for s in sel))):
         assert r.returncode == 0, r.stderr
         assert int(r.stdout) == expected, s

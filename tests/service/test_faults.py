@@ -25,8 +25,7 @@ from benchmarks.soak import worker_processes
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run, Transition
 from packings.workers.params import Params
-from tests.service.test_enumerate import (
-    assert_same_clusters, done_count, start, wait_for)
+from tests.service.test_enumerate import assert_same_clusters, done_count, start, wait_for
 from tests.service.test_enumerate import packings as cli
 
 #: Dask's scheduler gives a task lost with its worker to another one up to allowed-failures (3) times
@@ -59,8 +58,10 @@ def _in_process_run(engine, n: int, monkeypatch, task, max_attempts: int = 3):
     real = packings.service.coordinator.expand_task
     monkeypatch.setattr(packings.service.coordinator, "expand_task", lambda e, p: task(real, e, p))
     url = engine.url.render_as_string(hide_password=False)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         return run_enumeration(engine, url, n, Params(), client, max_attempts=max_attempts)
 
 
@@ -106,11 +107,10 @@ def test_a_lost_task_puts_its_expansions_back_without_using_an_attempt(engine, m
 def test_an_expansion_that_kills_every_worker_alone_ends_failed(engine, monkeypatch):
     """An expansion whose task is lost every time: its first loss (in a batch or not) is a retry, each
     loss alone an attempt; after max_attempts it is failed, and nothing else is."""
-    from packings.workers.explore import explore
-    from packings.workers.identity import same_geometry
-
     import packings.service.store
     import packings.service.tasks
+    from packings.workers.explore import explore
+    from packings.workers.identity import same_geometry
 
     poison = explore(8).clusters[4]
     monkeypatch.setattr(packings.service.tasks, "fault_log", (sessions(engine), poison, Params().tol_d), raising=False)
@@ -141,15 +141,22 @@ def _assert_transitions_whole(url: str, n: int) -> None:
 
     engine = make_engine(url)
     with sessions(engine)() as s:
-        done = s.execute(select(ExpansionRow.cluster_id, ClusterRow).join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
-                         .where(ExpansionRow.status == DONE, ClusterRow.n == n)).all()
+        done = s.execute(
+            select(ExpansionRow.cluster_id, ClusterRow)
+            .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
+            .where(ExpansionRow.status == DONE, ClusterRow.n == n)
+        ).all()
         stored = Counter()
         for source, outcome in s.execute(select(Transition.source_id, Transition.outcome)):
             stored[source, outcome] += 1
-        per_attempt = s.execute(select(func.count()).select_from(
-            select(Transition.source_id, Transition.broken, Transition.direction)
-            .group_by(Transition.source_id, Transition.broken, Transition.direction)
-            .having(func.count() > 1).subquery())).scalar()
+        per_attempt = s.execute(
+            select(func.count()).select_from(
+                select(Transition.source_id, Transition.broken, Transition.direction)
+                .group_by(Transition.source_id, Transition.broken, Transition.direction)
+                .having(func.count() > 1)
+                .subquery()
+            )
+        ).scalar()
         params = Params.from_dict(json.loads(s.execute(select(Run.params)).scalar_one()))
     engine.dispose()
     assert per_attempt == 0
@@ -250,7 +257,9 @@ def test_the_coordinator_killed_five_times_then_rerun(db_url, seed):
     engine = make_engine(db_url)
     with sessions(engine)() as s:
         assert s.execute(select(func.max(ExpansionRow.attempts))).scalar() == 1
-        assert s.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == LEASED)).scalar() == 0
+        assert (
+            s.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == LEASED)).scalar() == 0
+        )
     engine.dispose()
 
 
@@ -280,10 +289,14 @@ def test_a_write_back_that_dies_half_way_leaves_nothing_and_is_retried(engine, m
     with sessions(engine)() as s:
         keys = s.execute(select(ClusterRow.n, ClusterRow.certificate, ClusterRow.embedding)).all()
         transitions = s.execute(select(func.count()).select_from(Transition)).scalar()
-        per_attempt = s.execute(select(func.count()).select_from(
-            select(Transition.source_id, Transition.broken, Transition.direction)
-            .group_by(Transition.source_id, Transition.broken, Transition.direction)
-            .having(func.count() > 1).subquery())).scalar()
+        per_attempt = s.execute(
+            select(func.count()).select_from(
+                select(Transition.source_id, Transition.broken, Transition.direction)
+                .group_by(Transition.source_id, Transition.broken, Transition.direction)
+                .having(func.count() > 1)
+                .subquery()
+            )
+        ).scalar()
     assert len(keys) == len(set(keys)) == 52 and per_attempt == 0 and transitions > 0
 
 
@@ -316,7 +329,9 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_after(small_disk, 
     engine = make_engine(url)
     with engine.connect() as c:
         assert c.exec_driver_sql("PRAGMA integrity_check").scalar() == "ok"
-        assert c.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == FAILED)).scalar() == 0
+        assert (
+            c.execute(select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == FAILED)).scalar() == 0
+        )
     engine.dispose()
     # space freed: the same command resumes and loses nothing
     subprocess.run(["mount", "-o", "remount,size=64m", str(small_disk)], check=True)
@@ -339,8 +354,10 @@ def test_two_runs_of_different_n_on_one_postgresql_database_at_once(pg_url, refe
     both runs complete with exactly their clusters."""
     from packings.workers.explore import explore
 
-    procs = [start("enumerate", str(n), "--db", pg_url, "--workers", "1", "--quiet", "--dashboard-address",
-                   "127.0.0.1:0") for n in (8, 9)]
+    procs = [
+        start("enumerate", str(n), "--db", pg_url, "--workers", "1", "--quiet", "--dashboard-address", "127.0.0.1:0")
+        for n in (8, 9)
+    ]
     outs = [p.communicate(timeout=900) for p in procs]
     for p, (out, err) in zip(procs, outs):
         assert p.returncode == 0, err
@@ -364,12 +381,22 @@ def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10)
     dask = os.path.join(os.path.dirname(sys.executable), "dask")
     port = _free_port()
     address = f"tcp://127.0.0.1:{port}"
-    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address",
-                               "127.0.0.1:0"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    procs = [
+        subprocess.Popen(
+            [dask, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", "127.0.0.1:0"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+    ]
     try:
         _wait_until_listening(port)
-        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "4", "--nthreads", "1"],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        procs.append(
+            subprocess.Popen(
+                [dask, "worker", address, "--nworkers", "4", "--nthreads", "1"],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        )
         assert cli("db", "upgrade", "--db", pg_url).returncode == 0
         run = start("enumerate", "10", "--db", pg_url, "--scheduler", address, "--quiet")
         try:
@@ -402,8 +429,11 @@ def test_a_cluster_left_without_workers_stops_the_run_resumably(engine):
     from packings.service.errors import SchedulerError
 
     url = engine.url.render_as_string(hide_password=False)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+
         def retire():
             while done_count(url) < 10:
                 time.sleep(0.05)
@@ -415,8 +445,10 @@ def test_a_cluster_left_without_workers_stops_the_run_resumably(engine):
     rows = _expansions(engine)
     assert not any(e.status == LEASED for e in rows) and not any(e.status == FAILED for e in rows)
     assert 10 <= sum(e.status == DONE for e in rows) < 52 and max(e.attempts for e in rows) <= 1
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
     assert result.status == "complete" and result.total == 52 and result.resumed
 
@@ -453,8 +485,10 @@ def test_a_connection_that_breaks_as_the_coordinator_asks_is_asked_again(engine,
 
     monkeypatch.setattr(packings.service.coordinator, "CAPACITY_SECONDS", 0.0)  # asked at every fill
     url = engine.url.render_as_string(hide_password=False)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         calls = _broken_nthreads(client, monkeypatch, lambda k: k in (2, 3))
         result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
     assert result.status == "complete" and result.total == 52 and result.errors == []
@@ -475,16 +509,20 @@ def test_a_connection_that_stays_broken_stops_the_run_resumably(engine, monkeypa
     monkeypatch.setattr(packings.service.coordinator, "CAPACITY_SECONDS", 0.0)
     monkeypatch.setattr(packings.service.coordinator, "RECONNECT_MARGIN", 1.0)
     url = engine.url.render_as_string(hide_password=False)
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         client._timeout = 1.0
         _broken_nthreads(client, monkeypatch, lambda k: k >= 2)
         with pytest.raises(SchedulerError, match="could not reach it again"):
             run_enumeration(engine, url, 9, Params(), client)
     rows = _expansions(engine)
     assert not any(e.status == LEASED for e in rows) and max(e.attempts for e in rows) <= 1
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         result = run_enumeration(engine, url, 9, Params(), client, max_attempts=1)
     assert result.status == "complete" and result.total == 52 and result.resumed
 
@@ -566,12 +604,26 @@ class _DaskCluster:
     def start(self) -> None:
         from tests.service.test_enumerate import _wait_until_listening
 
-        self.scheduler = subprocess.Popen([self.dask, "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
-                                           "--dashboard-address", "127.0.0.1:0"],
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.scheduler = subprocess.Popen(
+            [
+                self.dask,
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.port),
+                "--dashboard-address",
+                "127.0.0.1:0",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         _wait_until_listening(self.port)
-        self.worker = subprocess.Popen([self.dask, "worker", self.address, "--nworkers", str(self.workers),
-                                        "--nthreads", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.worker = subprocess.Popen(
+            [self.dask, "worker", self.address, "--nworkers", str(self.workers), "--nthreads", "1"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
 
     def kill_scheduler(self) -> None:
         self.scheduler.send_signal(signal.SIGKILL)
@@ -638,8 +690,9 @@ def test_a_scheduler_that_does_not_come_back_ends_the_run_in_one_line_resumably(
         code, out, err = _scheduler_lost_mid_run(cluster, pg_url, back_after=None)
         assert code == 1 and "Traceback" not in err, err
         errors = [line for line in err.splitlines() if "error" in line]
-        assert len(errors) == 1 and errors[0].startswith("packings: error: lost the Dask scheduler and could not "
-                                                         "reach it again in"), err
+        assert len(errors) == 1 and errors[0].startswith(
+            "packings: error: lost the Dask scheduler and could not reach it again in"
+        ), err
         assert errors[0].endswith("run the same command to resume")
         status = _faults(pg_url)
         assert status["leased"] == 0 and status["status"] != "complete" and status["done"] >= 40
@@ -652,4 +705,5 @@ def test_a_scheduler_that_does_not_come_back_ends_the_run_in_one_line_resumably(
     monkeypatch.setenv("PACKINGS_RECONNECT_SECONDS", "soon")
     r = cli("enumerate", "10", "--db", pg_url, "--scheduler", cluster.address)
     assert r.returncode != 0 and r.stderr.strip().splitlines() == [
-        "packings: error: PACKINGS_RECONNECT_SECONDS must be a positive number of seconds (got 'soon')"], r.stderr
+        "packings: error: PACKINGS_RECONNECT_SECONDS must be a positive number of seconds (got 'soon')"
+    ], r.stderr

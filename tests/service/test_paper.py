@@ -25,7 +25,8 @@ def test_the_papers_own_counts_are_the_same(paper_counts):
         assert a["same"] is True and a["fewer"] == a["more"] == {}
         assert a["by_contacts"] == table and a["total"] == paper_counts["totals"][n]
         assert paper.verdict(int(n), a, complete=True) == (
-            f"as the paper at every number of contacts: {paper_counts['totals'][n]} ({paper.SOURCE}, Table 1)")
+            f"as the paper at every number of contacts: {paper_counts['totals'][n]} ({paper.SOURCE}, Table 1)"
+        )
 
 
 def test_a_missing_and_an_extra_cluster_are_each_named():
@@ -51,7 +52,8 @@ def test_a_restricted_run_is_compared_from_its_fewest_contacts_up():
     a = paper.against_paper(14, {39: 79, 40: 4}, min_contacts=39)
     assert a["same"] is True and a["by_contacts"] == {"39": 79, "40": 4} and a["total"] == 83
     assert paper.verdict(14, a, complete=False, min_contacts=39) == (
-        f"as the paper at every number of contacts, with at least 39 contacts: 83 ({paper.SOURCE}, Table 1)")
+        f"as the paper at every number of contacts, with at least 39 contacts: 83 ({paper.SOURCE}, Table 1)"
+    )
     a = paper.against_paper(14, {38: 800, 39: 79, 40: 4}, min_contacts=38)
     assert a["fewer"] == {"38": [800, 878]} and a["more"] == {}
     assert "misses the clusters reached only through fewer contacts" in paper.verdict(14, a, False, 38)
@@ -63,8 +65,11 @@ def test_beyond_the_papers_table_only_its_maximum_is_held_against(found, more):
     a = paper.against_paper(15, found, min_contacts=43)
     assert a["by_contacts"] is None and a["same"] is None and a["max_contacts"] == 44 and a["more"] == more
     text = paper.verdict(15, a, complete=False, min_contacts=43)
-    assert text.startswith("MORE CONTACTS THAN THE PAPER'S MAXIMUM M(15) = 44: 1 with 45") if more else \
-        "M(n) = 44" in text and "no cluster here has more" in text
+    assert (
+        text.startswith("MORE CONTACTS THAN THE PAPER'S MAXIMUM M(15) = 44: 1 with 45")
+        if more
+        else "M(n) = 44" in text and "no cluster here has more" in text
+    )
 
 
 def test_no_comparison_where_the_paper_says_nothing():

@@ -33,8 +33,15 @@ from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7, 8)
 
-PAPER_BY_CONTACTS = {5: {9: 1}, 6: {12: 2}, 7: {15: 5}, 8: {18: 13}, 9: {21: 52}, 10: {23: 1, 24: 259, 25: 3},
-                     11: {25: 2, 26: 18, 27: 1618, 28: 20, 29: 1}}
+PAPER_BY_CONTACTS = {
+    5: {9: 1},
+    6: {12: 2},
+    7: {15: 5},
+    8: {18: 13},
+    9: {21: 52},
+    10: {23: 1, 24: 259, 25: 3},
+    11: {25: 2, 26: 18, 27: 1618, 28: 20, 29: 1},
+}
 S = 1 / math.sqrt(2)
 OCTAHEDRON = np.array([[S, 0, 0], [-S, 0, 0], [0, S, 0], [0, -S, 0], [0, 0, S], [0, 0, -S]])
 OCTAHEDRON_CONTACTS = [(i, j) for i in range(6) for j in range(i + 1, 6) if j != i + 1 or i % 2]
@@ -116,8 +123,9 @@ def test_the_contacts_figure_draws_the_papers_counts_in_the_colour_of_their_n():
 def test_the_contacts_figure_says_which_n_were_counted_from_m_contacts_up():
     """An n only restricted runs hold is labelled with its M, as in the counts figure; a full n is not, and an
     M given for an n not drawn is ignored."""
-    fig = plot_by_contacts({10: {24: 259}, 14: {39: 79, 40: 4}}, restricted={14: 39, 15: 43},
-                           paper={14: {39: 79, 40: 4}})
+    fig = plot_by_contacts(
+        {10: {24: 259}, 14: {39: 79, 40: 4}}, restricted={14: 39, 15: 43}, paper={14: {39: 79, 40: 4}}
+    )
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert "n = 14 (83, ≥ 39 contacts)" in labels and "n = 10 (259)" in labels
     assert not [label for label in labels if "15" in label]
@@ -149,8 +157,11 @@ def test_the_counts_figure_leaves_partial_counts_out_of_the_fit():
     fig = plot_counts({7: 5, 8: 13, 9: 20, 10: 262}, restricted={10: 24}, partial={9, 10})
     [ax] = fig.axes
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
-    [alone] = [t for t in (t.get_text() for t in plot_counts({7: 5, 8: 13}).axes[0].get_legend().get_texts())
-               if t.startswith("fit")]
+    [alone] = [
+        t
+        for t in (t.get_text() for t in plot_counts({7: 5, 8: 13}).axes[0].get_legend().get_texts())
+        if t.startswith("fit")
+    ]
     assert "partial counts (no full run of n complete)" in labels and alone in labels
     [hollow] = [line for line in ax.get_lines() if line.get_label().startswith("partial")]
     assert list(hollow.get_xdata()) == [9] and hollow.get_markerfacecolor() == "none"
@@ -172,14 +183,15 @@ def test_the_commands_label_partial_and_restricted_n(sqlite_url, monkeypatch, tm
     try:
         fill_database(engine, 7)
         fill_database(engine, 9, Params(min_contacts=21, max_break=3))
-        store.start_run(sessions(engine), 8, Params(), f"{socket.gethostname()}:{2 ** 22 + 12345}:gone")
+        store.start_run(sessions(engine), 8, Params(), f"{socket.gethostname()}:{2**22 + 12345}:gone")
     finally:
         engine.dispose()
     seen = {"plot_counts": [], "plot_by_contacts": []}
     for name, kept in seen.items():
         real = getattr(plots, name)
-        monkeypatch.setattr(plots, name, lambda *a, _real=real, _kept=kept, **kw: _kept.append(_real(*a, **kw))
-                            or _kept[-1])
+        monkeypatch.setattr(
+            plots, name, lambda *a, _real=real, _kept=kept, **kw: _kept.append(_real(*a, **kw)) or _kept[-1]
+        )
     assert invoke("counts", "--db", sqlite_url, "-o", tmp_path / "c.png").exit_code == 0
     assert invoke("contacts", "--db", sqlite_url, "-o", tmp_path / "k.png").exit_code == 0
     assert invoke("all", "--db", sqlite_url, "-o", tmp_path).exit_code == 0
@@ -204,9 +216,17 @@ def test_plot_by_contacts(tmp_path):
     drawn(plot_by_contacts, {7: {15: 5}}, path=tmp_path / "single.png")
 
 
-@pytest.mark.parametrize("draw, empty", [(plot_counts, {}), (plot_counts, {7: 0}), (plot_gap_cdf, {}),
-                                         (plot_gap_cdf, {8: [None, 0.0]}), (plot_by_contacts, {}),
-                                         (plot_by_contacts, {8: {}})])
+@pytest.mark.parametrize(
+    "draw, empty",
+    [
+        (plot_counts, {}),
+        (plot_counts, {7: 0}),
+        (plot_gap_cdf, {}),
+        (plot_gap_cdf, {8: [None, 0.0]}),
+        (plot_by_contacts, {}),
+        (plot_by_contacts, {8: {}}),
+    ],
+)
 def test_nothing_to_draw(tmp_path, draw, empty):
     with pytest.raises(ValueError, match="no "):
         draw(empty, tmp_path / "x.png")
@@ -228,8 +248,9 @@ def test_plot_cluster(tmp_path):
     x = np.array([[0, 0, 0], [1, 0, 0], [0.5, math.sqrt(3) / 2, 0], [0.5, math.sqrt(3) / 6, math.sqrt(2 / 3)]])
     tetra = [(i, j) for i in range(4) for j in range(i + 1, 4)]
     default = drawn(plot_cluster, x, tetra, path=tmp_path / "default.png")
-    by_height = drawn(plot_cluster, x, tetra, path=tmp_path / "height.png", values=x[:, 2], label="z",
-                      title="tetrahedron")
+    by_height = drawn(
+        plot_cluster, x, tetra, path=tmp_path / "height.png", values=x[:, 2], label="z", title="tetrahedron"
+    )
     assert not np.array_equal(default, by_height)
     # the same picture wherever the cluster sits: it is centred
     assert np.abs(default - drawn(plot_cluster, x + 7.5, tetra, path=tmp_path / "moved.png")).mean() < 0.5
@@ -237,9 +258,14 @@ def test_plot_cluster(tmp_path):
     drawn(plot_cluster, [[0, 0, 0]], [], path=tmp_path / "one.png")
 
 
-@pytest.mark.parametrize("kw, message", [(dict(coords=np.zeros((3, 2))), "n x 3"),
-                                         (dict(contacts=[(0, 9)]), "outside"),
-                                         (dict(values=[1, 2]), "one entry per sphere")])
+@pytest.mark.parametrize(
+    "kw, message",
+    [
+        (dict(coords=np.zeros((3, 2))), "n x 3"),
+        (dict(contacts=[(0, 9)]), "outside"),
+        (dict(values=[1, 2]), "one entry per sphere"),
+    ],
+)
 def test_plot_cluster_rejects_bad_input(tmp_path, kw, message):
     args = dict(coords=OCTAHEDRON, contacts=OCTAHEDRON_CONTACTS) | kw
     with pytest.raises(ValueError, match=message):
@@ -251,8 +277,13 @@ def test_best_view_looks_across_a_line():
     """A row of spheres along x is seen from the side, not end on."""
     x = np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)]
     elev, azim = best_view(x)
-    eye = np.array([math.cos(math.radians(elev)) * math.cos(math.radians(azim)),
-                    math.cos(math.radians(elev)) * math.sin(math.radians(azim)), math.sin(math.radians(elev))])
+    eye = np.array(
+        [
+            math.cos(math.radians(elev)) * math.cos(math.radians(azim)),
+            math.cos(math.radians(elev)) * math.sin(math.radians(azim)),
+            math.sin(math.radians(elev)),
+        ]
+    )
     assert abs(eye[0]) < 0.1
 
 
@@ -304,8 +335,7 @@ BIPYRAMID_CONTACTS = [(i, j) for i in range(4) for j in range(i + 1, 4)] + [(0, 
 
 @pytest.mark.parametrize("suffix, magic", [(".png", b"\x89PNG"), (".pdf", b"%PDF"), (".svg", b"<?xml")])
 def test_the_format_follows_the_file_name(tmp_path, suffix, magic):
-    for draw, data in [(plot_counts, {7: 5, 8: 13}), (plot_by_contacts, {8: {18: 13}}),
-                       (plot_cluster, OCTAHEDRON)]:
+    for draw, data in [(plot_counts, {7: 5, 8: 13}), (plot_by_contacts, {8: {18: 13}}), (plot_cluster, OCTAHEDRON)]:
         path = tmp_path / (draw.__name__ + suffix)
         draw(data, OCTAHEDRON_CONTACTS, path) if draw is plot_cluster else draw(data, path)
         assert path.read_bytes().startswith(magic), path
@@ -339,8 +369,12 @@ def test_every_plot_function_draws_on_a_callers_axes_and_returns_the_figure(tmp_
 
     fig = Figure(figsize=(10, 8))
     FigureCanvasAgg(fig)
-    axes = [fig.add_subplot(2, 2, 1), fig.add_subplot(2, 2, 2), fig.add_subplot(2, 2, 3),
-            fig.add_subplot(2, 2, 4, projection="3d")]
+    axes = [
+        fig.add_subplot(2, 2, 1),
+        fig.add_subplot(2, 2, 2),
+        fig.add_subplot(2, 2, 3),
+        fig.add_subplot(2, 2, 4, projection="3d"),
+    ]
     assert plot_counts({7: 5, 8: 13}, ax=axes[0]) is fig
     assert plot_gap_cdf({8: [0.1, 0.2]}, ax=axes[1]) is fig
     assert plot_by_contacts({8: {18: 13}}, ax=axes[2]) is fig
@@ -370,21 +404,32 @@ def test_the_closest_pair_not_in_contact_is_dashed_with_its_gap():
     x = BIPYRAMID - BIPYRAMID.mean(axis=0)
     assert sorted(map(tuple, np.round(ends, 9))) == sorted(map(tuple, np.round(x[[3, 4]], 9)))
     assert _texts(fig) == [f"gap {gap:.3g}"] == ["gap 0.633"]
-    assert not [line for line in plot_cluster(BIPYRAMID, BIPYRAMID_CONTACTS, gap=False).axes[0].lines
-                if line.get_linestyle() == "--"]
+    assert not [
+        line
+        for line in plot_cluster(BIPYRAMID, BIPYRAMID_CONTACTS, gap=False).axes[0].lines
+        if line.get_linestyle() == "--"
+    ]
 
 
 def test_labels_number_the_spheres():
-    assert sorted(_texts(plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, labels=True)), key=lambda t: (len(t), t)) \
-        == ["0", "1", "2", "3", "4", "5", "gap 0.414"]
+    assert sorted(_texts(plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS, labels=True)), key=lambda t: (len(t), t)) == [
+        "0",
+        "1",
+        "2",
+        "3",
+        "4",
+        "5",
+        "gap 0.414",
+    ]
     assert _texts(plot_cluster(OCTAHEDRON, OCTAHEDRON_CONTACTS)) == ["gap 0.414"]
 
 
 def test_the_sticks_style_shows_every_contact(tmp_path):
     """Small spheres: less of the picture is sphere, and no faint second pass of the sticks is needed."""
     spheres = drawn(plot_cluster, OCTAHEDRON, OCTAHEDRON_CONTACTS, path=tmp_path / "spheres.png", elev=20, azim=30)
-    sticks = drawn(plot_cluster, OCTAHEDRON, OCTAHEDRON_CONTACTS, path=tmp_path / "sticks.png", elev=20, azim=30,
-                   style="sticks")
+    sticks = drawn(
+        plot_cluster, OCTAHEDRON, OCTAHEDRON_CONTACTS, path=tmp_path / "sticks.png", elev=20, azim=30, style="sticks"
+    )
     coloured = [np.mean(np.ptp(a, axis=2) > 60) for a in (spheres, sticks)]  # saturated: sphere colour
     assert coloured[1] < coloured[0] / 3
     with pytest.raises(ValueError, match="unknown style"):
@@ -423,8 +468,12 @@ def test_several_clusters_side_by_side(tmp_path):
     from tests.workers.test_audit import two_geometries
 
     g, h = two_geometries()
-    fig = plot_clusters([(g.coords, g.contacts), (_moved(h.coords, 5), h.contacts)], tmp_path / "two.png",
-                        titles=["a", "b"], labels=True)
+    fig = plot_clusters(
+        [(g.coords, g.contacts), (_moved(h.coords, 5), h.contacts)],
+        tmp_path / "two.png",
+        titles=["a", "b"],
+        labels=True,
+    )
     pixels(tmp_path / "two.png", size=(1230, 630))
     three_d = [ax for ax in fig.axes if ax.name == "3d"]
     assert [ax.get_title() for ax in three_d] == ["a", "b"]
@@ -468,8 +517,12 @@ def test_n_restricts(catalog, tmp_path):
         assert r.exit_code == 0, r.stderr
         return pixels(path)
 
-    every, comma, repeated, seven = draw("every"), draw("comma", "--n", "7,8"), \
-        draw("repeated", "--n", "7", "--n", "8"), draw("seven", "--n", "7")
+    every, comma, repeated, seven = (
+        draw("every"),
+        draw("comma", "--n", "7,8"),
+        draw("repeated", "--n", "7", "--n", "8"),
+        draw("seven", "--n", "7"),
+    )
     assert np.array_equal(every, comma) and np.array_equal(comma, repeated)
     assert not np.array_equal(every, seven)
     r = invoke("contacts", "--db", catalog.url, "-o", tmp_path / "c.png", "--n", "8")
@@ -522,18 +575,25 @@ def test_no_clusters(tmp_path):
     open_database(url, create=True).dispose()
     out = tmp_path / "out"
     out.mkdir()
-    for args in (["counts", "-o", out / "c.png"], ["gaps", "-o", out / "g.png"], ["contacts", "-o", out / "c.png"],
-                 ["all", "-o", out]):
+    for args in (
+        ["counts", "-o", out / "c.png"],
+        ["gaps", "-o", out / "g.png"],
+        ["contacts", "-o", out / "c.png"],
+        ["all", "-o", out],
+    ):
         one_line_error(invoke(*args, "--db", url), "no clusters", "in the database")
     assert files(out) == []
 
 
 def test_unknown_id_and_n(catalog, tmp_path):
     one_line_error(invoke("cluster", 99999, "--db", catalog.url, "-o", tmp_path / "c.png"), "no cluster with id 99999")
-    one_line_error(invoke("counts", "--n", "12", "--db", catalog.url, "-o", tmp_path / "c.png"),
-                   "no clusters with n = 12 in the database")
-    one_line_error(invoke("all", "--n", "5,12", "--db", catalog.url, "-o", tmp_path),
-                   "no clusters with n = 5, 12 in the database")
+    one_line_error(
+        invoke("counts", "--n", "12", "--db", catalog.url, "-o", tmp_path / "c.png"),
+        "no clusters with n = 12 in the database",
+    )
+    one_line_error(
+        invoke("all", "--n", "5,12", "--db", catalog.url, "-o", tmp_path), "no clusters with n = 5, 12 in the database"
+    )
     r = invoke("counts", "--n", "seven", "--db", catalog.url, "-o", tmp_path / "c.png")
     assert r.exit_code == 2 and "'seven' is not an integer" in r.stderr
     assert files(tmp_path) == []
@@ -541,8 +601,9 @@ def test_unknown_id_and_n(catalog, tmp_path):
 
 def test_bad_output(catalog, tmp_path):
     missing = tmp_path / "nope"
-    one_line_error(invoke("counts", "--db", catalog.url, "-o", missing / "c.png"),
-                   f"directory {missing} does not exist")
+    one_line_error(
+        invoke("counts", "--db", catalog.url, "-o", missing / "c.png"), f"directory {missing} does not exist"
+    )
     one_line_error(invoke("cluster", 1, "--db", catalog.url, "-o", missing / "c.png"), "does not exist")
     one_line_error(invoke("all", "--db", catalog.url, "-o", missing), f"cannot write to {missing}")
     (tmp_path / "file.png").write_bytes(b"x")
@@ -576,10 +637,12 @@ def test_errors_through_packings_main(catalog, tmp_path, monkeypatch, capsys):
         out, err = capsys.readouterr()
         return code, out, err
 
-    for args, words in [(["cluster", 99999, "--db", catalog.url], "no cluster with id 99999"),
-                        (["counts", "--db", "mysql://u@h/db"], "unsupported database"),
-                        (["counts", "--n", "x", "--db", catalog.url], "'x' is not an integer"),
-                        (["all", "--db", catalog.url, "-o", tmp_path / "nope"], "does not exist")]:
+    for args, words in [
+        (["cluster", 99999, "--db", catalog.url], "no cluster with id 99999"),
+        (["counts", "--db", "mysql://u@h/db"], "unsupported database"),
+        (["counts", "--n", "x", "--db", catalog.url], "'x' is not an integer"),
+        (["all", "--db", catalog.url, "-o", tmp_path / "nope"], "does not exist"),
+    ]:
         code, out, err = packings("plot", *args)
         assert code != 0 and out == "", (args, code, out, err)
         lines = err.strip().splitlines()
@@ -616,15 +679,17 @@ def test_cluster_command_writes_several_clusters_formats_and_sizes(catalog, tmp_
         r = invoke("counts", "--db", catalog.url, "--size", bad)
         assert r.exit_code == 2 and "--size" in r.stderr, (bad, r.stderr)
     assert invoke("cluster", "--db", catalog.url).exit_code == 2  # at least one ID
-    assert sorted(files(tmp_path)) == sorted(["c.svg", f"cluster-{a}-{b}.png", "contacts.pdf", "counts.pdf",
-                                              "gaps.pdf", "one.pdf"])
+    assert sorted(files(tmp_path)) == sorted(
+        ["c.svg", f"cluster-{a}-{b}.png", "contacts.pdf", "counts.pdf", "gaps.pdf", "one.pdf"]
+    )
 
 
 def test_a_row_of_the_api_draws_on_a_notebooks_axes(catalog, tmp_path):
     """docs/cli.md's example: a row from packings.connect drawn beside the counts, saved as PDF."""
-    import packings
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    import packings
 
     fig = Figure(figsize=(9, 4))
     FigureCanvasAgg(fig)

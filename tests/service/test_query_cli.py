@@ -18,13 +18,24 @@ from tests.service.querydb import filled_catalog
 
 catalog = filled_catalog(7, 8)
 
-TABLE_HEADER = ["id", "n", "contacts", "embedding", "singular", "flexes", "stresses", "min_gap", "lattice",
-                "certificate"]
+TABLE_HEADER = [
+    "id",
+    "n",
+    "contacts",
+    "embedding",
+    "singular",
+    "flexes",
+    "stresses",
+    "min_gap",
+    "lattice",
+    "certificate",
+]
 
 
 def run(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=120,
-                          cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=120, cwd=cwd
+    )
 
 
 def run_many(*commands, cwd=None):
@@ -62,9 +73,9 @@ def read_xyz(text: str) -> list[tuple[str, list[str], np.ndarray]]:
     lines, frames = text.splitlines(), []
     while lines:
         k = int(lines[0])
-        body = [line.split() for line in lines[2:2 + k]]
+        body = [line.split() for line in lines[2 : 2 + k]]
         frames.append((lines[1], [b[0] for b in body], np.array([[float(v) for v in b[1:]] for b in body])))
-        lines = lines[2 + k:]
+        lines = lines[2 + k :]
     return frames
 
 
@@ -87,7 +98,10 @@ def test_select_table_limits_and_columns_as_ase_db(catalog, stored, monkeypatch)
     out = ok("select", "--limit", "0", "--db", catalog.url).splitlines()
     assert len(out) == 1 + 18 + 1 and out[-1] == "18 clusters"
     out = ok("select", "n=7", "-c", "id,lattice,found_by", "--db", catalog.url).splitlines()
-    assert out[0].split() == ["id", "lattice", "found_by"] and {line.split()[2] for line in out[1:-1]} <= {"seed", "path"}
+    assert out[0].split() == ["id", "lattice", "found_by"] and {line.split()[2] for line in out[1:-1]} <= {
+        "seed",
+        "path",
+    }
     out = ok("select", "n=7", "-c", "+margin,+found_by", "--db", catalog.url).splitlines()
     assert out[0].split() == TABLE_HEADER + ["margin", "found_by"]
     csv_out = ok("select", "n=7", "--csv", "-c", "id,n", "--db", catalog.url).splitlines()
@@ -107,8 +121,14 @@ def test_select_table_limits_and_columns_as_ase_db(catalog, stored, monkeypatch)
 
 
 def test_select_count(catalog):
-    counts = {"": 18, "n=8": 13, "isostatic,!singular,n>=7": 18, "hyperstatic": 0, f"run={catalog.runs[8]}": 13,
-              "m=15,n=7": 5}
+    counts = {
+        "": 18,
+        "n=8": 13,
+        "isostatic,!singular,n>=7": 18,
+        "hyperstatic": 0,
+        f"run={catalog.runs[8]}": 13,
+        "m=15,n=7": 5,
+    }
     results = run_many(*(["select", text, "--count", "--db", catalog.url] for text in counts))
     for r, expected in zip(results, counts.values()):
         assert r.returncode == 0, r.stderr
@@ -121,16 +141,24 @@ def test_select_json(catalog, stored):
     for o in out:
         c, x = stored[o["id"]]
         assert set(TABLE_HEADER) <= set(o)
-        assert (o["n"], o["contacts"], o["certificate"], o["singular"], o["min_gap"]) == \
-            (c.n, c.contacts, c.certificate, c.singular, c.min_gap)
+        assert (o["n"], o["contacts"], o["certificate"], o["singular"], o["min_gap"]) == (
+            c.n,
+            c.contacts,
+            c.certificate,
+            c.singular,
+            c.min_gap,
+        )
         assert np.array_equal(np.array(o["coords"]), x)
         assert o["contact_list"] == json.loads(c.contact_list) and len(o["contact_list"]) == c.contacts
     assert json.loads(ok("select", "n=5", "--json", "--db", catalog.url)) == []
 
 
 def test_select_csv_sort_and_limit(catalog, stored):
-    out = list(csv.DictReader(io.StringIO(ok("select", "n=8", "--csv", "--sort", "-min_gap", "--limit", "4",
-                                             "--db", catalog.url))))
+    out = list(
+        csv.DictReader(
+            io.StringIO(ok("select", "n=8", "--csv", "--sort", "-min_gap", "--limit", "4", "--db", catalog.url))
+        )
+    )
     expected = sorted((c for c, _ in stored.values() if c.n == 8), key=lambda c: (-c.min_gap, c.id))[:4]
     assert [int(r["id"]) for r in out] == [c.id for c in expected]
     assert "coords" not in out[0] and "contact_list" not in out[0]
@@ -182,10 +210,12 @@ def test_show(catalog, stored):
     assert info["exact"]["status"] == "proved" and 0 < info["exact"]["radius"] < 1e-12
     assert info["exact"]["gap"] == pytest.approx(c.min_gap, abs=1e-12)
     with sessions(catalog.engine)() as s:
-        leaving = s.execute(select(func.count()).where(Transition.source_id == cid,
-                                                       Transition.direction != 0)).scalar_one()
-        reaching = s.execute(select(func.count()).where(Transition.target_id == cid,
-                                                        Transition.direction != 0)).scalar_one()
+        leaving = s.execute(
+            select(func.count()).where(Transition.source_id == cid, Transition.direction != 0)
+        ).scalar_one()
+        reaching = s.execute(
+            select(func.count()).where(Transition.target_id == cid, Transition.direction != 0)
+        ).scalar_one()
     assert (info["paths_leaving"], info["paths_reaching"]) == (leaving, reaching)
     assert leaving > 0 and sum(info["leaving_by_outcome"].values()) == leaving
     assert f"paths leaving: {leaving} (" in out and f"paths reaching: {reaching} from" in out
@@ -214,8 +244,11 @@ def test_export_extxyz_reads_in_ase(catalog, stored, tmp_path):
         assert np.array_equal(atoms.positions, x)
         assert len(atoms) == c.n and set(atoms.get_chemical_symbols()) == {"X"}
         assert (atoms.info["n"], atoms.info["contacts"], atoms.info["embedding"]) == (c.n, c.contacts, c.embedding)
-        assert (atoms.info["singular"], atoms.info["flexes"], atoms.info["self_stresses"]) == \
-            (c.singular, c.flexes, c.stresses)
+        assert (atoms.info["singular"], atoms.info["flexes"], atoms.info["self_stresses"]) == (
+            c.singular,
+            c.flexes,
+            c.stresses,
+        )
         assert atoms.info["min_gap"] == c.min_gap
         cert = atoms.info["certificate"]  # ASE reads a value made only of digits as a number
         assert cert == c.certificate if isinstance(cert, str) else int(c.certificate) == cert
@@ -233,15 +266,34 @@ def test_export_extxyz_goes_into_an_ase_database(catalog, stored, tmp_path):
     with ase.db.connect(tmp_path / "ase.db") as db:
         for atoms in ase.io.read(path, index=":"):
             db.write(atoms, key_value_pairs=atoms.info)
-    r = subprocess.run([sys.executable, "-m", "ase", "db", str(tmp_path / "ase.db"), "contacts=18,n=8",
-                        "-c", "cluster_id,self_stresses", "--limit", "0"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "ase",
+            "db",
+            str(tmp_path / "ase.db"),
+            "contacts=18,n=8",
+            "-c",
+            "cluster_id,self_stresses",
+            "--limit",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     ids = sorted(i for i, (c, _) in stored.items() if c.n == 8 and c.contacts == 18)
     cells = [line.split("|") for line in r.stdout.splitlines()[1:] if "|" in line]
     shown = sorted(int(c[0]) for c in cells if c[0].strip().isdigit())  # the cluster_id column
     assert shown == ids and ids
-    r = subprocess.run([sys.executable, "-m", "ase", "convert", str(path), str(tmp_path / "converted.db")],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "ase", "convert", str(path), str(tmp_path / "converted.db")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
 
 
@@ -278,8 +330,20 @@ def test_export_json_is_exact(catalog, stored, tmp_path):
         c, x = stored[o["id"]]
         assert np.array_equal(np.array(o["coords"], dtype=np.float64), x)
         assert o["contact_list"] == json.loads(c.contact_list)
-        for name in ("n", "contacts", "embedding", "certificate", "rigid_kind", "rigid_method", "margin", "flexes",
-                     "stresses", "singular", "min_gap", "found_in_run"):
+        for name in (
+            "n",
+            "contacts",
+            "embedding",
+            "certificate",
+            "rigid_kind",
+            "rigid_method",
+            "margin",
+            "flexes",
+            "stresses",
+            "singular",
+            "min_gap",
+            "found_in_run",
+        ):
             assert o[name] == getattr(c, name), name
         assert o["excess"] == c.contacts - (3 * c.n - 6)
     assert json.loads(ok("export", "n=5", "--format", "json", "--db", catalog.url)) == []

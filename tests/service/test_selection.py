@@ -21,73 +21,83 @@ catalog = filled_catalog(7)
 # --------------------------------------------------------------------------- parsing
 
 
-@pytest.mark.parametrize("text, terms", [
-    ("", []),
-    ("   ", []),
-    (None, []),
-    ("n=10,contacts<24,singular", [Term("n", "=", 10), Term("contacts", "<", 24), Term("singular", "=", True)]),
-    ("n=9", [Term("n", "=", 9)]),
-    ("!singular,min_gap>0.1", [Term("singular", "=", False), Term("min_gap", ">", 0.1)]),
-    ("not singular", [Term("singular", "=", False)]),
-    ("hyperstatic", [Term("hyperstatic", "=", True)]),
-    ("! hypostatic , isostatic", [Term("hypostatic", "=", False), Term("isostatic", "=", True)]),
-    (" n >= 7 , m != 15 ", [Term("n", ">=", 7), Term("contacts", "!=", 15)]),
-    ("N<=8,M>3", [Term("n", "<=", 8), Term("contacts", ">", 3)]),
-    ("excess=-1", [Term("excess", "=", -1)]),
-    ("min_gap", [Term("min_gap", "!=", None)]),
-    ("!margin", [Term("margin", "=", None)]),
-    ("margin>=1e-3,min_gap<1", [Term("margin", ">=", 0.001), Term("min_gap", "<", 1.0)]),
-    ("certificate=00ab12", [Term("certificate", "=", "00ab12")]),
-    ("certificate='00ab12'", [Term("certificate", "=", "00ab12")]),
-    ('rigid_kind!="prestress"', [Term("rigid_kind", "!=", "prestress")]),
-    ("rigid_method=e_k", [Term("rigid_method", "=", "e_k")]),
-    ("run=1,found_in_run=2", [Term("run", "=", 1), Term("found_in_run", "=", 2)]),
-    ("run!=3", [Term("run", "!=", 3)]),
-    ("id>4,embedding=0,flexes=1,stresses>0", [Term("id", ">", 4), Term("embedding", "=", 0),
-                                              Term("flexes", "=", 1), Term("stresses", ">", 0)]),
-])
+@pytest.mark.parametrize(
+    "text, terms",
+    [
+        ("", []),
+        ("   ", []),
+        (None, []),
+        ("n=10,contacts<24,singular", [Term("n", "=", 10), Term("contacts", "<", 24), Term("singular", "=", True)]),
+        ("n=9", [Term("n", "=", 9)]),
+        ("!singular,min_gap>0.1", [Term("singular", "=", False), Term("min_gap", ">", 0.1)]),
+        ("not singular", [Term("singular", "=", False)]),
+        ("hyperstatic", [Term("hyperstatic", "=", True)]),
+        ("! hypostatic , isostatic", [Term("hypostatic", "=", False), Term("isostatic", "=", True)]),
+        (" n >= 7 , m != 15 ", [Term("n", ">=", 7), Term("contacts", "!=", 15)]),
+        ("N<=8,M>3", [Term("n", "<=", 8), Term("contacts", ">", 3)]),
+        ("excess=-1", [Term("excess", "=", -1)]),
+        ("min_gap", [Term("min_gap", "!=", None)]),
+        ("!margin", [Term("margin", "=", None)]),
+        ("margin>=1e-3,min_gap<1", [Term("margin", ">=", 0.001), Term("min_gap", "<", 1.0)]),
+        ("certificate=00ab12", [Term("certificate", "=", "00ab12")]),
+        ("certificate='00ab12'", [Term("certificate", "=", "00ab12")]),
+        ('rigid_kind!="prestress"', [Term("rigid_kind", "!=", "prestress")]),
+        ("rigid_method=e_k", [Term("rigid_method", "=", "e_k")]),
+        ("run=1,found_in_run=2", [Term("run", "=", 1), Term("found_in_run", "=", 2)]),
+        ("run!=3", [Term("run", "!=", 3)]),
+        (
+            "id>4,embedding=0,flexes=1,stresses>0",
+            [Term("id", ">", 4), Term("embedding", "=", 0), Term("flexes", "=", 1), Term("stresses", ">", 0)],
+        ),
+    ],
+)
 def test_parse(text, terms):
     assert parse(text) == terms
 
 
-@pytest.mark.parametrize("value, expected", [("true", True), ("TRUE", True), ("yes", True), ("1", True),
-                                             ("false", False), ("No", False), ("0", False)])
+@pytest.mark.parametrize(
+    "value, expected",
+    [("true", True), ("TRUE", True), ("yes", True), ("1", True), ("false", False), ("No", False), ("0", False)],
+)
 def test_bool_values(value, expected):
     assert parse(f"singular={value}") == [Term("singular", "=", expected)]
     assert parse(f"hyperstatic!={value}") == [Term("hyperstatic", "!=", expected)]
 
 
-@pytest.mark.parametrize("text, message", [
-    ("foo=1", "unknown key 'foo'"),
-    ("stacking=fcc", "known keys: id, n, contacts"),
-    ("lattice<fcc", "operator '<' does not apply to lattice"),
-    ("geometries=two", "expected an integer"),
-    ("n==10", "bad operator '=='"),
-    ("n=>10", "bad operator '=>'"),
-    ("n~10", "bad operator '~'"),
-    ("n<>10", "bad operator '<>'"),
-    ("n=x", "bad value 'x' for n: expected an integer"),
-    ("n=1.5", "expected an integer"),
-    ("contacts=", "missing value"),
-    ("min_gap>abc", "expected a number"),
-    ("min_gap<nan", "finite"),
-    ("margin>inf", "finite"),
-    ("singular=maybe", "expected true or false"),
-    ("singular<1", "operator '<' does not apply to singular"),
-    ("certificate>abc", "does not apply to certificate"),
-    ("run<2", "does not apply to run"),
-    ("run=one", "expected an integer"),
-    ("n", "n is not a boolean key"),
-    ("run", "run is not a boolean key"),
-    ("!n=7", "cannot negate a comparison"),
-    ("not n>7", "cannot negate a comparison"),
-    ("n=7,,singular", "empty term"),
-    ("n=7,", "empty term"),
-    ("=7", "cannot read '=7'"),
-    ("7<n", "cannot read"),
-    ("n 7", "cannot read"),
-    ("!", "cannot read"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("foo=1", "unknown key 'foo'"),
+        ("stacking=fcc", "known keys: id, n, contacts"),
+        ("lattice<fcc", "operator '<' does not apply to lattice"),
+        ("geometries=two", "expected an integer"),
+        ("n==10", "bad operator '=='"),
+        ("n=>10", "bad operator '=>'"),
+        ("n~10", "bad operator '~'"),
+        ("n<>10", "bad operator '<>'"),
+        ("n=x", "bad value 'x' for n: expected an integer"),
+        ("n=1.5", "expected an integer"),
+        ("contacts=", "missing value"),
+        ("min_gap>abc", "expected a number"),
+        ("min_gap<nan", "finite"),
+        ("margin>inf", "finite"),
+        ("singular=maybe", "expected true or false"),
+        ("singular<1", "operator '<' does not apply to singular"),
+        ("certificate>abc", "does not apply to certificate"),
+        ("run<2", "does not apply to run"),
+        ("run=one", "expected an integer"),
+        ("n", "n is not a boolean key"),
+        ("run", "run is not a boolean key"),
+        ("!n=7", "cannot negate a comparison"),
+        ("not n>7", "cannot negate a comparison"),
+        ("n=7,,singular", "empty term"),
+        ("n=7,", "empty term"),
+        ("=7", "cannot read '=7'"),
+        ("7<n", "cannot read"),
+        ("n 7", "cannot read"),
+        ("!", "cannot read"),
+    ],
+)
 def test_errors_are_one_line(text, message):
     with pytest.raises(SelectionError) as err:
         sel.where(text)
@@ -102,8 +112,9 @@ def test_unknown_key_lists_every_key():
     assert all(k in str(err.value) for k in sel.KEYS)
 
 
-@pytest.mark.parametrize("sort, message", [("bogus", "unknown key 'bogus'"), ("run", "cannot sort by run"),
-                                           ("-", "unknown key")])
+@pytest.mark.parametrize(
+    "sort, message", [("bogus", "unknown key 'bogus'"), ("run", "cannot sort by run"), ("-", "unknown key")]
+)
 def test_bad_sort_keys(sort, message):
     with pytest.raises(SelectionError, match=message):
         sel.order_by(sort)
@@ -129,14 +140,62 @@ def test_a_new_key_is_one_registry_entry(monkeypatch):
 #: rows the enumeration does not produce at n = 7 (singular, hypo/hyperstatic,
 #: missing min_gap, margins), so that every key has something to tell apart
 SYNTHETIC = [
-    dict(n=9, contacts=22, certificate="0123", embedding=0, rigid_kind="prestress", rigid_method="sdp", margin=0.25,
-         flexes=1, stresses=2, singular=True, min_gap=None, lattice="fcc"),
-    dict(n=9, contacts=20, certificate="0123", embedding=1, rigid_kind="prestress", rigid_method="e_k", margin=0.01,
-         flexes=2, stresses=1, singular=True, min_gap=0.05, lattice="both"),
-    dict(n=9, contacts=21, certificate="abc", embedding=0, rigid_kind="first-order", rigid_method="first-order",
-         margin=None, flexes=0, stresses=0, singular=False, min_gap=0.5, lattice=None),
-    dict(n=9, contacts=21, certificate="abcd", embedding=0, rigid_kind="first-order", rigid_method="first-order",
-         margin=None, flexes=0, stresses=0, singular=False, min_gap=0.5, lattice="hcp"),
+    dict(
+        n=9,
+        contacts=22,
+        certificate="0123",
+        embedding=0,
+        rigid_kind="prestress",
+        rigid_method="sdp",
+        margin=0.25,
+        flexes=1,
+        stresses=2,
+        singular=True,
+        min_gap=None,
+        lattice="fcc",
+    ),
+    dict(
+        n=9,
+        contacts=20,
+        certificate="0123",
+        embedding=1,
+        rigid_kind="prestress",
+        rigid_method="e_k",
+        margin=0.01,
+        flexes=2,
+        stresses=1,
+        singular=True,
+        min_gap=0.05,
+        lattice="both",
+    ),
+    dict(
+        n=9,
+        contacts=21,
+        certificate="abc",
+        embedding=0,
+        rigid_kind="first-order",
+        rigid_method="first-order",
+        margin=None,
+        flexes=0,
+        stresses=0,
+        singular=False,
+        min_gap=0.5,
+        lattice=None,
+    ),
+    dict(
+        n=9,
+        contacts=21,
+        certificate="abcd",
+        embedding=0,
+        rigid_kind="first-order",
+        rigid_method="first-order",
+        margin=None,
+        flexes=0,
+        stresses=0,
+        singular=False,
+        min_gap=0.5,
+        lattice="hcp",
+    ),
 ]
 
 
@@ -149,8 +208,16 @@ def rows(catalog):
     with sessions(catalog.engine).begin() as s:
         for values in SYNTHETIC:
             x = rng.random((values["n"], 3))
-            s.add(ClusterRow(**values, coords=x.astype("<f8").tobytes(), coords_json=json.dumps(x.tolist()),
-                          contact_list="[[0, 1]]", found_in_run=None, found_by="seed"))
+            s.add(
+                ClusterRow(
+                    **values,
+                    coords=x.astype("<f8").tobytes(),
+                    coords_json=json.dumps(x.tolist()),
+                    contact_list="[[0, 1]]",
+                    found_in_run=None,
+                    found_by="seed",
+                )
+            )
     with sessions(catalog.engine)() as s:
         return s.execute(select(ClusterRow).order_by(ClusterRow.id)).scalars().all()
 
@@ -164,8 +231,9 @@ def frontier(catalog, rows):
 
     with sessions(catalog.engine)() as s:
         ids = set(s.execute(select(ExpansionRow.cluster_id).where(ExpansionRow.run_id == catalog.runs[7])).scalars())
-        moving = s.execute(select(Transition.source_id, Transition.target_id, Transition.outcome)
-                           .where(Transition.direction != 0)).all()
+        moving = s.execute(
+            select(Transition.source_id, Transition.target_id, Transition.outcome).where(Transition.direction != 0)
+        ).all()
     return SimpleNamespace(
         ids=ids,
         out=Counter(a for a, _, _ in moving),
@@ -281,13 +349,16 @@ def test_certificate_of_a_stored_cluster(catalog, rows):
     assert [c.id for c in got] == [target.id]
 
 
-@pytest.mark.parametrize("sort, key", [
-    (None, lambda c: (c.n, c.contacts, c.id)),
-    ("id", lambda c: c.id),
-    ("-contacts", lambda c: (-c.contacts, c.id)),
-    ("min_gap", lambda c: (c.min_gap is None, c.min_gap or 0.0, c.id)),
-    ("-margin", lambda c: (c.margin is None, -(c.margin or 0.0), c.id)),
-])
+@pytest.mark.parametrize(
+    "sort, key",
+    [
+        (None, lambda c: (c.n, c.contacts, c.id)),
+        ("id", lambda c: c.id),
+        ("-contacts", lambda c: (-c.contacts, c.id)),
+        ("min_gap", lambda c: (c.min_gap is None, c.min_gap or 0.0, c.id)),
+        ("-margin", lambda c: (c.margin is None, -(c.margin or 0.0), c.id)),
+    ],
+)
 def test_sort_and_limit(catalog, rows, sort, key):
     from packings.service.db import sessions
 
@@ -295,5 +366,4 @@ def test_sort_and_limit(catalog, rows, sort, key):
     with sessions(catalog.engine)() as s:
         assert [c.id for c in s.execute(sel.query(sort=sort)).scalars()] == expected
         assert [c.id for c in s.execute(sel.query(sort=sort, limit=3)).scalars()] == expected[:3]
-        assert [c.id for c in s.execute(sel.query("n=7", sort=sort, n=7)).scalars()] == \
-            [i for i in expected if i <= 5]
+        assert [c.id for c in s.execute(sel.query("n=7", sort=sort, n=7)).scalars()] == [i for i in expected if i <= 5]

@@ -13,9 +13,9 @@ import pytest
 from sqlalchemy import event, func, select
 
 from packings.service import store
-from packings.service.owners import RunBusy
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, FAILED, LEASED, PENDING, ClusterRow, ExpansionRow, Run, Transition
+from packings.service.owners import RunBusy
 from packings.service.tasks import run_expansion
 from packings.workers.params import Params
 
@@ -92,8 +92,9 @@ def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
 
 
 @pytest.mark.parametrize("n, count, hyperstatic", [(9, 52, 0), (10, 263, 3)])
-def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_following_it_gives(engine, n, count,
-                                                                                           hyperstatic):
+def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_following_it_gives(
+    engine, n, count, hyperstatic
+):
     """A run of n = 9 (every cluster but one regular) or n = 10 (three hyperstatic clusters too) follows
     each path between two first-order rigid clusters from one end only: where a path arrived at a cluster
     before it was expanded, that cluster's attempt on the contacts formed is taken from it
@@ -112,19 +113,33 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     with sessions(engine)() as s:
         d = store.run_diagnostics(s, run_id)
         stored_clusters = {r.id: r for r in s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars()}
-        rows = s.execute(select(Transition.source_id, Transition.broken, Transition.direction, Transition.outcome,
-                                Transition.target_id, Transition.new_contacts, Transition.target_labels)
-                         .where(Transition.run_id == run_id)).all()
-        took = {cid: json.loads(o).get("paths_retraced", 0) for cid, o in s.execute(
-            select(ExpansionRow.cluster_id, ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id))}
+        rows = s.execute(
+            select(
+                Transition.source_id,
+                Transition.broken,
+                Transition.direction,
+                Transition.outcome,
+                Transition.target_id,
+                Transition.new_contacts,
+                Transition.target_labels,
+            ).where(Transition.run_id == run_id)
+        ).all()
+        took = {
+            cid: json.loads(o).get("paths_retraced", 0)
+            for cid, o in s.execute(
+                select(ExpansionRow.cluster_id, ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id)
+            )
+        }
     assert len(stored_clusters) == count and d["paths_retraced"] > 0.2 * d["paths_followed"]
     many = {cid for cid, r in stored_clusters.items() if r.contacts > 3 * n - 6}
     assert len(many) == hyperstatic
     if hyperstatic:  # hyperstatic clusters took paths from the other end too
         assert sum(took[cid] for cid in many) > 0
     clusters = {cid: r.to_core() for cid, r in stored_clusters.items()}
-    stored = {(src, b, dirn): (out, tgt, json.loads(new), None if lab is None else json.loads(lab))
-              for src, b, dirn, out, tgt, new, lab in rows}
+    stored = {
+        (src, b, dirn): (out, tgt, json.loads(new), None if lab is None else json.loads(lab))
+        for src, b, dirn, out, tgt, new, lab in rows
+    }
     labelled = Counter()
     for cid, c in clusters.items():
         for e in expand(c, params).endpoints:  # every path followed
@@ -159,8 +174,9 @@ def test_a_task_reads_the_paths_that_arrived_through_the_index_of_targets(sqlite
 def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
     """Workers read their task with read-only sessions: on SQLite those begin DEFERRED, so a task is
     read while another worker holds the write lock (a write session would wait for it)."""
-    import packings.service.db
     from sqlalchemy.exc import OperationalError
+
+    import packings.service.db
 
     monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
     engine = packings.service.db.open_database(sqlite_url, create=True)
@@ -335,13 +351,17 @@ def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
         d = store.run_diagnostics(s, run_id)
         assert d["expansions"] == 13 and d["failed_tasks"] == 0 and d["paths_followed"] > 0
         # a path not followed, as the image of one followed under a symmetry of its cluster, is a transition too
-        with_path = s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == run_id,
-                                                                                Transition.direction != 0)).scalar()
+        with_path = s.execute(
+            select(func.count()).select_from(Transition).where(Transition.run_id == run_id, Transition.direction != 0)
+        ).scalar()
         assert d["paths_by_symmetry"] > 0 and d["paths_retraced"] > 0
         assert d["paths_followed"] + d["paths_by_symmetry"] + d["paths_retraced"] == with_path
         # every rigid transition points at a stored cluster of the run, and every cluster is reached
-        n_rigid = s.execute(select(func.count()).select_from(Transition).where(Transition.outcome == "rigid",
-                                                                                  Transition.target_id.is_(None))).scalar()
+        n_rigid = s.execute(
+            select(func.count())
+            .select_from(Transition)
+            .where(Transition.outcome == "rigid", Transition.target_id.is_(None))
+        ).scalar()
         assert n_rigid == 0
         assert s.execute(select(func.count()).select_from(ClusterRow).where(ClusterRow.n == 8)).scalar() == 13
     assert paper_counts["totals"]["8"] == 13
@@ -429,8 +449,10 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
             assert store.run_counts(s, run) == {18: 13}
         found = dict(s.execute(select(ClusterRow.found_in_run, func.count()).group_by(ClusterRow.found_in_run)).all())
         assert found == {first: 13}
-        assert s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == second)).scalar_one() \
+        assert (
+            s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == second)).scalar_one()
             == s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == first)).scalar_one()
+        )
 
 
 def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine, monkeypatch):
@@ -442,8 +464,10 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
     S, info = run8
     with S() as s:
         seed = s.execute(select(ClusterRow.id)).scalar_one()
-    rows = [(info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]", "[1, 0, 2, 3, 4, 5, 6, 7]"),
-            (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]", None)]
+    rows = [
+        (info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]", "[1, 0, 2, 3, 4, 5, 6, 7]"),
+        (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]", None),
+    ]
     more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]", None) for k in range(5)]
     monkeypatch.setattr(packings.db, "INSERT_CHUNK", 2)
     statements = []
@@ -482,8 +506,9 @@ def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, mo
     new = [ex.endpoints[i].cluster for i in ex.distinct()]
     with engine.begin() as conn:
         for c in new:
-            store.insert_or_match(conn, c, ex.endpoints[0].rigidity, info.id, Params().tol_d, found_by="path",
-                                  source_id=None)
+            store.insert_or_match(
+                conn, c, ex.endpoints[0].rigidity, info.id, Params().tol_d, found_by="path", source_id=None
+            )
     with engine.connect() as conn:
         stored = store.stored_with(conn, 8, {certificate_key(c) for c in new})
     read = [r.cluster for rows in stored.values() for r in rows]
@@ -495,8 +520,10 @@ def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, mo
     assert len(models._CORE) <= 3
 
 
-@pytest.mark.parametrize("pairs", [(), ((0, 1),), ((0, 1), (2, 5)), [(3, 4), (1, 9)],
-                                   ((np.int64(2), np.int64(7)),), [[0, 3]], ((0, 1), [2, 3])])
+@pytest.mark.parametrize(
+    "pairs",
+    [(), ((0, 1),), ((0, 1), (2, 5)), [(3, 4), (1, 9)], ((np.int64(2), np.int64(7)),), [[0, 3]], ((0, 1), [2, 3])],
+)
 def test_contacts_are_written_as_json_writes_them(pairs):
     import json
 
@@ -523,8 +550,9 @@ def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
             time.sleep(0.01)
         beat.stop()
     assert beat.missed >= 2 and beat.is_alive() is False
-    assert any("run 7: heartbeat 1 missed" in r.getMessage() and "database is locked" in r.getMessage()
-               for r in caplog.records)
+    assert any(
+        "run 7: heartbeat 1 missed" in r.getMessage() and "database is locked" in r.getMessage() for r in caplog.records
+    )
 
 
 def test_a_stored_traceback_has_a_one_line_summary():
@@ -554,7 +582,6 @@ def test_a_runs_time_is_kept_across_coordinators_and_recorded_while_it_runs(run8
     assert store.finish_run(S, info.id, OWNER + "-2", 7.25) in ("running", "complete")
     with S() as s:
         assert s.get(Run, info.id).seconds == 7.25
-
 
 
 def _store_chains(S, order, seed: int, one_transaction: bool = False) -> dict[int, int]:
@@ -592,8 +619,10 @@ def _embeddings(S, ids: dict[int, int]) -> dict[int, int]:
         return {k: s.get(ClusterRow, cid).embedding for k, cid in ids.items()}
 
 
-@pytest.mark.parametrize("order, one_transaction", [((0, 1, 2, 3, 4), False), ((4, 3, 2, 1, 0), False),
-                                                    ((2, 4, 0, 3, 1), False), ((3, 0, 4, 1, 2), True)])
+@pytest.mark.parametrize(
+    "order, one_transaction",
+    [((0, 1, 2, 3, 4), False), ((4, 3, 2, 1, 0), False), ((2, 4, 0, 3, 1), False), ((3, 0, 4, 1, 2), True)],
+)
 def test_embedding_numbers_follow_geometry_whatever_order_they_are_stored_in(engine, order, one_transaction):
     """Five geometries of one contact graph stored in any order, one write-back each or several in one
     (whose stored rows the store keeps up to date), get the same (certificate, embedding) keys: 0 for

@@ -30,14 +30,22 @@ def wheel_env(tmp_path_factory):
         shutil.copy2(ROOT / name, src / name)
     for name in ("packings", "service", "workers", "alembic"):
         shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
-    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", "--wheel-dir",
-                        str(work / "dist"), str(src)], capture_output=True, text=True, timeout=900)
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", "--wheel-dir", str(work / "dist"), str(src)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert r.returncode == 0, r.stderr
     (wheel,) = (work / "dist").glob("packings-*.whl")
     subprocess.run([sys.executable, "-m", "venv", str(work / "venv")], check=True, timeout=300)
     bin_dir = work / "venv" / "bin"
-    r = subprocess.run([str(bin_dir / "python"), "-m", "pip", "install", "--quiet", str(wheel)],
-                       capture_output=True, text=True, timeout=1800)
+    r = subprocess.run(
+        [str(bin_dir / "python"), "-m", "pip", "install", "--quiet", str(wheel)],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
     assert r.returncode == 0, r.stderr
     return wheel, bin_dir
 
@@ -57,8 +65,13 @@ def test_the_wheel_is_one_package_with_its_migrations(wheel_env):
         (top_level,) = [n for n in names if n.endswith(".dist-info/top_level.txt")]
         assert z.read(top_level).decode().split() == ["packings"]
     assert all(n.startswith(("packings/", "packings-")) for n in names), names
-    for name in ("packings/migrations/env.py", "packings/migrations/script.py.mako",
-                 "packings/migrations/versions/0001_initial.py", "packings/workers/paths.py", "packings/cli.py"):
+    for name in (
+        "packings/migrations/env.py",
+        "packings/migrations/script.py.mako",
+        "packings/migrations/versions/0001_initial.py",
+        "packings/workers/paths.py",
+        "packings/cli.py",
+    ):
         assert name in names, name
 
 

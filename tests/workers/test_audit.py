@@ -23,8 +23,16 @@ from packings.workers.audit import (
 from packings.workers.cluster import Cluster
 from packings.workers.identity import certificate, geometry_distance, same_geometry
 from packings.workers.params import DEFAULT
-from tests.workers.test_identity import CLUSTERS, SETTINGS, chain, names, octahedron, seeds, tetrahedron_coords, \
-    transformed
+from tests.workers.test_identity import (
+    CLUSTERS,
+    SETTINGS,
+    chain,
+    names,
+    octahedron,
+    seeds,
+    tetrahedron_coords,
+    transformed,
+)
 
 DATA = Path(__file__).parents[1] / "data"
 
@@ -33,8 +41,9 @@ def near_misses() -> list[dict]:
     """The two n = 12 path endpoints stored as clusters before packings.workers.paths._endpoint re-projected
     (tests/data/n12_near_miss.json), as Clusters with their record."""
     data = json.loads((DATA / "n12_near_miss.json").read_text())
-    return [{**m, "cluster": Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))}
-            for m in data["endpoints"]]
+    return [
+        {**m, "cluster": Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))} for m in data["endpoints"]
+    ]
 
 
 def two_geometries() -> tuple[Cluster, Cluster]:

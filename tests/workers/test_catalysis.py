@@ -163,9 +163,14 @@ def test_sub_cluster_keeps_the_given_order():
     parent = N10["n10_m24_first-order"]
     c = sub_cluster(parent, (3, 0, 1))
     assert np.array_equal(c.coords, parent.coords[[3, 0, 1]])
-    assert set(c.contacts) == {(min(a, b), max(a, b)) for a, b in
-                               [({3: 0, 0: 1, 1: 2}[i], {3: 0, 0: 1, 1: 2}[j]) for i, j in parent.contacts
-                                if i in (3, 0, 1) and j in (3, 0, 1)]}
+    assert set(c.contacts) == {
+        (min(a, b), max(a, b))
+        for a, b in [
+            ({3: 0, 0: 1, 1: 2}[i], {3: 0, 0: 1, 1: 2}[j])
+            for i, j in parent.contacts
+            if i in (3, 0, 1) and j in (3, 0, 1)
+        ]
+    }
 
 
 def test_the_lost_cluster_of_11_is_a_remainder_of_its_parent_of_12_and_no_path_leaves_it():
@@ -308,6 +313,7 @@ def _plain_record(bound: float):
             return False
         others.append(d)
         return True
+
     return add
 
 
@@ -404,8 +410,12 @@ def test_moving_spheres_of_a_relabelled_rotated_reflected_cluster_finds_the_same
     other, _ = congruent_copy(c, seed, reflect)
 
     def found(x):
-        return Counter(certificate_key(mv.remainder.cluster) for mv in moved_remainders(x, P, Seen(P.tol_d))
-                       if mv.remainder is not None and mv.remainder.rigid)
+        return Counter(
+            certificate_key(mv.remainder.cluster)
+            for mv in moved_remainders(x, P, Seen(P.tol_d))
+            if mv.remainder is not None and mv.remainder.rigid
+        )
+
     assert found(c) == found(other)
 
 
@@ -423,8 +433,10 @@ def _moved_one_by_one(cluster: Cluster, seen: Seen) -> list[Moved]:
             if left.min() < 3:
                 continue
             rest = [i for i in range(parent.n) if i != s]
-            if not seen.add_parts(graph_certificate(sub_cluster(parent, rest)),
-                                  np.sort(pair_distances(parent.coords)[_without(parent.n, s)])):
+            if not seen.add_parts(
+                graph_certificate(sub_cluster(parent, rest)),
+                np.sort(pair_distances(parent.coords)[_without(parent.n, s)]),
+            ):
                 out.append(Moved(s, tri, side, None))
                 continue
             out.append(Moved(s, tri, side, remainder(parent, (s,), P)))
@@ -436,8 +448,14 @@ def _as_compared(moved: list[Moved]) -> list[tuple]:
     out = []
     for mv in moved:
         r = mv.remainder
-        out.append((mv.sphere, mv.triangle, mv.side) + (() if r is None else (
-            r.deleted, r.kept, r.outcome, r.rigidity, r.cluster.coords.tobytes(), r.cluster.contacts)))
+        out.append(
+            (mv.sphere, mv.triangle, mv.side)
+            + (
+                ()
+                if r is None
+                else (r.deleted, r.kept, r.outcome, r.rigidity, r.cluster.coords.tobytes(), r.cluster.contacts)
+            )
+        )
     return out
 
 
@@ -506,7 +524,9 @@ def test_a_glued_sphere_whose_contacts_are_not_those_measured_leaves_its_remaind
     parent, edges, adjacent, d = _glued_parts(N10["n10_m24_first-order"])
     assert _measured_last(parent, P.tol_a) and _floppy(parent, edges, adjacent, d, P, list(range(parent.n - 1)))
     last = parent.n - 1
-    lost = Cluster(parent.coords, tuple(c for c in parent.contacts if c != [c for c in parent.contacts if last in c][0]))
+    lost = Cluster(
+        parent.coords, tuple(c for c in parent.contacts if c != [c for c in parent.contacts if last in c][0])
+    )
     assert not _measured_last(lost, P.tol_a)
     assert _floppy(lost, lost.edges(), adjacent, d, P, list(range(parent.n - 1))) == {}
 

@@ -22,9 +22,13 @@ pair_lists = st.lists(st.tuples(st.integers(0, 12), st.integers(0, 12)).filter(l
 @SETTINGS
 @given(pair_lists, st.sampled_from(["tuple", "list", "lists", "array", "numpy ints"]))
 def test_contacts_are_normalised_however_given(pairs, form) -> None:
-    given_ = {"tuple": tuple(pairs), "list": list(pairs), "lists": tuple(list(p) for p in pairs),
-              "array": np.array(pairs, dtype=np.int64).reshape(-1, 2),
-              "numpy ints": tuple((np.int64(a), np.int64(b)) for a, b in pairs)}[form]
+    given_ = {
+        "tuple": tuple(pairs),
+        "list": list(pairs),
+        "lists": tuple(list(p) for p in pairs),
+        "array": np.array(pairs, dtype=np.int64).reshape(-1, 2),
+        "numpy ints": tuple((np.int64(a), np.int64(b)) for a, b in pairs),
+    }[form]
     out = normalise_contacts(given_)
     assert out == _slow(pairs)
     assert all(type(i) is int and type(j) is int for i, j in out)

@@ -10,9 +10,9 @@
 
 import json
 import os
-from itertools import combinations
 import subprocess
 import sys
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -21,13 +21,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packings.workers import _compiled, kernels
-from packings.workers.expand import warm_up
 from packings.workers import paths as paths_module
 from packings.workers.cluster import Cluster
-from packings.workers.expand import expand, path_starts
+from packings.workers.expand import expand, path_starts, warm_up
 from packings.workers.identity import certificate, same_geometry
 from packings.workers.params import Params
-from packings.workers.paths import RIGID, PROJECTION_FAILED, UNDECIDED_END, follow_path
+from packings.workers.paths import PROJECTION_FAILED, RIGID, UNDECIDED_END, follow_path
 from packings.workers.rigidity import contact_triangle
 from packings.workers.seeds import seed_cluster
 from tests.workers.motions import congruent_copy
@@ -100,8 +99,14 @@ def test_both_backends_follow_paths_to_the_same_ends(path_sample):
             ca, cb = Cluster(a.coords, a.contacts), Cluster(b.coords, b.contacts)
             assert certificate(ca) == certificate(cb), where
             assert same_geometry(ca, cb, P.tol_d), where
-            assert (a.rigidity.kind, a.rigidity.flexes, a.rigidity.stresses) == (b.rigidity.kind, b.rigidity.flexes, b.rigidity.stresses), where
-            if a.rigidity.flexes == 0 and a.rigidity.stresses == 0:  # regular, isostatic: Newton reaches round-off in both
+            assert (a.rigidity.kind, a.rigidity.flexes, a.rigidity.stresses) == (
+                b.rigidity.kind,
+                b.rigidity.flexes,
+                b.rigidity.stresses,
+            ), where
+            if (
+                a.rigidity.flexes == 0 and a.rigidity.stresses == 0
+            ):  # regular, isostatic: Newton reaches round-off in both
                 assert np.abs(a.coords - b.coords).max() < 1e-9, where
         elif a.steps != b.steps or a.contacts != b.contacts:
             sensitive.append((where, (a.outcome, b.outcome)))
@@ -132,8 +137,15 @@ def test_the_compiled_endpoint_call_gives_the_endpoint_python_gives(path_sample,
     for (label, p), a, b in zip(path_sample, with_call, python_only):
         where = (label, p.broken_contacts, p.direction)
         assert (a.outcome, a.steps, a.first_step_dim, a.contacts, a.new_contacts) == (
-            b.outcome, b.steps, b.first_step_dim, b.contacts, b.new_contacts), where
-        assert (a.coords is None) == (b.coords is None) and (a.coords is None or np.array_equal(a.coords, b.coords)), where
+            b.outcome,
+            b.steps,
+            b.first_step_dim,
+            b.contacts,
+            b.new_contacts,
+        ), where
+        assert (a.coords is None) == (b.coords is None) and (a.coords is None or np.array_equal(a.coords, b.coords)), (
+            where
+        )
         assert repr(a.rigidity) == repr(b.rigidity), where
     assert {_compiled.CH_CLOSED, _compiled.CH_REJECTED, _compiled.CH_PYTHON} <= set(statuses), sorted(set(statuses))
     assert statuses.count(_compiled.CH_CLOSED) > len(statuses) // 2
@@ -185,7 +197,11 @@ def test_residual_rigidity_matrix_and_distances_match_numpy(graph):
     with kernels.backend("numba"):
         f, R, d = kernels.residual(x, edges), kernels.rigidity_matrix(x, edges), kernels.pair_distances_flat(x, edges)
     with kernels.backend("numpy"):
-        f0, R0, d0 = kernels.residual(x, edges), kernels.rigidity_matrix(x, edges), kernels.pair_distances_flat(x, edges)
+        f0, R0, d0 = (
+            kernels.residual(x, edges),
+            kernels.rigidity_matrix(x, edges),
+            kernels.pair_distances_flat(x, edges),
+        )
     assert f.shape == f0.shape and R.shape == R0.shape and d.shape == d0.shape
     assert np.allclose(f, f0, rtol=1e-13, atol=1e-13)
     assert np.array_equal(R, R0)
@@ -252,7 +268,13 @@ def test_compiled_newton_projection_matches_numpy(n, drop, eps, polish, seed):
 
 
 @settings(max_examples=30, deadline=None, derandomize=True)
-@given(st.integers(5, 11), st.integers(0, 2), st.floats(1e-4, 5e-2), st.sampled_from([0, 2, 5, 10]), st.integers(0, 2**31 - 1))
+@given(
+    st.integers(5, 11),
+    st.integers(0, 2),
+    st.floats(1e-4, 5e-2),
+    st.sampled_from([0, 2, 5, 10]),
+    st.integers(0, 2**31 - 1),
+)
 def test_compiled_projection_with_an_extra_row_matches_numpy(n, drop, eps, stall, seed):
     """As the dimension test's probes project (stall > 0: giving up once the residual stalls):
     both backends decide alike, and where they converge they agree."""
@@ -478,9 +500,14 @@ def _stressed_problem(n, eps, seed, extra=0):
     linear rows: J loses rank through a row that is a combination of others, wherever the point is."""
     x0, keep, free, tri, rng = _perturbed_problem(n, 0, eps, seed)
     adjacent = {tuple(e) for e in keep.tolist()} | {tuple(e[::-1]) for e in keep.tolist()}
-    bipyramids = [(i, j, face) for i in range(n) for j in range(i + 1, n) if (i, j) not in adjacent
-                  for face in combinations([v for v in range(n) if (i, v) in adjacent and (j, v) in adjacent], 3)
-                  if all((a, b) in adjacent for a, b in combinations(face, 2))]
+    bipyramids = [
+        (i, j, face)
+        for i in range(n)
+        for j in range(i + 1, n)
+        if (i, j) not in adjacent
+        for face in combinations([v for v in range(n) if (i, v) in adjacent and (j, v) in adjacent], 3)
+        if all((a, b) in adjacent for a, b in combinations(face, 2))
+    ]
     i, j, face = bipyramids[rng.integers(len(bipyramids))]
     five = {i, j, *face}
     held = set(combinations(sorted(tri), 2))
@@ -553,8 +580,17 @@ def test_the_reduced_step_defers_to_lapack_unless_the_dependence_is_at_rounding_
 
 
 @settings(max_examples=80, deadline=None, derandomize=True)
-@given(st.booleans(), st.integers(6, 12), st.integers(0, 3), st.floats(0.0, 1e-2), st.integers(0, 3), st.integers(0, 2**31 - 1))
-def test_a_newton_step_is_the_same_whichever_of_the_qr_and_reduced_steps_is_asked_first(stressed, n, drop, eps, extra, seed):
+@given(
+    st.booleans(),
+    st.integers(6, 12),
+    st.integers(0, 3),
+    st.floats(0.0, 1e-2),
+    st.integers(0, 3),
+    st.integers(0, 2**31 - 1),
+)
+def test_a_newton_step_is_the_same_whichever_of_the_qr_and_reduced_steps_is_asked_first(
+    stressed, n, drop, eps, extra, seed
+):
     """Where the normal equations are refused, Newton's step asks the QR and the reduced steps in either order
     (the one that served the last step first). The two never both take a step (rows dependent to rounding leave
     J a singular value far below QR's bound), so the step is the same to the last bit in either order: the QR
@@ -631,17 +667,21 @@ def test_a_failure_after_normal_equations_is_redone_without_them_and_fails_as_la
         mask = kernels.free_mask(x0.size, free)
         x, status, _, _, normal, redone = _compiled.newton(x0, edges, free, mask, A, b, *kw, guard, P.probe_stall)
         ws = _compiled._workspace(x0.size, edges, 1)
-        first = _compiled._newton_core(x0, edges, free, mask, A, b, *kw, guard, ws, P.probe_stall, np.zeros(1, np.int64))
+        first = _compiled._newton_core(
+            x0, edges, free, mask, A, b, *kw, guard, ws, P.probe_stall, np.zeros(1, np.int64)
+        )
         assert redone == (first[1] == _compiled.NEWTON_FAILED and first[4] > 0)
         if not redone:
             continue
         retried += 1
         assert normal == first[4]  # the second pass took no normal-equation step
-        again = _compiled._newton_core(x0, edges, free, mask, A, b, *kw, _compiled.NO_NORMAL, ws, P.probe_stall,
-                                       np.zeros(1, np.int64))
+        again = _compiled._newton_core(
+            x0, edges, free, mask, A, b, *kw, _compiled.NO_NORMAL, ws, P.probe_stall, np.zeros(1, np.int64)
+        )
         assert again[4] == 0 and np.array_equal(again[0], x) and again[1] == status
-        lapack = _compiled._newton_core(x0, edges, free, mask, A, b, *kw, np.inf, ws, P.probe_stall,
-                                        np.zeros(1, np.int64))
+        lapack = _compiled._newton_core(
+            x0, edges, free, mask, A, b, *kw, np.inf, ws, P.probe_stall, np.zeros(1, np.int64)
+        )
         with kernels.backend("numpy"):
             reference = kernels.project(x0, edges, free, extra=(A[:, free], b), stall=P.probe_stall, **P.newton())
         assert status == lapack[1] and (status == _compiled.NEWTON_OK) == reference.ok
@@ -818,5 +858,6 @@ def test_floppy_without_certifies_only_what_regular_flexes_certifies_after_to_fr
         if certified == 0:  # no flex left: the caller decides (first-order rigid, its root to be proved)
             assert g == -1
     with kernels.backend("numpy"):
-        assert (kernels.floppy_without(c.coords, c.edges(), np.array(spheres), np.array(triangles), P.tol_n)
-                == -1).all()
+        assert (
+            kernels.floppy_without(c.coords, c.edges(), np.array(spheres), np.array(triangles), P.tol_n) == -1
+        ).all()

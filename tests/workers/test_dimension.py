@@ -409,7 +409,9 @@ def test_an_endpoint_whose_stress_lies_in_a_rigid_part_is_floppy(monkeypatch):
     monkeypatch.undo()
     found = Rigidity(False, "undecided", 1, 1, before.method, before.margin)
     assert paths._held_by_a_rigid_part(found, x, keep, ns, P.tol_n)
-    in_doubt = Rigidity(False, "undecided", 1, 1, "unresolved", 2 * P.tol_psd)  # a margin the coordinates leave in doubt
+    in_doubt = Rigidity(
+        False, "undecided", 1, 1, "unresolved", 2 * P.tol_psd
+    )  # a margin the coordinates leave in doubt
     assert not paths._held_by_a_rigid_part(in_doubt, x, keep, ns, P.tol_n)
 
 
@@ -448,7 +450,9 @@ def test_a_pre_stress_spread_over_the_cluster_is_held_by_no_rigid_part():
     c = Cluster.from_dict(FIXTURES["n10_m24_prestress"])
     dims = set()
     for idx, x, keep, free in _numerical_cases(c, 2):
-        assert rigid_part(x, keep, StressBasis.of(kernels.null_spaces(x, keep, free, P.tol_n), P.tol_n), P.tol_n) is None, idx
+        assert (
+            rigid_part(x, keep, StressBasis.of(kernels.null_spaces(x, keep, free, P.tol_n), P.tol_n), P.tol_n) is None
+        ), idx
         dims.add(solution_dimension(x, keep, free, P, limit=1).dim)
     assert {1, 2} <= dims
 
@@ -506,7 +510,12 @@ def test_no_held_rows_where_the_count_without_them_is_in_doubt():
     sigma = ns.sigma.copy()
     sigma[np.argmin(np.where(sigma >= P.tol_n, sigma, np.inf))] = 5 * P.tol_n
     assert dimension.held_rows(StressBasis.of(kernels.NullSpaces(sigma, ns.V, ns.W), P.tol_n), P.tol_n) is None
-    assert dimension.held_rows(StressBasis.of(kernels.null_spaces(*_set_left(seed_cluster(9))[:3], P.tol_n), P.tol_n), P.tol_n) is None
+    assert (
+        dimension.held_rows(
+            StressBasis.of(kernels.null_spaces(*_set_left(seed_cluster(9))[:3], P.tol_n), P.tol_n), P.tol_n
+        )
+        is None
+    )
 
 
 @pytest.mark.parametrize("backend", ["compiled", "numpy"])
@@ -589,7 +598,11 @@ def test_the_rigid_body_test_remembers_answers_without_changing_them():
             if got is not None:
                 assert np.array_equal(got, want)
     assert [dimension._rigid_body(xx, ee, i, P.tol_n, dimension.COUNT_GUARD) is not None for xx, ee, i in cases] == [
-        True, False, True, False]
+        True,
+        False,
+        True,
+        False,
+    ]
     info = dimension._rigid_in_own_coordinates.cache_info()
     assert (info.misses, info.hits) == (len(cases), 2 * len(cases))  # each computed once, then remembered
 
@@ -629,7 +642,9 @@ def test_what_is_left_read_off_the_clusters_svd_is_what_its_own_svd_finds(close_
     pre-stress test's cheap cases), the SVD of the set decides it alike: the same dimension and method, the
     same tangent up to sign."""
     decided = Counter()
-    cases = [(close_packed_12, 3)] + [(Cluster.from_dict(FIXTURES[nm]), 2) for nm in ("n10_m24_prestress", "n10_m23_prestress")]
+    cases = [(close_packed_12, 3)] + [
+        (Cluster.from_dict(FIXTURES[nm]), 2) for nm in ("n10_m24_prestress", "n10_m23_prestress")
+    ]
     for c, top in cases:
         for k in range(1, top + 1):
             for idx in combinations(range(c.m), k):
@@ -648,8 +663,7 @@ def test_what_is_left_read_off_the_clusters_svd_is_what_its_own_svd_finds(close_
                 assert left.largest >= ns.sigma.max() - rounding
                 if not left.flexes or not left.W.shape[1]:
                     continue
-                found = (dimension._held_dimension(x, keep, left, P.tol_n)
-                         or dimension._rigid_by_left(keep, left, P))
+                found = dimension._held_dimension(x, keep, left, P.tol_n) or dimension._rigid_by_left(keep, left, P)
                 if found is None:
                     continue
                 svd = solution_dimension(x, keep, free, P, ns, limit=1)
@@ -732,12 +746,24 @@ def test_the_counts_read_in_batches_are_the_counts_read_one_by_one(close_packed_
     assert dimension.ranks_after_breaking(unsure, subsets, P.tol_n) is None
 
     def attempts(c):
-        return [(e.broken, e.direction, e.outcome, e.steps, e.dim, e.new_contacts,
-                 None if e.cluster is None else e.cluster.coords.tobytes()) for e in expand.expand(c, P).endpoints]
+        return [
+            (
+                e.broken,
+                e.direction,
+                e.outcome,
+                e.steps,
+                e.dim,
+                e.new_contacts,
+                None if e.cluster is None else e.cluster.coords.tobytes(),
+            )
+            for e in expand.expand(c, P).endpoints
+        ]
 
     c = Cluster.from_dict(FIXTURES["n10_m23_prestress"])
     asked = []
-    monkeypatch.setattr(expand, "ranks_after_breaking", lambda *a: asked.append(a) or dimension.ranks_after_breaking(*a))
+    monkeypatch.setattr(
+        expand, "ranks_after_breaking", lambda *a: asked.append(a) or dimension.ranks_after_breaking(*a)
+    )
     batched = attempts(c)
     assert asked
     monkeypatch.setattr(expand, "ranks_after_breaking", lambda *a: None)

@@ -226,8 +226,9 @@ def test_root_exists_agrees_with_the_theorem_with_or_without_a_bound_on_sigma() 
         tri = contact_triangle(c.edges())
         x, free = kernels.to_frame(c.coords, tri).ravel(), kernels.free_coordinates(c.n, tri)
         whole = kantorovich(x, c.edges(), free).exists
-        assert root_exists(x, c.edges(), free, DEFAULT.tol_n, certified) is (whole or c.m != 3 * c.n - 6 or
-                                                                             exact_cluster(c).status == SINGULAR)
+        assert root_exists(x, c.edges(), free, DEFAULT.tol_n, certified) is (
+            whole or c.m != 3 * c.n - 6 or exact_cluster(c).status == SINGULAR
+        )
         assert root_exists(x, c.edges(), free, DEFAULT.tol_n) is whole
     point, _ = unproved_point()
     for tri, x, free in list(pinnings(point))[:10]:

@@ -55,8 +55,9 @@ def test_expand_is_pure():
 
 
 def _same_distinct_clusters(a, b) -> bool:
-    return Counter(certificate_hex(a.endpoints[i].cluster) for i in a.distinct()) == \
-        Counter(certificate_hex(b.endpoints[i].cluster) for i in b.distinct())
+    return Counter(certificate_hex(a.endpoints[i].cluster) for i in a.distinct()) == Counter(
+        certificate_hex(b.endpoints[i].cluster) for i in b.distinct()
+    )
 
 
 @settings(max_examples=6, deadline=None, derandomize=True)
@@ -84,7 +85,9 @@ def test_the_endpoints_that_are_one_cluster_point_at_the_first_of_them():
         if i not in rigid:
             assert j is None
             continue
-        assert j <= i and ex.same_as[j] == j and same_geometry(ex.endpoints[i].cluster, ex.endpoints[j].cluster, P.tol_d)
+        assert (
+            j <= i and ex.same_as[j] == j and same_geometry(ex.endpoints[i].cluster, ex.endpoints[j].cluster, P.tol_d)
+        )
     for k, i in enumerate(first):
         assert not any(same_geometry(ex.endpoints[i].cluster, ex.endpoints[j].cluster, P.tol_d) for j in first[:k])
 
@@ -224,7 +227,9 @@ def test_paths_that_widen_after_the_first_step_stop_only_when_asked():
     c = Cluster.from_dict(d["n10_m24_prestress"])
     strict = expand(c, P.with_(stop_on_dimension_change=True))
     lenient = expand(c, P.with_(stop_on_dimension_change=False))
-    stopped = {(e.broken, e.direction) for e in strict.endpoints if e.outcome == DIMENSION_CHANGED and e.first_step_dim == 2}
+    stopped = {
+        (e.broken, e.direction) for e in strict.endpoints if e.outcome == DIMENSION_CHANGED and e.first_step_dim == 2
+    }
     assert stopped
     went_on = {(e.broken, e.direction): e for e in lenient.endpoints if (e.broken, e.direction) in stopped}
     assert all(e.first_step_dim == 2 and e.outcome != DIMENSION_CHANGED for e in went_on.values())
@@ -268,8 +273,9 @@ def test_an_endpoint_satisfies_every_contact_it_is_said_to_have():
         f = kernels.residual(xe, np.array(contacts, dtype=np.int64))
         assert float(f @ f) < DEFAULT.tol
         ends.append(Cluster(xe.reshape(-1, 3), contacts))
-    assert not same_geometry(*(Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))
-                               for m in data["endpoints"]), DEFAULT.tol_d)  # stored: two clusters
+    assert not same_geometry(
+        *(Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"]))) for m in data["endpoints"]), DEFAULT.tol_d
+    )  # stored: two clusters
     assert same_geometry(ends[0], ends[1], DEFAULT.tol_d)  # now: one
 
 
@@ -328,8 +334,9 @@ def _moved(c: Cluster, rng) -> Cluster:
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     p = rng.permutation(c.n)  # new sphere k is old sphere p[k]
     inv = np.argsort(p)
-    return Cluster((c.coords @ q.T + 1.0)[p], tuple(sorted(tuple(sorted((int(inv[i]), int(inv[j]))))
-                                                            for i, j in c.contacts)))
+    return Cluster(
+        (c.coords @ q.T + 1.0)[p], tuple(sorted(tuple(sorted((int(inv[i]), int(inv[j])))) for i, j in c.contacts))
+    )
 
 
 def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
@@ -353,7 +360,9 @@ def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
     from_hyper = expand(hyper, P)
     back = next(e.cluster for i, e in enumerate(from_hyper.endpoints) if from_hyper.retraceable(i))
     # a path between two hyperstatic clusters is followed from both ends: its endpoint gets no labels
-    between = [i for i, e in enumerate(from_hyper.endpoints) if e.outcome == RIGID and e.cluster.m > 3 * e.cluster.n - 6]
+    between = [
+        i for i, e in enumerate(from_hyper.endpoints) if e.outcome == RIGID and e.cluster.m > 3 * e.cluster.n - 6
+    ]
     assert between and not any(from_hyper.retraceable(i) for i in between)
     rng = np.random.default_rng(7)
     checked = Counter()
@@ -379,7 +388,9 @@ def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
             if b.m == 3 * b.n - 6:  # a regular B: every single break leaves a smooth curve
                 assert taken >= set(came_by)
             assert short.paths_followed + short.paths_retraced == full.paths_followed
-            assert [(f.broken, f.direction) for f in full.endpoints] == [(f.broken, f.direction) for f in short.endpoints]
+            assert [(f.broken, f.direction) for f in full.endpoints] == [
+                (f.broken, f.direction) for f in short.endpoints
+            ]
             for f, g in zip(full.endpoints, short.endpoints):
                 if g.reached is None:
                     assert (f.outcome, f.new_contacts, f.steps) == (g.outcome, g.new_contacts, g.steps)
@@ -391,7 +402,9 @@ def test_a_cluster_takes_the_paths_that_arrived_from_the_end_they_arrived_at():
                 assert kernels.aligned_max_error(back_at, at_a - at_a.mean(axis=0)) <= P.tol_d
                 assert g.steps == g.reached.steps > 0  # the steps of the path that arrived (adaptive: not f's)
                 checked[("regular" if b.m == 3 * b.n - 6 else "hyperstatic", len(g.broken), len(g.new_contacts))] += 1
-            assert short.same_as == tuple(None if g.reached is not None else s for g, s in zip(short.endpoints, full.same_as))
+            assert short.same_as == tuple(
+                None if g.reached is not None else s for g, s in zip(short.endpoints, full.same_as)
+            )
     assert sum(checked.values()) >= 20
     # paths back that form two contacts at once, and paths back from a hyperstatic B
     assert any(formed >= 2 for (_, _, formed) in checked) and any(k[0] == "hyperstatic" for k in checked), checked
@@ -403,12 +416,17 @@ def test_arrivals_that_disagree_on_a_contact_leave_its_path_to_be_followed():
     n = 9
     ident = list(range(n))
     swap = [1, 0] + list(range(2, n))
-    rows = [("A", [[0, 1]], [[2, 3]], 10, ident), ("C", [[4, 5]], [[2, 3]], 12, ident),  # two clusters at (2, 3)
-            ("A", [[0, 1]], [[3, 4]], 10, ident), ("A", [[0, 2]], [[3, 4]], 10, ident),  # two contacts formed at (3, 4)
-            ("A", [[0, 1]], [[5, 6]], 10, ident), ("A", [[1, 0]], [[6, 5]], 10, swap),  # agree at (5, 6)
-            ("A", [[1, 2], [0, 1]], [[7, 8]], 10, ident),  # two broken, formed again on the way back
-            ("A", [[0, 1]], [[8, 7], [6, 8]], 11, swap),  # two formed: broken together on the way back
-            ("A", [[0, 1]], [], 10, ident)]  # none formed: not an arrival
+    rows = [
+        ("A", [[0, 1]], [[2, 3]], 10, ident),
+        ("C", [[4, 5]], [[2, 3]], 12, ident),  # two clusters at (2, 3)
+        ("A", [[0, 1]], [[3, 4]], 10, ident),
+        ("A", [[0, 2]], [[3, 4]], 10, ident),  # two contacts formed at (3, 4)
+        ("A", [[0, 1]], [[5, 6]], 10, ident),
+        ("A", [[1, 0]], [[6, 5]], 10, swap),  # agree at (5, 6)
+        ("A", [[1, 2], [0, 1]], [[7, 8]], 10, ident),  # two broken, formed again on the way back
+        ("A", [[0, 1]], [[8, 7], [6, 8]], 11, swap),  # two formed: broken together on the way back
+        ("A", [[0, 1]], [], 10, ident),
+    ]  # none formed: not an arrival
     got = arrivals(rows)
     assert set(got) == {((5, 6),), ((7, 8),), ((6, 8), (7, 8))}
     assert got[((5, 6),)].target == "A" and got[((5, 6),)].formed == ((0, 1),) and got[((5, 6),)].steps == 10
@@ -429,9 +447,9 @@ def test_a_subset_with_a_contact_the_rest_holds_is_not_followed_and_nothing_reac
     tangent, projected back onto what B leaves, finds every such q still touching to Newton's tolerance
     (a contact that merely keeps its length to first order would move by about the step squared).  Every
     other attempt is the same as when every path is followed, and so is every cluster reached."""
+    from packings.workers import kernels
     from packings.workers.expand import HELD, NO_TRIANGLE
     from packings.workers.rigidity import contact_triangle
-    from packings.workers import kernels
 
     c, p = _ground_state_12()
     ex, every = expand(c, p), expand(c, p, held=False)
@@ -442,8 +460,9 @@ def test_a_subset_with_a_contact_the_rest_holds_is_not_followed_and_nothing_reac
     def attempt(e):
         return (e.broken, e.direction, e.outcome, e.steps, e.new_contacts, e.cluster and e.cluster.coords.tobytes())
 
-    assert [attempt(e) for e in ex.endpoints if e.broken not in held] == \
-        [attempt(e) for e in every.endpoints if e.broken not in held]
+    assert [attempt(e) for e in ex.endpoints if e.broken not in held] == [
+        attempt(e) for e in every.endpoints if e.broken not in held
+    ]
     assert _same_distinct_clusters(ex, every)
     # following them is rounding's call: mostly shortens, some floppy, the odd one at a cluster reached anyway
     assert Counter(e.outcome for e in every.endpoints if e.broken in held)[RIGID] < len(held) / 10

@@ -24,6 +24,7 @@ DATA = Path(__file__).parent.parent / "data"
 # ----------------------------------------------------------------- the canonical form of a fragment
 # fragments._grown (compiled) moves each fragment so, as these do one tuple at a time.
 
+
 def _canonical(sites) -> tuple[int, ...]:
     """The fragment moved within its layers (by a lattice vector) so that its first site is at (0, 0)."""
     first = min(sites)
@@ -45,18 +46,22 @@ def _canonical_stack(positions: tuple[int, ...], sites) -> tuple[tuple[int, ...]
 def _grow_stacks(n: int, t: list[int], most_layers: int) -> dict[tuple[tuple[int, ...], tuple[int, ...]], int]:
     """F._grown as {(positions of its layers, sites): contacts}, in the order the fragments were made."""
     rows, contacts = F._grown(n, t, most_layers)
-    return {(tuple(int(p) for p in row[:most_layers] if p >= 0), tuple(int(q) for q in row[most_layers:])): int(c)
-            for row, c in zip(rows, contacts)}
+    return {
+        (tuple(int(p) for p in row[:most_layers] if p >= 0), tuple(int(q) for q in row[most_layers:])): int(c)
+        for row, c in zip(rows, contacts)
+    }
 
 
 # ----------------------------------------------------------------- the reference: one structure at a time
 # Every structure of ``layers`` layers, one stacking sequence after another, each grown on its own with the
 # twelve touching sites of every site: what fragments._grown must find, more slowly.
 
+
 def sequences(layers: int) -> list[tuple[int, ...]]:
     """The stacking sequences of ``layers`` layers beginning with A (0), adjacent layers different."""
-    return [s for s in itertools.product(range(3), repeat=layers)
-            if s[0] == 0 and all(a != b for a, b in zip(s, s[1:]))]
+    return [
+        s for s in itertools.product(range(3), repeat=layers) if s[0] == 0 and all(a != b for a, b in zip(s, s[1:]))
+    ]
 
 
 def _position(seq: tuple[int, ...], site: int) -> np.ndarray:
@@ -73,12 +78,20 @@ def _steps(seq: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
     out = []
     for layer in range(len(seq)):
         here = _position(seq, layer * F._S * F._S + origin)
-        out.append(tuple(
-            dl * F._S * F._S + di * F._S + dj
-            for dl in (-1, 0, 1) if 0 <= layer + dl < len(seq)
-            for di in range(-2, 3) for dj in range(-2, 3)
-            if (dl, di, dj) != (0, 0, 0)
-            and abs(np.linalg.norm(_position(seq, (layer + dl) * F._S * F._S + origin + di * F._S + dj) - here) - 1.0) < 1e-9))
+        out.append(
+            tuple(
+                dl * F._S * F._S + di * F._S + dj
+                for dl in (-1, 0, 1)
+                if 0 <= layer + dl < len(seq)
+                for di in range(-2, 3)
+                for dj in range(-2, 3)
+                if (dl, di, dj) != (0, 0, 0)
+                and abs(
+                    np.linalg.norm(_position(seq, (layer + dl) * F._S * F._S + origin + di * F._S + dj) - here) - 1.0
+                )
+                < 1e-9
+            )
+        )
     return tuple(out)
 
 
@@ -293,7 +306,10 @@ def test_the_lost_cluster_of_11_is_a_close_packed_fragment():
     """Among the close-packed fragments of 11 with at least 26 contacts is the cluster no path reaches
     (tests/data/n11_catalysis.json), rigid by the endpoint rule."""
     data = json.loads((DATA / "n11_catalysis.json").read_text())
-    found = [r for r in (remainder(f.cluster, (), P) for f in F.close_packed(11, 26))
-             if r.rigid and certificate_key(r.cluster) == data["certificate"]]
+    found = [
+        r
+        for r in (remainder(f.cluster, (), P) for f in F.close_packed(11, 26))
+        if r.rigid and certificate_key(r.cluster) == data["certificate"]
+    ]
     assert len(found) == 1
     assert (found[0].cluster.m, lattice_type(found[0].cluster.coords, found[0].cluster.contacts)) == (26, "hcp")

@@ -367,8 +367,12 @@ def test_both_backends_accept_copies_and_reject_moved_spheres(name) -> None:
     x = c.coords.copy()
     x[0] += [3 * TOL_D, 0.0, 0.0]
     moved = Cluster(x, c.contacts)
-    answers = _both_backends(lambda: (same_geometry(c, transformed(c, 1, True, noise=0.2 * TOL_D), TOL_D),
-                                      same_geometry(c, transformed(moved, 2, False), TOL_D)))
+    answers = _both_backends(
+        lambda: (
+            same_geometry(c, transformed(c, 1, True, noise=0.2 * TOL_D), TOL_D),
+            same_geometry(c, transformed(moved, 2, False), TOL_D),
+        )
+    )
     assert answers == {"numba": (True, False), "numpy": (True, False)}
 
 
@@ -435,8 +439,10 @@ def test_embedding_numbers_follow_geometry_not_the_order_found(order, seed) -> N
     perturbed far below tol_d, get the same embedding numbers: the more compact one first."""
     idx = ClusterIndex()
     for i, k in enumerate(order):
-        assert idx.add(transformed(chain(CHAIN_DIHEDRALS[k]), seed + i, bool((seed + i) % 2), noise=1e-7),
-                       TOL_D) == (i, True)
+        assert idx.add(transformed(chain(CHAIN_DIHEDRALS[k]), seed + i, bool((seed + i) % 2), noise=1e-7), TOL_D) == (
+            i,
+            True,
+        )
     assert [idx.embedding_number(i) for i in range(len(order))] == list(order)
     for i, k in enumerate(order):  # a copy matches the geometry it copies, whatever its number
         assert idx.add(transformed(chain(-CHAIN_DIHEDRALS[k]), seed, True, noise=1e-7), TOL_D) == (i, False)
@@ -469,7 +475,9 @@ def test_certificate_key_is_portable_and_equivalent_to_the_certificate():
     base = seed_cluster(8)
     other = seed_cluster(9)
     p = rng.permutation(8)
-    relabelled = Cluster(base.coords[p], tuple((int(np.argsort(p)[i]), int(np.argsort(p)[j])) for i, j in base.contacts))
+    relabelled = Cluster(
+        base.coords[p], tuple((int(np.argsort(p)[i]), int(np.argsort(p)[j])) for i, j in base.contacts)
+    )
     assert certificate_key(relabelled) == certificate_key(base)
     assert certificate(relabelled) == certificate(base)
     assert certificate_key(base) != certificate_key(other)

@@ -108,13 +108,17 @@ def test_a_cold_warm_up_leaves_the_compilers_memory_to_a_child(tmp_path):
 
     if not os.path.exists("/proc/self/status"):
         pytest.skip("peak memory is read from /proc, which this system lacks")
-    bodies = {"apart": "import packings.service.preload", "here": "from packings.workers.expand import warm_up; warm_up(apart=False)"}
+    bodies = {
+        "apart": "import packings.service.preload",
+        "here": "from packings.workers.expand import warm_up; warm_up(apart=False)",
+    }
     procs = {}
     for name, body in bodies.items():
         env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / name), OMP_NUM_THREADS="1")
         env.pop("PACKINGS_KERNELS", None)
-        procs[name] = subprocess.Popen([sys.executable, "-c", _PEAK.format(body=body)], env=env,
-                                       stdout=subprocess.PIPE, text=True)
+        procs[name] = subprocess.Popen(
+            [sys.executable, "-c", _PEAK.format(body=body)], env=env, stdout=subprocess.PIPE, text=True
+        )
     peak = {}
     for name, proc in procs.items():
         out, _ = proc.communicate(timeout=900)

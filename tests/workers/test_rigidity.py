@@ -12,8 +12,17 @@ from packings.workers import kernels
 from packings.workers.cluster import Cluster
 from packings.workers.dimension import solution_dimension
 from packings.workers.params import Params
-from packings.workers.rigidity import (FIRST_ORDER, FLOPPY, PRESTRESS, UNDECIDED, FirstTriangles, contact_triangle,
-                                       prestress_test, rigidity, sdp_margin)
+from packings.workers.rigidity import (
+    FIRST_ORDER,
+    FLOPPY,
+    PRESTRESS,
+    UNDECIDED,
+    FirstTriangles,
+    contact_triangle,
+    prestress_test,
+    rigidity,
+    sdp_margin,
+)
 from packings.workers.seeds import seed_cluster
 from tests.workers.motions import congruent_copy
 
@@ -37,7 +46,9 @@ def test_floppy_after_deleting_a_contact():
 
 
 def test_chain_is_floppy_with_many_flexes():
-    x = np.array([[0, 0, 0], [1, 0, 0], [0.5, np.sqrt(3) / 2, 0], [1.5, np.sqrt(3) / 2, 0.0], [2.5, np.sqrt(3) / 2, 0.0]])
+    x = np.array(
+        [[0, 0, 0], [1, 0, 0], [0.5, np.sqrt(3) / 2, 0], [1.5, np.sqrt(3) / 2, 0.0], [2.5, np.sqrt(3) / 2, 0.0]]
+    )
     r = rigidity(x, [(0, 1), (0, 2), (1, 2), (1, 3), (3, 4)], P)
     assert not r.rigid and r.flexes == 9 - 5  # 3n - 6 free coordinates, 5 independent contacts
 
@@ -182,8 +193,13 @@ def test_rigidity_invariant_under_rotation_reflection_relabelling(name, seed, re
 def test_the_first_triangle_after_deleting_contacts_is_contact_triangles(name, seed, k):
     """FirstTriangles gives, for any contacts deleted, the triangle contact_triangle finds in what is left
     (None where no triangle is left), relabelled clusters and deletions of most contacts included."""
-    c = seed_cluster(9) if name == "seed 9" else Cluster(np.zeros((5, 3)), [(0, 1), (1, 2), (2, 3), (3, 4)]) \
-        if name == "chain" else fixture(name)
+    c = (
+        seed_cluster(9)
+        if name == "seed 9"
+        else Cluster(np.zeros((5, 3)), [(0, 1), (1, 2), (2, 3), (3, 4)])
+        if name == "chain"
+        else fixture(name)
+    )
     rng = np.random.default_rng(seed)
     perm = rng.permutation(c.n)
     c = Cluster(c.coords[np.argsort(perm)], [(perm[i], perm[j]) for i, j in c.contacts])

@@ -33,8 +33,15 @@ def _max_contacts(n: int) -> int:
     return json.loads((Path(__file__).parents[1] / "data" / "paper_counts.json").read_text())["max_contacts"][str(n)]
 
 
-@pytest.mark.parametrize("n, contacts, lattices", [(11, 28, {"fcc", "hcp", "both", "random"}), (13, 36, {"fcc", "hcp"}),
-                                                   (16, 48, {"fcc", "hcp", "random"}), (19, 60, {"fcc", "hcp", "random"})])
+@pytest.mark.parametrize(
+    "n, contacts, lattices",
+    [
+        (11, 28, {"fcc", "hcp", "both", "random"}),
+        (13, 36, {"fcc", "hcp"}),
+        (16, 48, {"fcc", "hcp", "random"}),
+        (19, 60, {"fcc", "hcp", "random"}),
+    ],
+)
 def test_a_run_restricted_to_many_contacts_starts_from_a_close_packed_fragment(n, contacts, lattices):
     """Above 3n - 6 contacts the seed is the close-packed fragment with the most contacts the beam search
     finds: for n = 13 ... 19 the paper's maximum M(n) (for n = 10 - 12 one less), rigid, without overlap,
@@ -68,8 +75,11 @@ def test_a_run_restricted_to_the_maximum_the_beam_misses_starts_from_the_listed_
 
 @pytest.mark.parametrize("n, m", [(10, 26), (13, 37)])
 def test_no_seed_with_more_contacts_than_any_close_packed_fragment_is_refused_clearly(n, m):
-    with pytest.raises(ValueError, match=f"no cluster of {n} spheres with at least {m} contacts to start from: "
-                                         "no rigid close-packed fragment has that many"):
+    with pytest.raises(
+        ValueError,
+        match=f"no cluster of {n} spheres with at least {m} contacts to start from: "
+        "no rigid close-packed fragment has that many",
+    ):
         seed_cluster(n, Params(min_contacts=m))
 
 
