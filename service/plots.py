@@ -649,6 +649,7 @@ def aligned(clusters: Sequence[tuple]) -> list | None:
     contact triangle, the same in all under the graph's canonical labelling (nauty), lies where the
     first cluster's does.  None if their contact graphs differ (or have no triangle)."""
     import numpy as np
+    from scipy.spatial.transform import Rotation
 
     from packings.workers.cluster import Cluster
     from packings.workers.identity import canonical_labelling, certificate_key
@@ -679,12 +680,9 @@ def aligned(clusters: Sequence[tuple]) -> list | None:
     for core in cores:
         x = core.coords
         src = x[canonical_labelling(core)[list(triangle)]]
-        # Kabsch: the proper rotation taking the triangle (about its centroid) onto the target's
-        a, b = src - src.mean(axis=0), target - target.mean(axis=0)
-        u, _, vt = np.linalg.svd(a.T @ b)
-        d = np.sign(np.linalg.det(u @ vt)) or 1.0
-        r = u @ np.diag([1.0, 1.0, d]) @ vt
-        out.append((x - src.mean(axis=0)) @ r + target.mean(axis=0))
+        # the proper rotation taking the triangle (about its centroid) onto the target's (Kabsch, by scipy)
+        rotation, _ = Rotation.align_vectors(target - target.mean(axis=0), src - src.mean(axis=0))
+        out.append(rotation.apply(x - src.mean(axis=0)) + target.mean(axis=0))
     return out
 
 

@@ -102,6 +102,7 @@ every cluster of n = 8, 9, 10 and every constructed test cluster.
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import orthogonal_procrustes
 
 from packings.workers.cluster import Cluster, cross3, normalise_contacts, pair_distances
 
@@ -191,11 +192,11 @@ def _ideal_sites(local: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def _max_aligned_error(ideal: np.ndarray, x: np.ndarray) -> float:
-    """Largest distance between x and the ideal sites after a least-squares rigid alignment."""
+    """Largest distance between x and the ideal sites after a least-squares orthogonal alignment."""
     ic = ideal - ideal.mean(axis=0)
     xc = x - x.mean(axis=0)
-    u, _, vt = np.linalg.svd(ic.T @ xc)
-    return float(np.max(np.linalg.norm(ic @ (u @ vt) - xc, axis=1)))
+    r, _ = orthogonal_procrustes(ic, xc)
+    return float(np.max(np.linalg.norm(ic @ r - xc, axis=1)))
 
 
 def _stacking(k: np.ndarray, label: np.ndarray) -> tuple[bool, bool, bool, bool] | None:

@@ -173,7 +173,8 @@ def distance_lower_bound(a: _Canonical, b: _Canonical) -> float:
     norms = float(np.sum(a.x * a.x) + np.sum(b.x * b.x))
     best = np.inf
     for s in _group(a):
-        sq = norms - 2.0 * float(np.sum(np.linalg.svd(b.x[s].T @ a.x, compute_uv=False)))
+        _, trace = scipy.linalg.orthogonal_procrustes(a.x, b.x[s], check_finite=False)  # Σ σ(x_a^T x_b[s])
+        sq = norms - 2.0 * float(trace)
         best = min(best, math.sqrt(max(0.0, sq - 1e-12 * norms)))
     return max(by_distances, best)
 

@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
+from scipy.linalg import orthogonal_procrustes
 
 from packings.workers.cluster import cross3
 from packings.workers.params import DEFAULT
@@ -605,6 +606,7 @@ def some_automorphism_aligns(
 
 def aligned_max_error(x: np.ndarray, y: np.ndarray) -> float:
     """max |x R - y| over coordinates for the orthogonal R (det = +-1) that minimises the Frobenius
-    norm ||x R - y|| (both already centred): the orthogonal Procrustes problem, by the SVD of x^T y."""
-    u, _, vt = np.linalg.svd(x.T @ y)
-    return float(np.max(np.abs(x @ (u @ vt) - y)))
+    norm ||x R - y|| (both already centred): the orthogonal Procrustes problem (R = U V^T from the SVD
+    x^T y = U S V^T), solved by scipy."""
+    r, _ = orthogonal_procrustes(x, y, check_finite=False)
+    return float(np.max(np.abs(x @ r - y)))

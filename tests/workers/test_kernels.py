@@ -148,3 +148,27 @@ def test_an_endpoints_contacts_are_contacts_from_coords(n, seed, tol_a):
     for name in kernels.BACKENDS:
         with kernels.backend(name):
             assert _contacts(x.ravel(), tol_a) == want
+
+
+@settings(max_examples=40, deadline=None, derandomize=True)
+@given(st.integers(3, 14), st.integers(0, 2**31 - 1), st.booleans())
+def test_aligned_max_error_is_zero_for_a_turned_copy_and_bounded_below_for_a_moved_one(n, seed, reflect):
+    """The orthogonal Procrustes alignment undoes any rotation or reflection of a centred cluster (the
+    error is round-off).  For any other y it is at least the largest change of a pair distance over
+    2 sqrt(3): an orthogonal R keeps x's distances, so |r_i - r_j| >= | |x_i - x_j| - |y_i - y_j| | for
+    the residuals r = x R - y, and each |r_i| is at most sqrt(3) times the error (a coordinate's)."""
+    rng = np.random.default_rng(seed)
+    x = rng.standard_normal((n, 3))
+    x -= x.mean(axis=0)
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    if (np.linalg.det(q) < 0) != reflect:
+        q[:, 0] *= -1
+    scale = 1e-12 * (1.0 + np.abs(x).max())
+    assert kernels.aligned_max_error(x, x @ q) <= scale
+    assert kernels.aligned_max_error(x @ q, x) <= scale
+    y = x @ q
+    y[rng.integers(n)] += 0.3 * rng.standard_normal(3)
+    y -= y.mean(axis=0)
+    dx = np.linalg.norm(x[:, None] - x[None], axis=-1)
+    dy = np.linalg.norm(y[:, None] - y[None], axis=-1)
+    assert kernels.aligned_max_error(x, y) >= np.abs(dx - dy).max() / (2.0 * 3.0**0.5) - scale
