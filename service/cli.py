@@ -16,9 +16,10 @@ import threading
 
 import click
 
-from packings.service.api import check_n, pass_bar, resolve_url
+from packings.service.api import pass_bar, resolve_url
 from packings.service.dask_cluster import DASHBOARD_ADDRESS
 from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
+from packings.service.validate import check_cluster_choice, check_n, int_range
 from packings.workers.params import Params
 
 # What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
@@ -87,7 +88,7 @@ def cli(verbose: int) -> None:
 @click.option(
     "--workers",
     "n_workers",
-    type=click.IntRange(1, 512),
+    type=int_range("workers"),
     default=None,
     help="Worker processes of the local Dask cluster (default: one per core).",
 )
@@ -99,7 +100,7 @@ def cli(verbose: int) -> None:
 )
 @click.option(
     "--max-break",
-    type=click.IntRange(1, 10),
+    type=int_range("max_break"),
     default=None,
     help="Largest number of contacts broken at once (default: no cap, every size up to m - rank + 1 as the "
     "paper for n <= 14; a cap is for restricted runs of large n).",
@@ -114,17 +115,19 @@ def cli(verbose: int) -> None:
 )
 @click.option(
     "--max-attempts",
-    type=click.IntRange(1, 100),
+    type=int_range("max_attempts"),
     default=3,
     show_default=True,
     help="Tries per expansion before it is marked failed.",
 )
 @dashboard_option
 @click.option(
-    "--glued",
-    is_flag=True,
-    help="Then move one sphere of every cluster onto each contact triangle (as `catalyse N --glued`), "
-    "add the rigid clusters no path reached and expand them, until nothing new is found.",
+    "--glued/--no-glued",
+    default=True,
+    show_default=True,
+    help="After the paths, move one sphere of every cluster onto each contact triangle (as `catalyse N --glued`), "
+    "add the rigid clusters no path reached and expand them, until nothing new is found (n = 11 and 13 have "
+    "one such cluster); --no-glued follows the paths alone.",
 )
 @click.option("--json", "as_json", is_flag=True, help="Print the counts and diagnostics as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
@@ -145,8 +148,8 @@ def enumerate_cmd(
 
     Resumes the run with the same N and parameters if the database has one
     (an interrupted run goes on where it stopped; a complete one just prints).
-    With --glued, catalysis passes follow the paths (a pass that ran to its
-    end is not made again; one over the clusters stored since is).
+    Glued catalysis passes follow the paths unless --no-glued is given (a pass
+    that ran to its end is not made again; one over the clusters stored since is).
     """
     from packings.service import api
 
@@ -206,38 +209,10 @@ def enumerate_cmd(
             click.echo(format_report(report))
     for err in result.errors[:10]:
         click.echo(f"packings: failed task: {err}", err=True)
-    if result.status == "complete" and not as_json:
-        _offer_catalysis(url, n, result.run_id, restricted=max_break is not None or min_contacts is not None)
     if result.status != "complete":
         raise click.ClickException(
             f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
             "failed (see `packings status`); rerun the same command to retry them"
-        )
-
-
-def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
-    """One line on catalysis, which may find clusters no path reaches: from the stored clusters of n + 1
-    spheres when there are some, else (a run not restricted, with no glued pass yet) by moving a sphere
-    of each cluster of n."""
-    from packings.service.catalysis import count_stored, covered
-    from packings.service.db import make_engine, sessions
-
-    engine = make_engine(url)
-    try:
-        Session_ = sessions(engine, readonly=True)
-        more = count_stored(Session_, n + 1)
-        glued = more or restricted or covered(Session_, run_id)
-    finally:
-        engine.dispose()
-    if more:
-        click.echo(
-            f"{more} clusters of {n + 1} spheres are stored: `packings catalyse {n}` deletes a sphere from "
-            "each and adds the rigid remainders no path reached"
-        )
-    elif not glued:
-        click.echo(
-            f"some clusters no path reaches (n = 11 and 13 have one): `packings enumerate {n} --glued` "
-            "moves a sphere of each cluster onto each contact triangle and adds the rigid ones"
         )
 
 
@@ -247,14 +222,14 @@ def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
 @click.option(
     "--spheres",
     "k",
-    type=click.IntRange(1, 10),
+    type=int_range("spheres"),
     default=1,
     show_default=True,
     help="Spheres deleted from each stored cluster of N + K spheres.",
 )
 @click.option(
     "--max-break",
-    type=click.IntRange(1, 10),
+    type=int_range("max_break"),
     default=None,
     help="As for enumerate (default: no cap): chooses the run of N that the clusters found are added to.",
 )
@@ -273,7 +248,7 @@ def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
 @click.option(
     "--close-packed",
     "close_packed",
-    type=click.IntRange(0, None),
+    type=int_range("close_packed"),
     default=None,
     metavar="M",
     help="No parents: every close-packed fragment of N spheres with at least M contacts (fcc, hcp and "
@@ -283,7 +258,7 @@ def _offer_catalysis(url: str, n: int, run_id: int, restricted: bool) -> None:
 @click.option(
     "--workers",
     "n_workers",
-    type=click.IntRange(1, 512),
+    type=int_range("workers"),
     default=None,
     help="Worker processes of the local Dask cluster (default: one per core).",
 )
@@ -328,8 +303,7 @@ def catalyse_cmd(
     if glued and k != 1:
         raise click.UsageError("--glued moves one sphere: --spheres must be 1")
     check_n(n + k)
-    if n_workers is not None and scheduler is not None:
-        raise click.UsageError("give either --workers (a local cluster) or --scheduler (an existing one), not both")
+    check_cluster_choice(n_workers, scheduler, options=True)
     params = Params(max_break=max_break, min_contacts=min_contacts)
     from packings.service.dask_cluster import dask_client, start_fork_server
 

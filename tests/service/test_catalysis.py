@@ -108,7 +108,7 @@ def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_the
     r = cli("enumerate", "6", "--quiet", "--workers", "1", "--db", url_of(engine))
     assert r.returncode == 0, r.stderr
     assert "n = 6: 2 rigid clusters" in r.stdout
-    assert "`packings catalyse 6`" in r.stdout
+    assert "packings catalyse" not in r.stdout and "--glued" not in r.stdout  # no hint: the run is complete
     with S() as s:
         assert s.get(Run, run6).status == COMPLETE
         exp = s.execute(select(ExpansionRow).where(ExpansionRow.cluster_id == new.id)).scalar_one()
@@ -116,20 +116,25 @@ def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_the
 
 
 def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_passes(engine, paper_counts):
-    """Into a complete run of 7 that holds only its seed, `enumerate 7` adds nothing and says that `--glued`
-    may.  `enumerate 7 --glued` moves a sphere of each stored cluster onto each contact triangle: the first
-    pass stores two clusters (found_by = catalysis), which it moves in their turn; the run expands them and
-    its paths reach the last two, which a second pass, over the clusters stored since, moves to find nothing
-    new.  The catalogue is the paper's, both passes are recorded, and the same command again makes no pass
-    and no longer says that `--glued` may add something."""
+    """Into a complete run of 7 that holds only its seed, `enumerate 7 --no-glued` adds nothing and makes no
+    pass.  `enumerate 7`, glued by default, moves a sphere of each stored cluster onto each contact triangle:
+    the first pass stores two clusters (found_by = catalysis), which it moves in their turn; the run expands
+    them and its paths reach the last two, which a second pass, over the clusters stored since, moves to find
+    nothing new.  The catalogue is the paper's, both passes are recorded, and the same command again makes
+    no pass.  No run prints a hint about passes."""
     run7 = _complete_after_the_seed(engine, 7)
     url = url_of(engine)
     S = sessions(engine)
-    r = cli("enumerate", "7", "--quiet", "--workers", "1", "--db", url)
+    r = cli("enumerate", "7", "--no-glued", "--quiet", "--workers", "1", "--json", "--db", url)
     assert r.returncode == 0, r.stderr
-    assert "n = 7: 1 rigid clusters" in r.stdout and "`packings enumerate 7 --glued`" in r.stdout
+    assert json.loads(r.stdout)["catalysis"] == [] and json.loads(r.stdout)["total"] == 1
+    r = cli("enumerate", "7", "--no-glued", "--quiet", "--workers", "1", "--db", url)
+    assert r.returncode == 0, r.stderr
+    assert "n = 7: 1 rigid clusters" in r.stdout and "--glued" not in r.stdout
     assert "fewer than the paper: 1 with 15 contacts (the paper 5)" in r.stdout
-    r = cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url)
+    with S() as s:
+        assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 0
+    r = cli("enumerate", "7", "--quiet", "--workers", "1", "--json", "--db", url)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert (out["run"], out["status"]) == (run7, "complete")
@@ -151,10 +156,10 @@ def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_pa
     ]
     assert all(x.finished_at >= x.started_at for x in records)
     assert covered(S, run7) == ids[4] and count_stored(S, 7, ids[4]) == 0
-    again = json.loads(cli("enumerate", "7", "--glued", "--quiet", "--workers", "1", "--json", "--db", url).stdout)
+    again = json.loads(cli("enumerate", "7", "--quiet", "--workers", "1", "--json", "--db", url).stdout)
     assert again["catalysis"] == [] and again["by_contacts"] == out["by_contacts"]
     r = cli("enumerate", "7", "--quiet", "--workers", "1", "--db", url)
-    assert r.returncode == 0 and "--glued" not in r.stdout
+    assert r.returncode == 0 and "--glued" not in r.stdout and "as the paper" in r.stdout
     with S() as s:
         assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 2
 

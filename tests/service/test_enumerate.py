@@ -795,17 +795,19 @@ def test_a_run_restricted_to_many_contacts_finds_the_papers_clusters_with_that_m
 
 
 @pytest.mark.slow
-def test_enumerate_glued_gives_the_papers_count_of_11(paper_counts, tmp_path):
-    """`enumerate 11 --glued` in one command: the paths reach 1658 clusters, the glued pass adds the one
-    no path reaches (26 contacts, hcp), its expansion finds nothing more, and the catalogue is the paper's
-    1659, contact by contact.  Rerun, it makes no pass and prints the same."""
+def test_enumerate_gives_the_papers_count_of_11(paper_counts, tmp_path):
+    """`enumerate 11`, glued by default, in one command: the paths reach 1658 clusters, the glued pass adds
+    the one no path reaches (26 contacts, hcp), its expansion finds nothing more, and the catalogue is the
+    paper's 1659, contact by contact.  Rerun, it makes no pass and prints the same."""
     url = f"sqlite:///{tmp_path / 'g.db'}"
-    r = packings("enumerate", "11", "--glued", "--db", url, "--workers", "2", "--json", "--quiet")
+    r = packings("enumerate", "11", "--db", url, "--workers", "2", "--json", "--quiet")
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["status"] == "complete" and out["by_contacts"] == paper_counts["clusters_by_contacts"]["11"]
     assert sum(out["by_contacts"].values()) == 1659
     [p] = out["catalysis"]
     assert [(f["contacts"], f["lattice"]) for f in p["new"]] == [(26, "hcp")] and p["expansions_added"] == 1
-    again = json.loads(packings("enumerate", "11", "--glued", "--db", url, "--json", "--quiet").stdout)
+    again = json.loads(packings("enumerate", "11", "--db", url, "--json", "--quiet").stdout)
     assert again["catalysis"] == [] and again["by_contacts"] == out["by_contacts"]
+    stats = packings("stats", "--n", "11", "--db", url)
+    assert stats.returncode == 0 and "as the paper at every number of contacts" in stats.stdout, stats.stdout

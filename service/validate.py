@@ -1,0 +1,68 @@
+"""The parameters a user gives, checked in one place for the command line and the Python API.
+
+Each check raises :class:`~packings.service.errors.UsageError` with one line naming the problem (the
+command line prints it as ``packings: error: ...`` with exit status 2).  The command line's option types
+take their bounds from :data:`RANGES` (:func:`int_range`), so both refuse the same values.
+"""
+
+from __future__ import annotations
+
+from packings.service.errors import UsageError
+
+#: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
+MAX_N = 24
+
+#: the inclusive bounds of each integer parameter of a run (None: unbounded)
+RANGES: dict[str, tuple[int, int | None]] = {
+    "workers": (1, 512),  # processes of a local cluster
+    "max_break": (1, 10),  # contacts broken at once
+    "max_attempts": (1, 100),  # tries per expansion before it is marked failed
+    "spheres": (1, 10),  # spheres deleted from each parent by catalysis
+    "close_packed": (0, None),  # least contacts of a close-packed fragment
+}
+
+
+def check_n(n: int) -> None:
+    """Refuse an n that cannot be enumerated."""
+    if not isinstance(n, int) or isinstance(n, bool):
+        raise UsageError(f"n must be an integer (got {n!r})")
+    if n < 4:
+        raise UsageError(f"n must be at least 4 (got {n}): smaller clusters have no contact triangle to pin")
+    if n > MAX_N:
+        raise UsageError(f"n = {n} is too large: at most {MAX_N} (the number of clusters grows like (n-5)!)")
+
+
+def check_range(name: str, value: int | None) -> None:
+    """Refuse a value of the parameter ``name`` outside :data:`RANGES` (None, the default, passes)."""
+    if value is None:
+        return
+    low, high = RANGES[name]
+    if not isinstance(value, int) or isinstance(value, bool) or value < low or (high is not None and value > high):
+        bounds = f"between {low} and {high}" if high is not None else f"at least {low}"
+        raise UsageError(f"{name} must be {bounds} (got {value!r})")
+
+
+def check_cluster_choice(workers: int | None, scheduler: str | None, *, options: bool = False) -> None:
+    """Refuse both a local cluster's ``workers`` and an existing ``scheduler`` (named as the command
+    line's options with ``options``)."""
+    if workers is not None and scheduler is not None:
+        w, s = ("--workers", "--scheduler") if options else ("workers", "scheduler")
+        raise UsageError(f"give either {w} (a local cluster) or {s} (an existing one), not both")
+
+
+def check_run(
+    n: int, *, workers: int | None = None, scheduler: str | None = None, max_break=None, max_attempts=None
+) -> None:
+    """The checks of a run's parameters (:func:`packings.service.api.enumerate`)."""
+    check_n(n)
+    check_cluster_choice(workers, scheduler)
+    for name, value in (("workers", workers), ("max_break", max_break), ("max_attempts", max_attempts)):
+        check_range(name, value)
+
+
+def int_range(name: str):
+    """The click type of the command line's option for ``name``: an integer within :data:`RANGES`."""
+    import click
+
+    low, high = RANGES[name]
+    return click.IntRange(low, high)
