@@ -187,7 +187,7 @@ def enumerate_cmd(
                     "seconds": round(result.seconds, 2),
                     "total_seconds": round(result.total_seconds, 2),
                     "paper": against,
-                    **({"catalysis": [r.to_dict() for r in result.catalysis]} if glued else {}),
+                    "catalysis": [r.to_dict() for r in result.catalysis],  # the glued passes made (none: [])
                 }
             )
         )
