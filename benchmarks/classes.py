@@ -12,7 +12,7 @@ The clusters come from a stored catalogue (``--db URL``: the clusters of ``--n``
 in that database, e.g. the file a ``packings enumerate 12`` left), or, without
 one, from the in-memory enumeration (``packings.workers.explore``, fine up to
 n = 10).  From a catalogue each cluster is given the paths that arrived at it
-(``expand(..., arrivals)``: docs/method.md, "Paths followed from one end only"): with
+(``expand(..., arrivals)``: docs/method.md): with
 ``--arrivals run`` (the default) those its run had stored, about, when its task read the
 cluster (the transitions whose source's expansion was written before then, from
 ``expansions.finished_at``, ``seconds`` and ``worker``: :func:`_loaded`), so that it costs about

@@ -2,17 +2,17 @@
 
 A path from a first-order rigid cluster A that breaks contacts and ends at a first-order rigid cluster
 B by forming contacts lies on a curve that B's path breaking the contacts formed follows back to A, so
-a run following every path follows that curve twice (docs/performance.md, "Paths that retrace another
-path").  From the transitions of the newest complete, unrestricted run of n in ``--db URL``: the
+a run following every path follows that curve twice (docs/method.md).  From the transitions of the
+newest complete, unrestricted run of n in ``--db URL``: the
 attempts with a direction, those a run may take from the other end (between two first-order rigid
-clusters, one of them regular: docs/method.md, "Paths followed from one end only"), and their ordered
+clusters, one of them regular: docs/method.md), and their ordered
 pairs of clusters (A, B).  Counted from each end up to that end's symmetries, the paths A -> B and B -> A of
 one pair obey k(A -> B) |Sym(B)| = k(B -> A) |Sym(A)| (``identity.symmetries``, reflections
 included); the pairs that do not, or that have no reverse at all, are where a path back ended
 otherwise.  ``retracing`` sums min(k(A -> B), k(B -> A)) over the pairs that obey it: the paths a run
 could take from the other end instead of following them, against the paths a run following every one
 would follow (``paths_followed`` + ``paths_retraced``).  ``paths_retraced`` are those the run did take
-from the other end (``expand`` with arrivals: docs/method.md, "Paths followed from one end only").
+from the other end (``expand`` with arrivals: docs/method.md).
 """
 
 from __future__ import annotations

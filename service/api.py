@@ -96,7 +96,7 @@ class Row:
         """What Kantorovich's theorem proves of this cluster's coordinates
         (:class:`packings.workers.exact.Exact`: a root of its contact equations within ``radius``, its
         smallest gap there at least ``gap``), or None for a cluster with a flex, whose rigidity rests
-        on the pre-stress test instead (docs/method.md, "Exact clusters")."""
+        on the pre-stress test instead (docs/method.md)."""
         if self.facts["flexes"]:
             return None
         from packings.workers.cluster import Cluster

@@ -2,7 +2,7 @@
 
 A stored cluster whose smallest non-contact gap is a few ``tol_a``, or whose
 pre-stress margin is within a few times its threshold, may be a "near copy": a
-stored cluster with a near contact left out (docs/method.md, "The endpoint").
+stored cluster with a near contact left out (docs/method.md).
 :func:`audit` lists, per n:
 
 (a) every cluster with a non-contact pair within ``tol_a0`` of touching, and what

@@ -241,7 +241,7 @@ class Transition(Base):
     new_contacts: Mapped[str] = mapped_column(Text, default="[]")  #: JSON [[i, j], ...] formed at the endpoint
     #: JSON [t_0, ..., t_(n-1)]: sphere i of the endpoint (in the source's labels) is sphere t_i of the target
     #: as stored.  Set where the target's path breaking the contacts formed retraces this one (both clusters
-    #: first-order rigid: docs/method.md, "Paths followed from one end only"), NULL elsewhere and on rows
+    #: first-order rigid: docs/method.md), NULL elsewhere and on rows
     #: stored before revision 0006
     target_labels: Mapped[str | None] = mapped_column(Text, nullable=True)
 

@@ -4,7 +4,7 @@ Nothing outside :mod:`packings.workers.kernels` and :mod:`packings.workers.paths
 module: :mod:`packings.workers.kernels` is the interface, and selects between these
 functions and the plain numpy reference (``packings.workers.kernels.set_backend``).
 
-Numerics (docs/method.md, "Following a path"), exactly as in the numpy reference up to round-off:
+Numerics (docs/method.md), exactly as in the numpy reference up to round-off:
 
 * Coordinates are full 3n vectors; ``mask`` is 1.0 on the free coordinates and
   0.0 on the six pinned ones, so R_f (the pinned rigidity matrix) acts as

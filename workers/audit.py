@@ -2,14 +2,14 @@
 
 A stored cluster whose smallest non-contact gap is a few ``tol_a`` may be a junk
 "near copy": a point on a path that passed close by a cluster, stored with a
-near contact left out (docs/method.md, "The endpoint").  Genuine clusters can
+near contact left out (docs/method.md).  Genuine clusters can
 have small gaps too (at n = 13 down to about 6e-5), so each near pair is tested:
 the cluster is projected onto its contacts and the pair(s), and the result, if it
 is rigid, is looked up among the stored clusters by the caller
 (:mod:`packings.service.audit`).
 
 Whether a cluster stands for an exact one is :mod:`packings.workers.exact`'s
-question (docs/method.md, "Exact clusters").
+question (docs/method.md).
 """
 
 from __future__ import annotations

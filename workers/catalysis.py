@@ -19,7 +19,7 @@ their contacts hold to the Newton tolerance) and every set D of k spheres:
    (``few-contacts``; the rigidity test says the same, only slower: this is checked first, as
    most remainders end here);
 3. a remainder whose contacts hold no triangle is skipped (nothing to pin: ``no-triangle``);
-4. otherwise the endpoint rule of a path decides (docs/method.md, "The endpoint"): pairs within
+4. otherwise the endpoint rule of a path decides (docs/method.md): pairs within
    tol_a0 of touching that close to a rigid cluster within tol_a0 make the remainder that cluster
    (:func:`packings.workers.paths.resolve_near_pairs`), else the remainder is kept when the rigidity test
    with its isolation probe calls it rigid (:func:`packings.workers.paths.endpoint_rigidity`); and only
@@ -29,7 +29,7 @@ Moving one sphere (:func:`moved_remainders`).  Catalysis from n + 1 needs the ca
 is out of reach for the largest n run.  Its parents can be made instead: glue a sphere onto a contact
 triangle of a stored cluster of n, on either side of it (where it overlaps no sphere), and delete
 each of the cluster's own spheres: one sphere moved to another place.  At n = 11 this finds the
-cluster no path reaches from the path clusters of 11 alone (docs/method.md, "Catalysis").  Most of
+cluster no path reaches from the path clusters of 11 alone (docs/method.md).  Most of
 these remainders are stored clusters again, and one glued cluster repeats many others: a remainder
 is decided only when its contact graph and sorted pair distances match no cluster seen before
 (stored, or decided earlier in the same pass: :class:`Seen`).  Nearly all of those decided are floppy, with
@@ -182,7 +182,7 @@ class Seen:
     cluster that a comparison of the distances within that bound would call new.  It is a filter for work,
     not the identity: it only chooses which remainders are not decided again, and what is stored is matched
     by the identity as always.  A copy whose distances straddle a cell's wall is decided again (work, not a
-    loss); repeats of one remainder agree far closer than a cell (docs/performance.md).
+    loss); repeats of one remainder agree far closer than a cell (docs/method.md).
 
     A pass at n = 13 keeps millions of them, so a cluster is kept as one 128-bit digest (blake2b) of its
     certificate and its rounded distances, in an open-addressing table of numpy arrays: 16 bytes a slot,
@@ -313,7 +313,7 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
     Nearly every remainder decided is floppy: its contacts are independent and fewer than its free
     coordinates.  The compiled kernels certify that for all of a glued cluster's remainders at once, where
     nothing else could decide otherwise (:func:`_floppy`); :func:`remainder` decides the others.  Each verdict
-    is the one :func:`remainder` gives (docs/method.md, "Moving one sphere")."""
+    is the one :func:`remainder` gives (docs/method.md)."""
     sides: dict[tuple[int, int, int], int] = {}
     measured = contacts_from_coords(cluster.coords, params.tol_a) == cluster.contacts  # as _floppy needs
     for tri, parent in glued(cluster, params):

@@ -41,8 +41,8 @@ from packings.workers.rigidity import FirstTriangles, Rigidity, contact_triangle
 class Arrival:
     """A path that came to a first-order rigid cluster B from a first-order rigid cluster A, breaking the
     contacts ``formed`` of A and forming the contacts ``contacts`` of B: the path B follows breaking
-    ``contacts`` is the same curve back, and ends at A forming ``formed`` (docs/method.md, "Paths followed
-    from one end only").  All in B's labels; each set of pairs sorted."""
+    ``contacts`` is the same curve back, and ends at A forming ``formed`` (docs/method.md).  All in B's
+    labels; each set of pairs sorted."""
 
     contacts: tuple[tuple[int, int], ...]  #: the contacts of B the path formed: breaking them retraces the path
     target: int  #: A, as the caller names clusters (the service: its stored id); opaque here
@@ -152,7 +152,7 @@ class Expansion:
         followed (or its image) from this first-order rigid cluster to a rigid endpoint that is first-order
         rigid too, with contacts formed, one of the two regular (3n - 6 contacts, no self-stress).  Paths
         between two hyperstatic clusters are followed from both ends: one taken from the other end there
-        often is not what following it gives (docs/method.md, "Paths followed from one end only")."""
+        often is not what following it gives (docs/method.md)."""
         e = self.endpoints[i]
         r = e.rigidity
         if not (
@@ -343,7 +343,7 @@ def _attempts(
     span of what is left, so B's set lies on the smooth curve of any rank(R∖B) of its independent rows,
     and so does the curve B less q leaves, which is therefore B's whole set near x.  Along it q keeps its
     length exactly: B's path is the path of B less q, which is followed, and following it again only
-    asks rounding whether q opens (docs/method.md, "Contacts the rest holds").
+    asks rounding whether q opens (docs/method.md).
     """
     n, m = cluster.n, cluster.m
     all_edges, pairs = cluster.edges(), cluster.contacts
@@ -440,7 +440,7 @@ def _attempts(
                     # A flex and a stress left, counted from the cluster's SVD: V and W of what is left from it too,
                     # where they may decide the set without its SVD.  A cluster with a flex (singular, hypostatic) has
                     # its stress spread over all of it, and its sets seldom fall to a rigid part or to the cheap cases
-                    # of the pre-stress test (docs/performance.md): they take the SVD at once.
+                    # of the pre-stress test (docs/method.md): they take the SVD at once.
                     left = left_after_breaking(basis(tri), idx, params.tol_n) if stresses and rigid else None
                     dim = solution_dimension(x, keep, free, params, ns=ns, limit=1, left=left)
                 if dim.dim != 1:
@@ -491,7 +491,7 @@ def expand(
 
     With ``arrivals`` (:func:`arrivals`) at a first-order rigid cluster, the path that breaks an arrival's
     contacts is not followed: it retraces the path that arrived, and its attempt ends at the cluster that path
-    came from (:attr:`Endpoint.reached`; docs/method.md, "Paths followed from one end only").
+    came from (:attr:`Endpoint.reached`; docs/method.md).
 
     With ``held`` (the default), a subset with a broken contact that the rest holds at its length is not
     followed (outcome ``held``, :func:`_attempts`): its path is that of a smaller subset.  ``held`` False

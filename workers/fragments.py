@@ -3,7 +3,7 @@
 Numpy, and numba for the growth (:mod:`packings.workers._growth`); no database or Dask imports.
 
 Why.  The path enumeration finds the rigid clusters connected to its seed by one-dimensional paths,
-and some clusters are reached by none (docs/method.md, "Catalysis"): at n = 11 a fragment of the
+and some clusters are reached by none (docs/method.md): at n = 11 a fragment of the
 hcp lattice with 26 contacts from which every broken contact leaves a set of dimension 0 or 2.
 Catalysis finds such clusters from the clusters of n + 1, or by moving one sphere of the stored
 clusters of n; this module lists the close-packed ones directly, for any n, without a catalogue.

@@ -289,7 +289,7 @@ def approach_contact(
     point onto the enlarged constraints at once is a Newton solve started up to tol_a0 from the
     contact, and along a slow approach far further along the path: Newton then leaves the basin
     of the contact and converges to another solution of the enlarged equations, far from the
-    path (docs/method.md, "The endpoint").  So the path is first walked to the contact, by a
+    path (docs/method.md).  So the path is first walked to the contact, by a
     secant iteration on the smallest gap g of the approaching pairs against the distance along
     the path: each new point is predicted from the last two (along their chord, or between the
     two ends of a bracket once a point overlaps, Illinois) and projected onto the path's
@@ -398,7 +398,7 @@ def _refined(
     The refined point is the solution the polished one only approximates (along the flexes to about
     sqrt(|f| / margin)), so the projection counts only if it is within tol_a0 (:func:`close_pairs`).  The
     polished point is never kept in its place: it would be stored as a second copy of the cluster, more
-    than tol_d from the first (docs/method.md, "The endpoint", step 5)."""
+    than tol_d from the first (docs/method.md)."""
     if pr.residual <= _ROUND_OFF:
         return pr.x
     y = kernels.refine_singular(pr.x, edges, free)
@@ -428,7 +428,7 @@ def resolve_near_pairs(
     only when the projection fails, :func:`close_pairs`, which also keeps every sphere within
     tol_a0 of x).  If that projects, overlaps nothing and is rigid, it is the cluster x stands
     for: x is then a second solution of the same contact equations within tol_a0 of a cluster
-    with more contacts, closer than the method resolves (docs/method.md, "The endpoint").
+    with more contacts, closer than the method resolves (docs/method.md).
     ``candidates``: the pairs that may be near (default all; a path passes its non-contacts).
     """
     near = near_pairs(x, contacts, params.tol_a0, candidates)
@@ -451,7 +451,7 @@ def _endpoint(x_prev, x_hit, keep, pairs, hit, free, params: Params, steps: int)
     touching.  Then the endpoint rule for pairs within tol_a0 of touching: if adding them gives
     a rigid cluster within tol_a0 (:func:`resolve_near_pairs`), that cluster is the endpoint;
     the point without them is a second solution of the same contact equations closer to it
-    than the method resolves (docs/method.md, "The endpoint").  With the compiled kernels the
+    than the method resolves (docs/method.md).  With the compiled kernels the
     first projection and what is then looked at are one call (:func:`_close_at_hit`).
     """
     first = _close_at_hit(x_hit, keep, pairs, hit, free, params)
@@ -563,7 +563,7 @@ def endpoint_rigidity(x: np.ndarray, contacts, free: np.ndarray, params: Params)
     A first-order verdict stands only where Kantorovich's theorem proves a root of the contact
     equations near x (:func:`packings.workers.exact.kantorovich`); otherwise x only satisfied Newton's
     tolerance, near no cluster, and the verdict is undecided, method ``unproved``
-    (docs/method.md, "Exact clusters").  An undecided pre-stress verdict is floppy, method ``rigid-part``,
+    (docs/method.md).  An undecided pre-stress verdict is floppy, method ``rigid-part``,
     where every self-stress lies in an infinitesimally rigid part (:func:`packings.workers.dimension.rigid_part`):
     the contacts near x then form a manifold of dimension |V| > 0 (the pre-stress forms vanish on its
     flexes, so the test could only leave it undecided)."""

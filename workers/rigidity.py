@@ -1,4 +1,4 @@
-"""Rigidity of a cluster: first order, then pre-stress stability (docs/method.md, "Rigidity")."""
+"""Rigidity of a cluster: first order, then pre-stress stability (docs/method.md)."""
 
 from __future__ import annotations
 
@@ -186,7 +186,7 @@ def margin_uncertainty(x: np.ndarray, edges: np.ndarray, margin: float) -> float
     distance d from a pre-stress stable solution: coordinates with residuals |f| are known along
     the flexes only to d = sqrt(max |f| / margin), and the forms Q, which vary at a rate of order
     one along them, to about d.  A margin no larger than tol_psd + d is not decided by the
-    coordinates (docs/method.md, "The endpoint").
+    coordinates (docs/method.md).
     """
     f = float(np.abs(kernels.residual(x, edges)).max(initial=0.0))
     return float(np.sqrt(f / margin)) if margin > 0 else np.inf
@@ -202,7 +202,7 @@ def on_a_curve(x: np.ndarray, edges: np.ndarray, free: np.ndarray, V: np.ndarray
     mu eps^2, so such a projection cannot converge (sum f^2 < tol) unless mu < tol / eps^4
     (about 5e-5 at eps = ds0 / 2, a few times tol_psd): this decides what the margin cannot where
     the point lies on a curve of singular points, at which the coordinates are accurate only to
-    about sqrt(|f|) and the computed margin is noise (docs/method.md, "The endpoint").
+    about sqrt(|f|) and the computed margin is noise (docs/method.md).
     """
     kw = params.newton(stall=params.probe_stall)
     for j in range(V.shape[1]):

@@ -6,7 +6,7 @@ Create Date: 2026-11-27 17:10:00
 
 A path from a regular cluster A that breaks one contact and ends at a regular cluster B by forming one
 is retraced by B's path that breaks the contact formed: a run takes that path's transition from the
-one that arrived instead of following it again (docs/method.md, "Paths followed from one end only").
+one that arrived instead of following it again (docs/method.md).
 For that it keeps, with such a transition, the relabelling of its endpoint onto B as stored: sphere i
 of the endpoint is sphere target_labels[i] of B (JSON).  Rows stored before stay NULL: their paths are
 followed again where needed.

@@ -175,7 +175,7 @@ def test_sub_cluster_keeps_the_given_order():
 
 def test_the_lost_cluster_of_11_is_a_remainder_of_its_parent_of_12_and_no_path_leaves_it():
     """tests/data/n11_catalysis.json: the cluster of 12 whose remainder without sphere 9 is the cluster of 11
-    that the path enumeration does not reach (docs/method.md, "Known limit").  The remainder is rigid (pre-
+    that the path enumeration does not reach (docs/method.md).  The remainder is rigid (pre-
     stress stable: two flexes, one stress) with 26 contacts (3n - 7), an hcp fragment; and, as the paper
     describes it, breaking either of two of its contacts, or both, leaves it rigid (dimension 0) and
     breaking any other contact leaves two degrees of freedom, any other pair three: no subset leaves a
@@ -385,7 +385,7 @@ def test_the_table_keeps_every_digest_through_its_growth(seed, shared_bits):
 
 def test_copies_within_a_millionth_of_the_cell_are_seen():
     """Copies of a shape whose distances differ by up to 1e-9 (repeats of one remainder agree that closely,
-    docs/performance.md) are called seen unless a distance lies within 1e-9 of a cell's wall."""
+    docs/method.md) are called seen unless a distance lies within 1e-9 of a cell's wall."""
     rng = np.random.default_rng(7)
     seen, bound = Seen(P.tol_d), 4 * P.tol_d
     d = np.sort(rng.uniform(1.0, 3.0, 78))

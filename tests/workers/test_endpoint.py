@@ -1,4 +1,4 @@
-"""The endpoint rule (docs/method.md, "The endpoint"), on the real n = 12 clusters that exposed it.
+"""The endpoint rule (docs/method.md), on the real n = 12 clusters that exposed it.
 
 tests/data/n12_junk.json holds three clusters an n = 12 run stored before the rule, the paths that
 produced them and the clusters they stand for: two second solutions of their contact equations

@@ -306,8 +306,8 @@ def test_every_path_starts_in_the_frame_of_the_first_triangle_of_what_is_left():
 
 def test_a_path_between_regular_clusters_is_retraced_by_the_path_back():
     """The path from A that breaks contact c and ends at a regular B by forming c' is the curve that B's
-    path breaking c' follows back: it ends at A, forming c (docs/performance.md, "Paths that retrace
-    another path"; ``python -m benchmarks retrace`` counts them in a stored run)."""
+    path breaking c' follows back: it ends at A, forming c (docs/method.md; ``python -m benchmarks retrace``
+    counts them in a stored run)."""
     import json
     from pathlib import Path
 
