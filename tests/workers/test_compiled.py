@@ -29,8 +29,7 @@ from packings.workers.params import Params
 from packings.workers.paths import PROJECTION_FAILED, RIGID, UNDECIDED_END, follow_path
 from packings.workers.rigidity import contact_triangle
 from packings.workers.seeds import seed_cluster
-from tests.workers.motions import congruent_copy
-from tests.workers.test_identity import random_orthogonal
+from tests.helpers import congruent_copy, random_orthogonal
 
 P = Params()
 ROOT = Path(__file__).parents[2]

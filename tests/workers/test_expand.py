@@ -12,7 +12,7 @@ from packings.workers.identity import certificate_hex
 from packings.workers.params import Params
 from packings.workers.paths import RIGID
 from packings.workers.seeds import seed_cluster
-from tests.workers.motions import congruent_copy
+from tests.helpers import catalogue, congruent_copy
 
 P = Params()
 
@@ -72,10 +72,9 @@ def test_expand_invariant_under_rotation_reflection_relabelling(seed, reflect):
 def test_the_endpoints_that_are_one_cluster_point_at_the_first_of_them():
     """Many paths from one cluster end at the same cluster: expand tells them apart once, and the
     write-back compares each distinct one only with the stored clusters."""
-    from packings.workers.explore import explore
     from packings.workers.identity import same_geometry
 
-    c = max(explore(9).clusters, key=lambda c: c.m)  # a hyperstatic cluster: pairs broken, many paths
+    c = max(catalogue(9).clusters, key=lambda c: c.m)  # a hyperstatic cluster: pairs broken, many paths
     ex = expand(c, P)
     rigid = [i for i, e in enumerate(ex.endpoints) if e.outcome == RIGID]
     first = ex.distinct()
@@ -99,10 +98,9 @@ def test_an_expansion_holds_each_contact_pair_once_and_canonical_forms_of_distin
     (the write-back compares only those again), with the arrivals of a regular cluster, a few dozen
     (the write-back relabels them onto their targets: Expansion.retraceable)."""
     from packings.workers.cluster import pair
-    from packings.workers.explore import explore
     from packings.workers.identity import _CANONICAL
 
-    c = max(explore(9).clusters, key=lambda c: c.m)
+    c = max(catalogue(9).clusters, key=lambda c: c.m)
     assert Cluster(c.coords.copy(), [(j, i) for i, j in c.contacts]).contacts[0] is c.contacts[0]
     ex = expand(c, P)
     own = {id(p) for p in c.contacts}
@@ -123,11 +121,10 @@ def _symmetric_clusters():
     import json
     from pathlib import Path
 
-    from packings.workers.explore import explore
     from packings.workers.identity import symmetries
 
     d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
-    nine = sorted(explore(9).clusters, key=lambda c: -len(symmetries(c, P.tol_d)))[:2]
+    nine = sorted(catalogue(9).clusters, key=lambda c: -len(symmetries(c, P.tol_d)))[:2]
     return [seed_cluster(6), Cluster.from_dict(d["n10_m25_first-order"])] + nine
 
 
