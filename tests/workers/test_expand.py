@@ -45,13 +45,32 @@ def test_expand_octahedron_reaches_only_itself_and_the_polytetrahedron():
             assert len(e.broken) == 1 and e.direction in (1, -1)
 
 
-def test_expand_is_pure():
-    c = seed_cluster(7)
-    a, b = expand(c, P), expand(c, P)
-    assert _endpoint_keys(a) == _endpoint_keys(b)
-    for x, y in zip(a.endpoints, b.endpoints):
-        if x.cluster is not None:
-            assert np.array_equal(x.cluster.coords, y.cluster.coords)
+def _as_values(ex) -> list[tuple]:
+    """An expansion's attempts as plain values, to the last bit: the subset, the direction, the outcome, the
+    contacts formed, whether an image, and the exact coordinates and contacts reached."""
+    return [
+        (e.broken, e.direction, e.outcome, e.new_contacts, e.image)
+        + (() if e.cluster is None else (e.cluster.coords.tobytes(), e.cluster.contacts))
+        for e in ex.endpoints
+    ]
+
+
+def test_expand_is_a_pure_function_of_its_inputs(monkeypatch):
+    """What expand gives depends on the cluster and the parameters alone: not on the caches the process has
+    filled (automorphism groups and keys by certificate, canonical forms by cluster) nor on what it expanded
+    before, and a later expansion leaves an earlier one's result as it was."""
+    from packings.workers import identity
+
+    c = seed_cluster(7)  # symmetric: its images go through the cached automorphism groups
+    monkeypatch.setattr(identity, "_GROUPS", {})
+    monkeypatch.setattr(identity, "_KEYS", {})
+    cold = expand(Cluster(c.coords.copy(), c.contacts), P)  # a cluster of its own: no canonical form cached
+    seen = _as_values(cold)
+    assert any(e.image for e in cold.endpoints) and any(e.outcome == RIGID for e in cold.endpoints)
+    for other in catalogue(7).clusters:  # the caches filled with other clusters' forms
+        expand(other, P)
+    assert _as_values(expand(c, P)) == seen
+    assert _as_values(cold) == seen
 
 
 def _same_distinct_clusters(a, b) -> bool:
