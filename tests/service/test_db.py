@@ -228,7 +228,7 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     t.join(30)
     assert order == ["holder commits", "writer begins"]
 
-    monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
+    monkeypatch.setattr(packings.service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
     taken.clear()
     release.clear()
     t = threading.Thread(target=hold)

@@ -177,7 +177,7 @@ def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
 
     import packings.service.db
 
-    monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
+    monkeypatch.setattr(packings.service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
     engine = packings.service.db.open_database(sqlite_url, create=True)
     S = sessions(engine)
     info = store.start_run(S, 8, Params(), OWNER)
@@ -465,7 +465,7 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
         (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]", None),
     ]
     more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]", None) for k in range(5)]
-    monkeypatch.setattr(packings.db, "INSERT_CHUNK", 2)
+    monkeypatch.setattr(packings.service.db, "INSERT_CHUNK", 2)
     statements = []
 
     def count(conn, cursor, statement, *args):
@@ -521,10 +521,16 @@ def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, mo
     [(), ((0, 1),), ((0, 1), (2, 5)), [(3, 4), (1, 9)], ((np.int64(2), np.int64(7)),), [[0, 3]], ((0, 1), [2, 3])],
 )
 def test_contacts_are_written_as_json_writes_them(pairs):
+    """Whatever the pairs are given as, the text is json.dumps's, and it reads back as the pairs; pairs given
+    as a tuple of tuples are remembered: asked again, the cache answers, with the same text."""
     import json
 
-    assert store.contacts_json(pairs) == json.dumps([[int(i), int(j)] for i, j in pairs])
-    assert store.contacts_json(pairs) == store.contacts_json(pairs)  # a second time, from the cache
+    store._contacts_json.cache_clear()
+    written = json.dumps([[int(i), int(j)] for i, j in pairs])
+    assert store.contacts_json(pairs) == written and json.loads(written) == [[int(i), int(j)] for i, j in pairs]
+    assert store.contacts_json(pairs) == written  # a second time
+    remembered = isinstance(pairs, tuple) and all(isinstance(p, tuple) for p in pairs)
+    assert store._contacts_json.cache_info().hits == (1 if remembered else 0)
 
 
 def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
