@@ -9,55 +9,9 @@ which case they fail.
 
 from __future__ import annotations
 
-import os
-from contextlib import contextmanager
-
 import pytest
 
-PG_ADMIN = os.environ.get("PACKINGS_TEST_PG", "postgresql://postgres@127.0.0.1:5432/postgres")
-_pg_problem: list[str] = []
-
-
-def _pg_admin_engine():
-    from sqlalchemy import create_engine
-
-    from packings.service.db import parse_url
-
-    return create_engine(parse_url(PG_ADMIN), isolation_level="AUTOCOMMIT")
-
-
-def _pg_available() -> str | None:
-    """None if PostgreSQL answers, else why not."""
-    if not _pg_problem:
-        try:
-            from sqlalchemy import text
-
-            eng = _pg_admin_engine()
-            with eng.connect() as c:
-                c.execute(text("SELECT 1"))
-            eng.dispose()
-            _pg_problem.append("")
-        except Exception as e:  # noqa: BLE001 - any failure means "no server here"
-            _pg_problem.append(
-                f"no PostgreSQL at {PG_ADMIN} ({str(e).splitlines()[0][:120]}); "
-                "set PACKINGS_TEST_PG to an admin URL to run these tests"
-            )
-    return _pg_problem[0] or None
-
-
-@contextmanager
-def pg_database():
-    """A fresh, empty PostgreSQL database (URL) at any scope, dropped on leaving;
-    skips (or fails, under PACKINGS_REQUIRE_PG=1) without a server."""
-    from benchmarks.soak import postgresql_database
-
-    problem = _pg_available()
-    if problem:
-        if os.environ.get("PACKINGS_REQUIRE_PG") == "1":
-            pytest.fail(problem)
-        pytest.skip(problem)
-    with postgresql_database(PG_ADMIN, "packings_test") as url:
-        yield url
+from tests.helpers import fill_database, pg_database
 
 
 @pytest.fixture
@@ -89,26 +43,6 @@ def engine(db_url):
     eng = open_database(db_url, create=True)
     yield eng
     eng.dispose()
-
-
-def fill_database(engine, n: int, params=None, owner: str = "test:0:inline") -> int:
-    """Run the whole enumeration of n in this process (no Dask), through the
-    same store functions the service uses; returns the run id."""
-    from packings.service import store
-    from packings.service.db import sessions
-    from packings.service.tasks import run_expansion
-    from packings.workers.params import Params
-
-    Session_ = sessions(engine)
-    info = store.start_run(Session_, n, params or Params(), owner)
-    while True:
-        batch = store.claim(Session_, info.id, owner, 8)
-        if not batch:
-            break
-        for eid, token in batch:
-            run_expansion(Session_, eid, token)
-    store.finish_run(Session_, info.id, owner, 0.0)
-    return info.id
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from sqlalchemy import text
 
 import packings
 from packings.service.errors import NotFound, PackingsError, UsageError
-from tests.service.conftest import fill_database
+from tests.helpers import fill_database
 
 
 def cli_json(url: str, *args: str):

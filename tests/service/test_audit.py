@@ -15,9 +15,8 @@ from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.identity import certificate_key, geometry_distance
 from packings.workers.params import DEFAULT, Params
 from packings.workers.rigidity import PRESTRESS, Rigidity, rigidity
-from tests.service.querydb import filled_catalog
-from tests.service.test_query_cli import ok, one_line_error, run
-from tests.workers.test_audit import near_misses, two_geometries
+from tests.helpers import filled_catalog, near_misses, ok, one_line_error, two_geometries
+from tests.helpers import packings as run
 
 catalog = filled_catalog(7, 8)
 

@@ -30,8 +30,8 @@ from packings.service.models import (
 from packings.workers.cluster import Cluster as Core
 from packings.workers.params import Params
 from packings.workers.rigidity import rigidity
-from tests.service.conftest import fill_database
-from tests.service.test_db import cli, one_line_error
+from tests.helpers import fill_database, one_line_error
+from tests.helpers import packings as cli
 
 DATA = Path(__file__).parent.parent / "data"
 

@@ -18,7 +18,7 @@ from benchmarks.screenshot import render
 from packings.service import dashboard
 from packings.service.dashboard import Watcher
 from packings.service.db import make_engine
-from tests.service.test_enumerate import _free_port, done_count, packings, wait_for
+from tests.helpers import done_count, fill_database, free_port, packings, wait_for
 
 CHROMIUM = shutil.which("chromium")
 
@@ -38,7 +38,7 @@ def _database_now(url: str) -> dict:
 
 
 def test_the_page_shows_the_run_as_the_database_has_it(db_url):
-    port = _free_port()
+    port = free_port()
     # n = 11, not 10: n = 10's run ends about two seconds after it starts, before the page is read
     proc = subprocess.Popen(
         [
@@ -96,7 +96,7 @@ def test_the_page_shows_the_run_as_the_database_has_it(db_url):
 def test_the_page_draws_in_a_browser(sqlite_url):
     """Headless Chromium draws the page during a run: the run's numbers, and no script error.  n = 11, which
     lasts long enough (n = 10 can end, and its dashboard with it, before the browser has loaded the page)."""
-    port = _free_port()
+    port = free_port()
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -231,7 +231,6 @@ def test_the_header_gives_the_papers_count_from_the_fewest_contacts_a_run_keeps(
     or more; an n the paper does not count has no such count."""
     from packings.service.db import sessions
     from packings.workers.params import Params
-    from tests.service.conftest import fill_database
 
     fill_database(engine, 9, Params(min_contacts=21, max_break=3))
     with sessions(engine)() as s:

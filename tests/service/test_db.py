@@ -20,25 +20,8 @@ from packings.service.db import (
     parse_url,
 )
 from packings.service.models import Base
-
-
-def cli(*args, cwd=None, env=None):
-    return subprocess.run(
-        [sys.executable, "-m", "packings.service.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=cwd,
-        env=env,
-    )
-
-
-def one_line_error(r) -> str:
-    assert r.returncode != 0, r.stdout
-    assert "Traceback" not in r.stderr, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("packings: error:"), r.stderr
-    return lines[0]
+from tests.helpers import embeddings, fill_database, one_line_error, pg_database, store_chains
+from tests.helpers import packings as cli
 
 
 def test_migrations_head_matches_the_models(engine):
@@ -245,7 +228,7 @@ def test_sqlite_writers_queue_for_the_lock_and_keep_the_busy_timeout(sqlite_url,
     t.join(30)
     assert order == ["holder commits", "writer begins"]
 
-    monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
+    monkeypatch.setattr(packings.service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)
     taken.clear()
     release.clear()
     t = threading.Thread(target=hold)
@@ -289,8 +272,6 @@ def test_revision_0003_backfills_how_stored_clusters_were_found(engine, tmp_path
     with no source, every other cluster 'path' with the source of the first transition from another
     cluster that reached it: what the write-back had recorded.  Seeds are reached by paths too, so being
     reached is not the test."""
-    from tests.service.conftest import fill_database
-
     fill_database(engine, 7)
     fill_database(engine, 8)
     written = _how_found(engine)
@@ -330,8 +311,6 @@ class _another:
             self.pg = None
             self.target = make_engine(f"sqlite:///{self.tmp_path / 'old.db'}")
         else:
-            from tests.service.conftest import pg_database
-
             self.pg = pg_database()
             self.target = make_engine(self.pg.__enter__())
         return self.target
@@ -346,8 +325,6 @@ class _another:
 def test_db_upgrade_migrates_a_0002_database_holding_clusters(engine, tmp_path):
     """A database at 0002 with a run in it is refused with the fix, and `packings db upgrade` brings it
     to head with the clusters' origins filled in."""
-    from tests.service.conftest import fill_database
-
     fill_database(engine, 6)
     with _another(engine, tmp_path) as old:
         migrate(old, "0002")
@@ -378,8 +355,6 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
     """Every revision down to the first and back up, one at a time, on a database holding an n = 8
     run (expansions and transitions referring to its clusters, which SQLite's table rebuilds must not
     trip over): the same rows after, and the schema is head again."""
-    from tests.service.conftest import fill_database
-
     fill_database(engine, 8)
     before = _table_counts(engine)
     revisions = ["0007", "0006", "0005", "0004", "0003", "0002", "0001"]
@@ -404,8 +379,6 @@ def _alembic(*args: str):
 
 @pytest.mark.skipif(not (REPOSITORY / "alembic.ini").is_file(), reason="the alembic command needs the repository")
 def test_the_alembic_command_logs_and_goes_both_ways(engine):
-    from tests.service.conftest import fill_database
-
     fill_database(engine, 7)
     url = engine.url.render_as_string(hide_password=False)
     r = _alembic("-x", f"db={url}", "downgrade", "-1")
@@ -427,19 +400,18 @@ def test_revision_0005_renumbers_the_stored_geometries_by_shape(engine):
     """A database whose geometries of one contact graph were numbered in the order found (before 0005)
     is renumbered in embedding order by the upgrade, whatever the old numbers; a downgrade leaves them."""
     from packings.service.db import sessions
-    from tests.service.test_store import _embeddings, _store_chains
 
     S = sessions(engine)
-    ids = _store_chains(S, (0, 1, 2, 3, 4), seed=3)
+    ids = store_chains(S, (0, 1, 2, 3, 4), seed=3)
     migrate(engine, "0004", down=True)
     old = {0: 3, 1: 0, 2: 4, 3: 2, 4: 1}  # as an older run could have found them
     with engine.begin() as c:
         for k, cid in ids.items():
             c.execute(text("UPDATE clusters SET embedding = :e WHERE id = :i"), {"e": -1 - old[k], "i": cid})
         c.execute(text("UPDATE clusters SET embedding = -1 - embedding"))
-    assert _embeddings(S, ids) == old
+    assert embeddings(S, ids) == old
     migrate(engine, "0005")
-    assert _embeddings(S, ids) == {k: k for k in range(5)}
+    assert embeddings(S, ids) == {k: k for k in range(5)}
     migrate(engine, "0004", down=True)
-    assert _embeddings(S, ids) == {k: k for k in range(5)}
+    assert embeddings(S, ids) == {k: k for k in range(5)}
     migrate(engine, "head")

@@ -11,80 +11,31 @@ import json
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 from sqlalchemy import func, select
 
 from benchmarks.soak import worker_processes
 from packings.service.db import make_engine, sessions
-from packings.service.models import LEASED, PENDING, ClusterRow, ExpansionRow
-from packings.workers.identity import ClusterIndex
+from packings.service.models import LEASED, ClusterRow, ExpansionRow
 from packings.workers.params import Params
-
-
-def packings(*args, **kw):
-    return subprocess.run(
-        [sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=1800, **kw
-    )
-
-
-def start(*args):
-    return subprocess.Popen(
-        [sys.executable, "-m", "packings.service.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
+from tests.helpers import (
+    assert_same_clusters,
+    catalogue,
+    done_count,
+    free_port,
+    packings,
+    start,
+    stop,
+    wait_for,
+    wait_until_listening,
+)
 
 
 @pytest.fixture(scope="module")
 def reference9():
     """The uninterrupted in-memory enumeration of n = 9 (packings.workers.explore)."""
-    from packings.workers.explore import explore
-
-    return list(explore(9).clusters)
-
-
-def assert_same_clusters(url: str, n: int, reference) -> None:
-    """The database holds exactly the reference clusters: one stored cluster per
-    reference cluster (same certificate and geometry), no duplicates."""
-    engine = make_engine(url)
-    with sessions(engine)() as s:
-        rows = s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars().all()
-        stored = [r.to_core() for r in rows]
-        keys = [(r.certificate, r.embedding) for r in rows]
-        frontier = dict(s.execute(select(ExpansionRow.status, func.count()).group_by(ExpansionRow.status)).all())
-    engine.dispose()
-    assert len(set(keys)) == len(keys)
-    assert frontier.get(LEASED, 0) == 0 and frontier.get(PENDING, 0) == 0
-    index = ClusterIndex()
-    for c in reference:
-        index.add(c, Params().tol_d)
-    matched = set()
-    for c in stored:
-        i, new = index.add(c, Params().tol_d)
-        assert not new, "a stored cluster that the uninterrupted run does not have"
-        matched.add(i)
-    assert len(matched) == len(reference) == len(stored)
-
-
-def done_count(url: str) -> int:
-    engine = make_engine(url)
-    try:
-        with sessions(engine)() as s:
-            return s.execute(
-                select(func.count()).select_from(ExpansionRow).where(ExpansionRow.status == "done")
-            ).scalar()
-    except Exception:  # noqa: BLE001 - the schema may not exist yet
-        return 0
-    finally:
-        engine.dispose()
-
-
-def wait_for(predicate, proc, timeout=300):
-    t0 = time.time()
-    while not predicate():
-        assert proc.poll() is None, f"the run ended before the fault could be injected: {proc.stderr.read()}"
-        assert time.time() - t0 < timeout
-        time.sleep(0.05)
+    return list(catalogue(9).clusters)
 
 
 def test_enumerate_9_with_a_local_cluster(db_url, reference9, paper_counts):
@@ -125,9 +76,7 @@ def test_enumerate_prints_the_table_the_dashboard_and_progress(sqlite_url):
 @pytest.fixture(scope="module")
 def reference10():
     """The serial in-memory enumeration of n = 10 (packings.workers.explore): one order of discovery."""
-    from packings.workers.explore import explore
-
-    return list(explore(10).clusters)
+    return list(catalogue(10).clusters)
 
 
 @pytest.mark.slow
@@ -192,47 +141,12 @@ def test_workers_and_scheduler_are_exclusive(tmp_path):
     assert list(tmp_path.iterdir()) == []
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def stop(procs: list) -> None:
-    """Terminate processes, the last started first; kill those that do not end within 30 s."""
-    for p in reversed(procs):
-        p.terminate()
-    for p in procs:
-        try:
-            p.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-
-
-def _wait_until_listening(port: int, timeout: float = 120.0) -> None:
-    """A `dask scheduler` just launched takes seconds to listen (longer on a loaded machine)."""
-    import socket
-    import time
-
-    deadline = time.monotonic() + timeout
-    while True:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=1):
-                return
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
-
-
 def test_joining_an_existing_dask_cluster(db_url, paper_counts):
     """The README's many-machine recipe on one machine: `dask scheduler`, `dask worker`, `--scheduler`."""
     import os
 
     dask = os.path.join(os.path.dirname(sys.executable), "dask")
-    port, dash = _free_port(), _free_port()
+    port, dash = free_port(), free_port()
     address = f"tcp://127.0.0.1:{port}"
     # the scheduler serves the packings page of the database it is told (README: many machines)
     procs = [
@@ -254,7 +168,7 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
         )
     ]
     try:
-        _wait_until_listening(port)  # as an operator starts the scheduler before pointing anything at it
+        wait_until_listening(port)  # as an operator starts the scheduler before pointing anything at it
         procs.append(
             subprocess.Popen([dask, "worker", address, "--nworkers", "2", "--nthreads", "1"], stderr=subprocess.DEVNULL)
         )
@@ -274,9 +188,12 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
         # the page's data: the run as the database has it (read every second)
         import urllib.request
 
-        time.sleep(2)
-        with urllib.request.urlopen(f"http://127.0.0.1:{dash}/packings.json", timeout=10) as page:
-            snap = json.loads(page.read())
+        def page() -> dict | None:
+            with urllib.request.urlopen(f"http://127.0.0.1:{dash}/packings.json", timeout=10) as r:
+                snap = json.loads(r.read())
+            return snap if snap.get("status") == "complete" else None
+
+        snap = wait_for(page, timeout=60, interval=0.5, what="the page shows the run complete")
         assert (snap["run"], snap["n"], snap["status"], snap["clusters"]) == (out["run"], 8, "complete", 13)
         assert snap["frontier"] == {"pending": 0, "leased": 0, "done": 13, "failed": 0}
         # Dask's own panels name the tasks by run: their keys carry n
@@ -327,11 +244,10 @@ def test_a_failing_expansion_does_not_fail_the_others_of_its_task(engine, monkey
     import packings.service.coordinator
     import packings.service.tasks
     from packings.service.coordinator import run_enumeration
-    from packings.workers.explore import explore
     from packings.workers.identity import same_geometry
 
     params = Params()
-    victim = explore(8).clusters[3]
+    victim = catalogue(8).clusters[3]
     real_expand, real_task = packings.service.tasks.expand, packings.service.coordinator.expand_task
     batches: list[list[int]] = []
     monkeypatch.setattr(

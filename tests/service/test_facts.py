@@ -16,8 +16,8 @@ from packings.service.models import ClusterRow, Transition
 from packings.workers.classify import lattice_type, static_class
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.params import DEFAULT
-from tests.service.querydb import filled_catalog
-from tests.service.test_query_cli import ok, one_line_error, run, run_many
+from tests.helpers import filled_catalog, ok, one_line_error, run_many
+from tests.helpers import packings as run
 
 catalog = filled_catalog(7, 8)
 

@@ -25,8 +25,17 @@ from benchmarks.soak import worker_processes
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run, Transition
 from packings.workers.params import Params
-from tests.service.test_enumerate import assert_same_clusters, done_count, start, wait_for
-from tests.service.test_enumerate import packings as cli
+from tests.helpers import (
+    assert_same_clusters,
+    catalogue,
+    done_count,
+    free_port,
+    start,
+    stop,
+    wait_for,
+    wait_until_listening,
+)
+from tests.helpers import packings as cli
 
 #: Dask's scheduler gives a task lost with its worker to another one up to allowed-failures (3) times
 #: before it raises KilledWorker; at 0 every task a kill finds on its worker (running or queued there)
@@ -109,10 +118,9 @@ def test_an_expansion_that_kills_every_worker_alone_ends_failed(engine, monkeypa
     loss alone an attempt; after max_attempts it is failed, and nothing else is."""
     import packings.service.store
     import packings.service.tasks
-    from packings.workers.explore import explore
     from packings.workers.identity import same_geometry
 
-    poison = explore(8).clusters[4]
+    poison = catalogue(8).clusters[4]
     monkeypatch.setattr(packings.service.tasks, "fault_log", (sessions(engine), poison, Params().tol_d), raising=False)
 
     def task(real, expansions, plugin):
@@ -185,9 +193,7 @@ def _retries(url: str) -> int:
 
 @pytest.fixture(scope="module")
 def reference10():
-    from packings.workers.explore import explore
-
-    return list(explore(10).clusters)
+    return list(catalogue(10).clusters)
 
 
 @pytest.mark.slow
@@ -235,8 +241,6 @@ def test_the_coordinator_killed_five_times_then_rerun(db_url, seed):
     """kill -9 the coordinator at five moments drawn from the seed, rerunning the same command each
     time: the last run completes with the clusters of an undisturbed one, nothing failed (a lease it
     left behind is put back without an attempt), no duplicate, every transition written once."""
-    from packings.workers.explore import explore
-
     rng = random.Random(seed)
     moments = sorted(rng.sample(range(3, 50), 5))
     for moment in moments:
@@ -250,7 +254,7 @@ def test_the_coordinator_killed_five_times_then_rerun(db_url, seed):
     r = cli("enumerate", "9", "--db", db_url, "--workers", "2", "--quiet", "--max-attempts", "1")
     assert r.returncode == 0, r.stderr
     assert "n = 9: 52 rigid clusters" in r.stdout and "(resumed)" in r.stdout
-    assert_same_clusters(db_url, 9, list(explore(9).clusters))
+    assert_same_clusters(db_url, 9, list(catalogue(9).clusters))
     run = _faults(db_url)
     assert run["failed"] == 0 and run["leased"] == 0 and run["retries"] > 0
     _assert_transitions_whole(db_url, 9)
@@ -344,16 +348,12 @@ def test_a_full_disk_stops_the_run_in_one_line_and_it_resumes_after(small_disk, 
 
 @pytest.fixture(scope="module")
 def reference8():
-    from packings.workers.explore import explore
-
-    return list(explore(8).clusters)
+    return list(catalogue(8).clusters)
 
 
 def test_two_runs_of_different_n_on_one_postgresql_database_at_once(pg_url, reference8):
     """Two coordinators, each with its own local cluster, on one PostgreSQL database at the same time:
     both runs complete with exactly their clusters."""
-    from packings.workers.explore import explore
-
     procs = [
         start("enumerate", str(n), "--db", pg_url, "--workers", "1", "--quiet", "--dashboard-address", "127.0.0.1:0")
         for n in (8, 9)
@@ -363,7 +363,7 @@ def test_two_runs_of_different_n_on_one_postgresql_database_at_once(pg_url, refe
         assert p.returncode == 0, err
     assert "n = 8: 13 rigid clusters" in outs[0][0] and "n = 9: 52 rigid clusters" in outs[1][0]
     assert_same_clusters(pg_url, 8, reference8)
-    assert_same_clusters(pg_url, 9, list(explore(9).clusters))
+    assert_same_clusters(pg_url, 9, list(catalogue(9).clusters))
 
 
 @pytest.mark.slow
@@ -376,10 +376,8 @@ def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10)
 
     import psutil
 
-    from tests.service.test_enumerate import _free_port, _wait_until_listening, stop
-
     dask = os.path.join(os.path.dirname(sys.executable), "dask")
-    port = _free_port()
+    port = free_port()
     address = f"tcp://127.0.0.1:{port}"
     procs = [
         subprocess.Popen(
@@ -389,7 +387,7 @@ def test_four_dask_workers_and_postgresql_one_worker_killed(pg_url, reference10)
         )
     ]
     try:
-        _wait_until_listening(port)
+        wait_until_listening(port)
         procs.append(
             subprocess.Popen(
                 [dask, "worker", address, "--nworkers", "4", "--nthreads", "1"],
@@ -545,23 +543,13 @@ def test_a_local_worker_its_nanny_could_not_restart_is_replaced(monkeypatch):
 
         nanny.instantiate = cannot_start
         os.kill(nanny.process.pid, signal.SIGKILL)
-        deadline = time.monotonic() + 60
-        while len(client.nthreads()) != 1:  # the slot is empty, and stays so
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
-        replaced = 0
-        while not replaced:
-            assert time.monotonic() < deadline
-            replaced = d.revive_workers()
-            time.sleep(0.3)
+        wait_for(lambda: len(client.nthreads()) == 1, timeout=60, interval=0.2, what="the slot is empty")
+        replaced = wait_for(d.revive_workers, timeout=60, interval=0.3, what="revive_workers replaces one")
         assert replaced == 1 and d.cluster.workers.get(name) is not nanny  # the nanny that gave up is gone
         client.wait_for_workers(2, timeout=120)
         # Dask's SpecCluster records a new nanny once its start has returned, which can be after its worker
         # has joined the scheduler: wait for the record too
-        deadline = time.monotonic() + 60
-        while len(d.cluster.workers) != 2:
-            assert time.monotonic() < deadline
-            time.sleep(0.2)
+        wait_for(lambda: len(d.cluster.workers) == 2, timeout=60, interval=0.2, what="the new nanny is recorded")
         assert len(client.nthreads()) == 2 and all(n is not nanny for n in d.cluster.workers.values())
 
 
@@ -594,16 +582,12 @@ class _DaskCluster:
         import os
         import sys
 
-        from tests.service.test_enumerate import _free_port
-
         self.dask = os.path.join(os.path.dirname(sys.executable), "dask")
-        self.port, self.workers = _free_port(), workers
+        self.port, self.workers = free_port(), workers
         self.address = f"tcp://127.0.0.1:{self.port}"
         self.scheduler = self.worker = None
 
     def start(self) -> None:
-        from tests.service.test_enumerate import _wait_until_listening
-
         self.scheduler = subprocess.Popen(
             [
                 self.dask,
@@ -618,7 +602,7 @@ class _DaskCluster:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
-        _wait_until_listening(self.port)
+        wait_until_listening(self.port)
         self.worker = subprocess.Popen(
             [self.dask, "worker", self.address, "--nworkers", str(self.workers), "--nthreads", "1"],
             stdout=subprocess.DEVNULL,
@@ -634,8 +618,6 @@ class _DaskCluster:
             self.worker.kill()
 
     def stop(self) -> None:
-        from tests.service.test_enumerate import stop
-
         stop([p for p in (self.scheduler, self.worker) if p is not None])
 
 

@@ -29,7 +29,7 @@ from packings.service.plots import (
     save,
     sphere_values,
 )
-from tests.service.querydb import filled_catalog
+from tests.helpers import fill_database, filled_catalog, two_geometries
 
 catalog = filled_catalog(7, 8)
 
@@ -177,7 +177,6 @@ def test_the_commands_label_partial_and_restricted_n(sqlite_url, monkeypatch, tm
     from packings.service import plots, store
     from packings.service.db import open_database, sessions
     from packings.workers.params import Params
-    from tests.service.conftest import fill_database
 
     engine = open_database(sqlite_url, create=True)
     try:
@@ -448,8 +447,6 @@ def test_clusters_of_one_contact_graph_are_aligned_on_a_contact_triangle():
     """A moved, turned and relabelled copy of a cluster lies on the original once aligned; the two
     geometries of one n = 11 contact graph share a contact triangle and differ elsewhere; clusters of
     different graphs are not aligned."""
-    from tests.workers.test_audit import two_geometries
-
     rng = np.random.default_rng(3)
     p = rng.permutation(5)
     inverse = np.argsort(p)
@@ -465,8 +462,6 @@ def test_clusters_of_one_contact_graph_are_aligned_on_a_contact_triangle():
 
 
 def test_several_clusters_side_by_side(tmp_path):
-    from tests.workers.test_audit import two_geometries
-
     g, h = two_geometries()
     fig = plot_clusters(
         [(g.coords, g.contacts), (_moved(h.coords, 5), h.contacts)],

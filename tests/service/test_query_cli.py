@@ -7,14 +7,14 @@ import io
 import json
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 from sqlalchemy import func, select
 
 from packings.service.models import ClusterRow, Transition
-from tests.service.querydb import filled_catalog
+from tests.helpers import filled_catalog, ok, one_line_error, run_many
+from tests.helpers import packings as run
 
 catalog = filled_catalog(7, 8)
 
@@ -30,32 +30,6 @@ TABLE_HEADER = [
     "lattice",
     "certificate",
 ]
-
-
-def run(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "packings.service.cli", *args], capture_output=True, text=True, timeout=120, cwd=cwd
-    )
-
-
-def run_many(*commands, cwd=None):
-    """Several commands at once (each a list of arguments), in order."""
-    with ThreadPoolExecutor(max_workers=8) as pool:
-        return list(pool.map(lambda args: run(*args, cwd=cwd), commands))
-
-
-def ok(*args, cwd=None) -> str:
-    r = run(*args, cwd=cwd)
-    assert r.returncode == 0, r.stderr
-    return r.stdout
-
-
-def one_line_error(r, *words):
-    assert r.returncode != 0, r.args
-    assert r.stdout == "", r.args
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("packings: error:"), (r.args, r.stderr)
-    assert all(w in lines[0] for w in words), (r.args, lines[0])
 
 
 @pytest.fixture(scope="module")

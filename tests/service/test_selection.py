@@ -13,7 +13,7 @@ from sqlalchemy import select
 from packings.service import selection as sel
 from packings.service.models import ClusterRow, ExpansionRow, Transition
 from packings.service.selection import SelectionError, Term, parse
-from tests.service.querydb import filled_catalog
+from tests.helpers import filled_catalog
 
 catalog = filled_catalog(7)
 

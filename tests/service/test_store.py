@@ -5,7 +5,6 @@ from __future__ import annotations
 import multiprocessing as mp
 import os
 import socket
-import time
 from collections import Counter
 
 import numpy as np
@@ -18,6 +17,7 @@ from packings.service.models import DONE, FAILED, LEASED, PENDING, ClusterRow, E
 from packings.service.owners import RunBusy
 from packings.service.tasks import run_expansion
 from packings.workers.params import Params
+from tests.helpers import catalogue, embeddings, fill_database, store_chains, wait_for
 
 OWNER = f"{socket.gethostname()}:{os.getpid()}:test"
 
@@ -106,7 +106,6 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     from packings.workers import kernels
     from packings.workers.expand import expand
     from packings.workers.identity import same_geometry
-    from tests.service.conftest import fill_database
 
     params = Params()
     run_id = fill_database(engine, n)
@@ -178,7 +177,7 @@ def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
 
     import packings.service.db
 
-    monkeypatch.setattr(packings.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
+    monkeypatch.setattr(packings.service.db, "SQLITE_BUSY_TIMEOUT_MS", 200)  # so that waiting for the lock fails fast
     engine = packings.service.db.open_database(sqlite_url, create=True)
     S = sessions(engine)
     info = store.start_run(S, 8, Params(), OWNER)
@@ -342,8 +341,6 @@ def test_failed_tasks_are_retried_then_marked_failed(run8):
 
 
 def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
-    from tests.service.conftest import fill_database
-
     run_id = fill_database(engine, 8)
     with sessions(engine)() as s:
         assert store.run_counts(s, run_id) == {18: 13}
@@ -395,9 +392,7 @@ def _insert_all(url: str, clusters: list[dict], seed: int, barrier) -> list[tupl
 
 def test_concurrent_inserts_of_overlapping_clusters_make_no_duplicates(engine):
     """Several processes insert the same 13 clusters (each relabelled and moved) at once."""
-    from packings.workers.explore import explore
-
-    clusters = [c.to_dict() for c in explore(8).clusters]
+    clusters = [c.to_dict() for c in catalogue(8).clusters]
     url = engine.url.render_as_string(hide_password=False)
     ctx = mp.get_context("spawn")
     k = 4
@@ -415,8 +410,6 @@ def test_concurrent_inserts_of_overlapping_clusters_make_no_duplicates(engine):
 
 def test_the_coordinator_heartbeat_runs_on_its_own(run8, monkeypatch):
     """The run's heartbeat advances while the coordinator waits for long tasks."""
-    import time
-
     from packings.service import coordinator
 
     S, info = run8
@@ -424,10 +417,15 @@ def test_the_coordinator_heartbeat_runs_on_its_own(run8, monkeypatch):
     with S() as s:
         first = s.get(Run, info.id).heartbeat_at
     beat = coordinator._Heartbeat(S, info.id, OWNER)
-    time.sleep(0.5)
-    beat.stop()
-    with S() as s:
-        assert s.get(Run, info.id).heartbeat_at > first
+
+    def beaten() -> bool:
+        with S() as s:
+            return s.get(Run, info.id).heartbeat_at > first
+
+    try:
+        wait_for(beaten, timeout=60, what="the heartbeat advances")
+    finally:
+        beat.stop()
 
 
 def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
@@ -435,8 +433,6 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
     already, stores none again, and gives each its own expansion (those found by another run are
     checked for one; those it inserts get one at once)."""
     import dataclasses
-
-    from tests.service.conftest import fill_database
 
     first = fill_database(engine, 8)
     other = dataclasses.replace(Params(), probe_stall=Params().probe_stall + 1)  # changes no result
@@ -469,7 +465,7 @@ def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine
         (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]", None),
     ]
     more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]", None) for k in range(5)]
-    monkeypatch.setattr(packings.db, "INSERT_CHUNK", 2)
+    monkeypatch.setattr(packings.service.db, "INSERT_CHUNK", 2)
     statements = []
 
     def count(conn, cursor, statement, *args):
@@ -525,10 +521,16 @@ def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, mo
     [(), ((0, 1),), ((0, 1), (2, 5)), [(3, 4), (1, 9)], ((np.int64(2), np.int64(7)),), [[0, 3]], ((0, 1), [2, 3])],
 )
 def test_contacts_are_written_as_json_writes_them(pairs):
+    """Whatever the pairs are given as, the text is json.dumps's, and it reads back as the pairs; pairs given
+    as a tuple of tuples are remembered: asked again, the cache answers, with the same text."""
     import json
 
-    assert store.contacts_json(pairs) == json.dumps([[int(i), int(j)] for i, j in pairs])
-    assert store.contacts_json(pairs) == store.contacts_json(pairs)  # a second time, from the cache
+    store._contacts_json.cache_clear()
+    written = json.dumps([[int(i), int(j)] for i, j in pairs])
+    assert store.contacts_json(pairs) == written and json.loads(written) == [[int(i), int(j)] for i, j in pairs]
+    assert store.contacts_json(pairs) == written  # a second time
+    remembered = isinstance(pairs, tuple) and all(isinstance(p, tuple) for p in pairs)
+    assert store._contacts_json.cache_info().hits == (1 if remembered else 0)
 
 
 def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
@@ -544,11 +546,10 @@ def test_a_missed_heartbeat_is_logged_and_counted(monkeypatch, caplog):
     monkeypatch.setattr(coordinator.store, "heartbeat", failing)
     with caplog.at_level(logging.WARNING, logger="packings.service.coordinator"):
         beat = coordinator._Heartbeat(None, 7, "here:1")
-        for _ in range(500):
-            if beat.missed >= 2:
-                break
-            time.sleep(0.01)
-        beat.stop()
+        try:
+            wait_for(lambda: beat.missed >= 2, timeout=60, interval=0.01, what="two heartbeats missed")
+        finally:
+            beat.stop()
     assert beat.missed >= 2 and beat.is_alive() is False
     assert any(
         "run 7: heartbeat 1 missed" in r.getMessage() and "database is locked" in r.getMessage() for r in caplog.records
@@ -584,41 +585,6 @@ def test_a_runs_time_is_kept_across_coordinators_and_recorded_while_it_runs(run8
         assert s.get(Run, info.id).seconds == 7.25
 
 
-def _store_chains(S, order, seed: int, one_transaction: bool = False) -> dict[int, int]:
-    """Geometries ``order`` of the 4-chain (tests.workers.test_identity.CHAIN_DIHEDRALS), each moved,
-    reflected and relabelled, stored in that order; their ids by geometry."""
-    from packings.workers.identity import certificate_key
-    from packings.workers.rigidity import Rigidity
-    from tests.workers.test_identity import CHAIN_DIHEDRALS, chain, transformed
-
-    params, ids = Params(), {}
-    floppy = Rigidity(False, "floppy", 1, 0, "first-order")  # the store does not test what it stores
-    clusters = [(k, transformed(chain(CHAIN_DIHEDRALS[k]), seed + i, bool(i % 2))) for i, k in enumerate(order)]
-    cert = certificate_key(clusters[0][1])
-
-    def insert(s, k, c, rows) -> None:
-        store.lock_certificates(s, [(4, cert)])
-        ids[k], new = store.insert_or_match(s, c, floppy, None, params.tol_d, rows, found_by="seed", source_id=None)
-        assert new
-
-    if one_transaction:
-        with S.begin() as s:
-            rows = store.stored_with(s, 4, [cert])[cert]
-            for k, c in clusters:
-                insert(s, k, c, rows)
-            assert [r.embedding for r in rows] == list(range(len(order)))
-    else:
-        for k, c in clusters:
-            with S.begin() as s:
-                insert(s, k, c, None)
-    return ids
-
-
-def _embeddings(S, ids: dict[int, int]) -> dict[int, int]:
-    with S() as s:
-        return {k: s.get(ClusterRow, cid).embedding for k, cid in ids.items()}
-
-
 @pytest.mark.parametrize(
     "order, one_transaction",
     [((0, 1, 2, 3, 4), False), ((4, 3, 2, 1, 0), False), ((2, 4, 0, 3, 1), False), ((3, 0, 4, 1, 2), True)],
@@ -628,5 +594,5 @@ def test_embedding_numbers_follow_geometry_whatever_order_they_are_stored_in(eng
     (whose stored rows the store keeps up to date), get the same (certificate, embedding) keys: 0 for
     the most compact; the stored ones are renumbered as a new one goes between them."""
     S = sessions(engine)
-    ids = _store_chains(S, order, seed=sum(order[:2]), one_transaction=one_transaction)
-    assert _embeddings(S, ids) == {k: k for k in range(5)}
+    ids = store_chains(S, order, seed=sum(order[:2]), one_transaction=one_transaction)
+    assert embeddings(S, ids) == {k: k for k in range(5)}

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import pytest
 from hypothesis import given
@@ -23,33 +20,18 @@ from packings.workers.audit import (
 from packings.workers.cluster import Cluster
 from packings.workers.identity import certificate, geometry_distance, same_geometry
 from packings.workers.params import DEFAULT
-from tests.workers.test_identity import (
+from tests.helpers import (
     CLUSTERS,
     SETTINGS,
     chain,
     names,
+    near_misses,
     octahedron,
     seeds,
     tetrahedron_coords,
     transformed,
+    two_geometries,
 )
-
-DATA = Path(__file__).parents[1] / "data"
-
-
-def near_misses() -> list[dict]:
-    """The two n = 12 path endpoints stored as clusters before packings.workers.paths._endpoint re-projected
-    (tests/data/n12_near_miss.json), as Clusters with their record."""
-    data = json.loads((DATA / "n12_near_miss.json").read_text())
-    return [
-        {**m, "cluster": Cluster(np.array(m["coords"]), tuple(map(tuple, m["contacts"])))} for m in data["endpoints"]
-    ]
-
-
-def two_geometries() -> tuple[Cluster, Cluster]:
-    data = json.loads((DATA / "n11_two_geometries.json").read_text())
-    a, b = (Cluster(np.array(c["coords"]), tuple(map(tuple, c["contacts"]))) for c in data["clusters"])
-    return a, b
 
 
 def about_axis(p: np.ndarray, a: np.ndarray, b: np.ndarray, degrees: float) -> np.ndarray:

@@ -34,7 +34,7 @@ from packings.workers.outcomes import BELOW_MIN_CONTACTS, RIGID
 from packings.workers.params import Params
 from packings.workers.rigidity import contact_triangle, rigidity, rigidity_without_stress
 from packings.workers.seeds import seed_cluster
-from tests.workers.motions import congruent_copy
+from tests.helpers import congruent_copy
 
 P = Params()
 DATA = Path(__file__).parent.parent / "data"

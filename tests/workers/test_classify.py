@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from packings.workers.classify import LATTICES, STATIC, describe, lattice_type, static_class
 from packings.workers.cluster import contacts_from_coords, pair_distances
 from packings.workers.seeds import seed_cluster
+from tests.helpers import catalogue
 
 S3 = np.sqrt(3.0)
 LAYER = np.sqrt(2.0 / 3.0)
@@ -339,10 +340,7 @@ def test_brute_force_agrees_on_constructions(name):
 
 
 def test_brute_force_agrees_on_enumerated_clusters_n8():
-    from packings.workers.explore import explore
-    from packings.workers.params import Params
-
-    cat = explore(8, Params())
+    cat = catalogue(8)
     labels = []
     for c in cat.clusters:
         label = lattice_type(c.coords, c.contacts)

@@ -29,8 +29,7 @@ from packings.workers.params import Params
 from packings.workers.paths import PROJECTION_FAILED, RIGID, UNDECIDED_END, follow_path
 from packings.workers.rigidity import contact_triangle
 from packings.workers.seeds import seed_cluster
-from tests.workers.motions import congruent_copy
-from tests.workers.test_identity import random_orthogonal
+from tests.helpers import congruent_copy, random_orthogonal
 
 P = Params()
 ROOT = Path(__file__).parents[2]
@@ -486,11 +485,37 @@ def test_environment_variable_selects_the_backend(value, expected):
     assert out.stdout.strip() == expected
 
 
-def test_warm_up_compiles_and_reports_seconds():
-    kernels.set_backend("numba")
-    seconds = warm_up()
+_SIGNATURES = """
+import json, numba
+from packings.workers import _compiled, kernels
+from packings.workers.cluster import Cluster
+from packings.workers.expand import expand, warm_up
+from packings.workers.params import Params
+from packings.workers.seeds import seed_cluster
+
+def signatures():
+    return {k: sorted(map(str, v.signatures)) for k, v in vars(_compiled).items()
+            if isinstance(v, numba.core.registry.CPUDispatcher)}
+
+kernels.set_backend("numba")
+seconds = warm_up()
+warm = signatures()
+data = json.load(open("tests/data/clusters_n10.json"))
+for c in [seed_cluster(8), Cluster.from_dict(data["n10_m23_prestress"]), Cluster.from_dict(data["n10_m25_first-order"])]:
+    expand(c, Params())
+print(json.dumps([seconds, warm, signatures()]))
+"""
+
+
+def test_warm_up_compiles_every_kernel_the_paths_use_and_reports_seconds():
+    """In a fresh process, after warm_up, expanding clusters (a regular one, a hypostatic and a hyperstatic
+    one) compiles nothing more: every kernel it calls has the signature the warm-up gave it."""
+    out = subprocess.run(
+        [sys.executable, "-c", _SIGNATURES], cwd=ROOT, capture_output=True, text=True, check=True, timeout=900
+    )
+    seconds, warm, after = json.loads(out.stdout.strip().splitlines()[-1])
     assert isinstance(seconds, float) and seconds >= 0.0
-    assert warm_up() < 5.0  # everything is compiled (or cached) now
+    assert any(warm.values()) and after == warm
 
 
 def _stressed_problem(n, eps, seed, extra=0):

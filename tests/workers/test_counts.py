@@ -2,8 +2,8 @@
 
 import pytest
 
-from packings.workers.explore import explore
 from packings.workers.params import Params
+from tests.helpers import catalogue
 
 
 def _expected(paper_counts, n):
@@ -12,7 +12,7 @@ def _expected(paper_counts, n):
 
 @pytest.mark.parametrize("n", [5, 6, 7, 8, 9])
 def test_counts_match_paper(n, paper_counts):
-    cat = explore(n, Params())
+    cat = catalogue(n)
     assert cat.by_contacts() == _expected(paper_counts, n)
     assert cat.total == paper_counts["totals"][str(n)]
     diag = cat.diagnostics()
@@ -22,7 +22,7 @@ def test_counts_match_paper(n, paper_counts):
 
 @pytest.mark.slow
 def test_counts_n10_match_paper(paper_counts):
-    cat = explore(10, Params())
+    cat = catalogue(10)
     assert cat.by_contacts() == _expected(paper_counts, 10)
     # the hypostatic cluster is singular: one of the clusters reached through a singular cluster's pair breaks
     from packings.workers.rigidity import rigidity
@@ -35,7 +35,7 @@ def test_counts_n10_match_paper(paper_counts):
 def test_every_cluster_is_rigid_and_valid():
     from packings.workers.rigidity import rigidity
 
-    cat = explore(7, Params())
+    cat = catalogue(7)
     for c in cat.clusters:
         assert rigidity(c.coords, c.contacts, Params()).rigid
         assert c.min_distance() > 1 - 1e-5

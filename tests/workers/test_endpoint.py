@@ -23,7 +23,7 @@ from packings.workers.identity import certificate, geometry_distance, same_geome
 from packings.workers.params import DEFAULT as P
 from packings.workers.paths import PROJECTION_FAILED, RIGID, close_pairs, near_pairs, resolve_near_pairs
 from packings.workers.rigidity import contact_triangle, on_a_curve, rigidity
-from tests.workers.test_identity import transformed
+from tests.helpers import transformed
 
 DATA = json.loads((Path(__file__).parents[1] / "data" / "n12_junk.json").read_text())
 FAR, NEAR_COPY, ON_A_CURVE = DATA["paths"]

@@ -26,16 +26,14 @@ from packings.workers.exact import (
 from packings.workers.identity import _canonical
 from packings.workers.params import DEFAULT
 from packings.workers.rigidity import contact_triangle
-from tests.workers.test_audit import DATA, two_geometries
-from tests.workers.test_identity import CLUSTERS, SETTINGS, seeds, transformed
+from tests.helpers import CLUSTERS, DATA, SETTINGS, catalogue, seeds, transformed, two_geometries
 
 
 def regular(n: int) -> list[Cluster]:
     """The regular clusters (3n - 6 contacts, first-order rigid) of n, as enumerated."""
-    from packings.workers.explore import explore
     from packings.workers.rigidity import rigidity
 
-    out = [c for c in explore(n).clusters if c.m == 3 * n - 6]
+    out = [c for c in catalogue(n).clusters if c.m == 3 * n - 6]
     return [c for c in out if rigidity(c.coords, c.contacts, DEFAULT).flexes == 0]
 
 
@@ -97,9 +95,7 @@ def test_a_cluster_whose_spheres_all_touch_is_proved_with_no_gap() -> None:
 
 
 def test_singular_clusters_and_too_few_contacts_are_not_tried() -> None:
-    from packings.workers.explore import explore
-
-    nine = list(explore(9).clusters)
+    nine = list(catalogue(9).clusters)
     assert [exact_cluster(c).status for c in nine].count(SINGULAR) == 1  # the n = 9 cluster with a flex
     data = json.loads((DATA / "clusters_n10.json").read_text())
     assert exact_cluster(Cluster.from_dict(data["n10_m23_prestress"])).status == NOT_RIGID  # 23 < 3n - 6
@@ -199,10 +195,9 @@ def test_a_point_that_only_satisfies_newtons_tolerance_is_no_cluster() -> None:
 def test_the_endpoint_rule_keeps_every_first_order_cluster_of_n_9() -> None:
     """Every first-order cluster of an enumeration, in every pinned frame: the rule's proof holds with h
     far below 1/2, so the rule changes nothing where the clusters are what they seem."""
-    from packings.workers.explore import explore
     from packings.workers.paths import endpoint_rigidity
 
-    for c in explore(9).clusters:
+    for c in catalogue(9).clusters:
         for k, (tri, x, free) in enumerate(pinnings(c)):
             if k % 7:
                 continue
@@ -219,10 +214,9 @@ def test_root_exists_agrees_with_the_theorem_with_or_without_a_bound_on_sigma() 
     import math
 
     from packings.workers.exact import root_exists
-    from packings.workers.explore import explore
 
     certified = math.sqrt(kernels.guard_threshold(DEFAULT.tol_n))
-    for c in explore(9).clusters:
+    for c in catalogue(9).clusters:
         tri = contact_triangle(c.edges())
         x, free = kernels.to_frame(c.coords, tri).ravel(), kernels.free_coordinates(c.n, tri)
         whole = kantorovich(x, c.edges(), free).exists

@@ -12,7 +12,7 @@ from packings.workers.identity import certificate_hex
 from packings.workers.params import Params
 from packings.workers.paths import RIGID
 from packings.workers.seeds import seed_cluster
-from tests.workers.motions import congruent_copy
+from tests.helpers import catalogue, congruent_copy
 
 P = Params()
 
@@ -45,13 +45,32 @@ def test_expand_octahedron_reaches_only_itself_and_the_polytetrahedron():
             assert len(e.broken) == 1 and e.direction in (1, -1)
 
 
-def test_expand_is_pure():
-    c = seed_cluster(7)
-    a, b = expand(c, P), expand(c, P)
-    assert _endpoint_keys(a) == _endpoint_keys(b)
-    for x, y in zip(a.endpoints, b.endpoints):
-        if x.cluster is not None:
-            assert np.array_equal(x.cluster.coords, y.cluster.coords)
+def _as_values(ex) -> list[tuple]:
+    """An expansion's attempts as plain values, to the last bit: the subset, the direction, the outcome, the
+    contacts formed, whether an image, and the exact coordinates and contacts reached."""
+    return [
+        (e.broken, e.direction, e.outcome, e.new_contacts, e.image)
+        + (() if e.cluster is None else (e.cluster.coords.tobytes(), e.cluster.contacts))
+        for e in ex.endpoints
+    ]
+
+
+def test_expand_is_a_pure_function_of_its_inputs(monkeypatch):
+    """What expand gives depends on the cluster and the parameters alone: not on the caches the process has
+    filled (automorphism groups and keys by certificate, canonical forms by cluster) nor on what it expanded
+    before, and a later expansion leaves an earlier one's result as it was."""
+    from packings.workers import identity
+
+    c = seed_cluster(7)  # symmetric: its images go through the cached automorphism groups
+    monkeypatch.setattr(identity, "_GROUPS", {})
+    monkeypatch.setattr(identity, "_KEYS", {})
+    cold = expand(Cluster(c.coords.copy(), c.contacts), P)  # a cluster of its own: no canonical form cached
+    seen = _as_values(cold)
+    assert any(e.image for e in cold.endpoints) and any(e.outcome == RIGID for e in cold.endpoints)
+    for other in catalogue(7).clusters:  # the caches filled with other clusters' forms
+        expand(other, P)
+    assert _as_values(expand(c, P)) == seen
+    assert _as_values(cold) == seen
 
 
 def _same_distinct_clusters(a, b) -> bool:
@@ -72,10 +91,9 @@ def test_expand_invariant_under_rotation_reflection_relabelling(seed, reflect):
 def test_the_endpoints_that_are_one_cluster_point_at_the_first_of_them():
     """Many paths from one cluster end at the same cluster: expand tells them apart once, and the
     write-back compares each distinct one only with the stored clusters."""
-    from packings.workers.explore import explore
     from packings.workers.identity import same_geometry
 
-    c = max(explore(9).clusters, key=lambda c: c.m)  # a hyperstatic cluster: pairs broken, many paths
+    c = max(catalogue(9).clusters, key=lambda c: c.m)  # a hyperstatic cluster: pairs broken, many paths
     ex = expand(c, P)
     rigid = [i for i, e in enumerate(ex.endpoints) if e.outcome == RIGID]
     first = ex.distinct()
@@ -99,10 +117,9 @@ def test_an_expansion_holds_each_contact_pair_once_and_canonical_forms_of_distin
     (the write-back compares only those again), with the arrivals of a regular cluster, a few dozen
     (the write-back relabels them onto their targets: Expansion.retraceable)."""
     from packings.workers.cluster import pair
-    from packings.workers.explore import explore
     from packings.workers.identity import _CANONICAL
 
-    c = max(explore(9).clusters, key=lambda c: c.m)
+    c = max(catalogue(9).clusters, key=lambda c: c.m)
     assert Cluster(c.coords.copy(), [(j, i) for i, j in c.contacts]).contacts[0] is c.contacts[0]
     ex = expand(c, P)
     own = {id(p) for p in c.contacts}
@@ -123,11 +140,10 @@ def _symmetric_clusters():
     import json
     from pathlib import Path
 
-    from packings.workers.explore import explore
     from packings.workers.identity import symmetries
 
     d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
-    nine = sorted(explore(9).clusters, key=lambda c: -len(symmetries(c, P.tol_d)))[:2]
+    nine = sorted(catalogue(9).clusters, key=lambda c: -len(symmetries(c, P.tol_d)))[:2]
     return [seed_cluster(6), Cluster.from_dict(d["n10_m25_first-order"])] + nine
 
 

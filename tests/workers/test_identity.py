@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pynauty
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from packings.workers import identity, kernels
@@ -24,140 +24,20 @@ from packings.workers.identity import (
     same_geometry,
     symmetries,
 )
-from packings.workers.params import DEFAULT
 from packings.workers.seeds import seed_cluster
-
-TOL_D = DEFAULT.tol_d
-H_TET = np.sqrt(2.0 / 3.0)  # height of a unit tetrahedron above a face
-
-SETTINGS = settings(derandomize=True, max_examples=25, deadline=None, database=None)
-
-
-# --------------------------------------------------------------------------- builders
-
-
-def glue(x: np.ndarray, face: tuple[int, int, int], side: float) -> np.ndarray:
-    """Centre of a sphere touching the three spheres of ``face`` (side = +-1)."""
-    a, b, c = x[list(face)]
-    normal = np.cross(b - a, c - a)
-    normal /= np.linalg.norm(normal)
-    return (a + b + c) / 3.0 + side * H_TET * normal
-
-
-def glue_away(x: np.ndarray, face: tuple[int, int, int], away: int) -> np.ndarray:
-    """The gluing position on the side of ``face`` away from sphere ``away``."""
-    p, q = glue(x, face, 1.0), glue(x, face, -1.0)
-    return p if np.linalg.norm(p - x[away]) > np.linalg.norm(q - x[away]) else q
-
-
-def tetrahedron_coords() -> np.ndarray:
-    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, np.sqrt(3.0) / 2.0, 0.0]])
-    return np.vstack([x, glue(x, (0, 1, 2), 1.0)])
-
-
-def tetrahedron() -> Cluster:
-    return Cluster.from_coords(tetrahedron_coords())
-
-
-def octahedron() -> Cluster:
-    e = np.eye(3) / np.sqrt(2.0)
-    return Cluster.from_coords(np.vstack([e, -e]))
-
-
-def bipyramid() -> Cluster:
-    x = tetrahedron_coords()
-    return Cluster.from_coords(np.vstack([x, glue_away(x, (0, 1, 2), 3)]))
-
-
-def polytetrahedron() -> Cluster:
-    """Three tetrahedra sharing the edge 0-1 (n = 6, 12 contacts)."""
-    x = tetrahedron_coords()
-    x = np.vstack([x, glue_away(x, (0, 1, 2), 3)])  # sphere 4
-    x = np.vstack([x, glue_away(x, (0, 1, 4), 2)])  # sphere 5
-    return Cluster.from_coords(x)
-
-
-def random_glued(n: int, seed: int) -> Cluster:
-    """Glue spheres onto random faces (triangles of touching spheres) of a
-    tetrahedron until there are n, rejecting overlaps and near-contacts."""
-    rng = np.random.default_rng(seed)
-    x = tetrahedron_coords()
-    while len(x) < n:
-        c = Cluster.from_coords(x)
-        adj = c.adjacency()
-        faces = [
-            (i, j, k)
-            for i in range(len(x))
-            for j in range(i + 1, len(x))
-            for k in range(j + 1, len(x))
-            if adj[i, j] and adj[i, k] and adj[j, k]
-        ]
-        face = faces[rng.integers(len(faces))]
-        p = glue(x, face, rng.choice([-1.0, 1.0]))
-        d = np.linalg.norm(x - p, axis=1)
-        if np.any(d < 1.0 - 1e-9) or np.any((d > 1.0 + 1e-9) & (d < 1.0 + 1e-3)):
-            continue
-        x = np.vstack([x, p])
-    return Cluster.from_coords(x)
-
-
-def chain(dihedral_deg: float, angle_deg: float = 120.0) -> Cluster:
-    """4-sphere chain 0-1-2-3 with unit bonds, bond angles ``angle_deg`` and
-    dihedral angle ``dihedral_deg``; contacts given explicitly."""
-    th, ph = np.radians(angle_deg), np.radians(dihedral_deg)
-    p0 = np.array([0.0, 0.0, 0.0])
-    p1 = np.array([1.0, 0.0, 0.0])
-    p2 = p1 + np.array([-np.cos(th), np.sin(th), 0.0])
-    bc = (p2 - p1) / np.linalg.norm(p2 - p1)
-    nrm = np.cross(p1 - p0, bc)
-    nrm /= np.linalg.norm(nrm)
-    m = np.cross(nrm, bc)
-    p3 = p2 + (-np.cos(th)) * bc + np.sin(th) * np.cos(ph) * m + np.sin(th) * np.sin(ph) * nrm
-    return Cluster(np.array([p0, p1, p2, p3]), ((0, 1), (1, 2), (2, 3)))
-
-
-CLUSTERS = {
-    "tetrahedron": tetrahedron(),
-    "bipyramid": bipyramid(),
-    "octahedron": octahedron(),
-    "polytetrahedron": polytetrahedron(),
-    "glued8": random_glued(8, 3),
-    "glued9": random_glued(9, 5),
-    "glued10": random_glued(10, 11),
-    "chain60": chain(60.0),
-}
-
-
-# --------------------------------------------------------------------------- transforms
-
-
-def random_orthogonal(rng: np.random.Generator, reflect: bool) -> np.ndarray:
-    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
-    q = q * np.sign(np.diag(r))
-    if (np.linalg.det(q) < 0) != reflect:
-        q[:, 0] = -q[:, 0]
-    return q
-
-
-def relabel(cluster: Cluster, perm: np.ndarray, coords: np.ndarray | None = None) -> Cluster:
-    """New sphere k is old sphere perm[k]; contacts mapped explicitly."""
-    inv = np.argsort(perm)
-    x = cluster.coords if coords is None else coords
-    return Cluster(x[perm], tuple((int(inv[i]), int(inv[j])) for i, j in cluster.contacts))
-
-
-def transformed(cluster: Cluster, seed: int, reflect: bool, noise: float = 0.0) -> Cluster:
-    """Rotated (improperly if ``reflect``), translated, relabelled, optionally noisy copy."""
-    rng = np.random.default_rng(seed)
-    q = random_orthogonal(rng, reflect)
-    t = rng.uniform(-5.0, 5.0, size=3)
-    x = cluster.coords @ q.T + t + rng.uniform(-noise, noise, size=cluster.coords.shape)
-    return relabel(cluster, rng.permutation(cluster.n), x)
-
-
-names = st.sampled_from(sorted(CLUSTERS))
-seeds = st.integers(0, 2**32 - 1)
-
+from tests.helpers import (
+    CHAIN_DIHEDRALS,
+    CLUSTERS,
+    SETTINGS,
+    TOL_D,
+    chain,
+    names,
+    random_glued,
+    random_orthogonal,
+    relabel,
+    seeds,
+    transformed,
+)
 
 # --------------------------------------------------------------------------- builders sanity
 
@@ -426,10 +306,6 @@ def test_cluster_index() -> None:
     assert len(idx) == 4
     assert idx[2] is CLUSTERS["octahedron"]
     assert [c.n for c in idx] == [4, 4, 6, 6]
-
-
-#: one contact graph (the 4-chain), five geometries: the 0-3 distance grows with the dihedral angle
-CHAIN_DIHEDRALS = (0.0, 45.0, 90.0, 135.0, 180.0)
 
 
 @SETTINGS

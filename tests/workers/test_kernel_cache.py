@@ -71,11 +71,14 @@ def test_a_cache_numba_cannot_make_cannot_be_told(tmp_path, monkeypatch):
 
 
 def test_the_installed_kernels_are_cached_once_a_process_has_warmed_them_up():
+    """Wherever numba keeps the installed kernels (beside the package, or under NUMBA_CACHE_DIR), a warm-up
+    leaves them there; only where numba cannot write where it looks first can this not be told."""
     from packings.workers.expand import warm_up
 
     warm_up()
-    if os.environ.get("NUMBA_CACHE_DIR") is None and os.access(kernel_cache.SOURCE.parent, os.W_OK):
-        assert kernels_cached() is True
+    if kernel_cache.cache_directory() is None:
+        pytest.skip("numba cannot write where it looks first for the installed kernels: kernels_cached cannot tell")
+    assert kernels_cached() is True
 
 
 def test_the_index_files_an_older_version_left_do_not_make_a_warm_cache_cold(tmp_path, monkeypatch):

@@ -24,7 +24,7 @@ from packings.workers.rigidity import (
     sdp_margin,
 )
 from packings.workers.seeds import seed_cluster
-from tests.workers.motions import congruent_copy
+from tests.helpers import congruent_copy
 
 P = Params()
 FIXTURES = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
