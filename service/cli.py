@@ -612,13 +612,16 @@ def _table_row(f: dict, columns: list[str]) -> list:
 
 
 def _columns(spec: str | None) -> list[str]:
-    """The columns of ``-c``: a comma list of facts, or ``+fact,...`` to add to the default ones."""
+    """The columns of ``-c``: a comma list of facts, or ``+fact,...`` to add to the default ones (the first
+    ``+`` adds every one of the list: ``+found_by,source_id`` as ``+found_by,+source_id``)."""
     if not spec:
         return list(_TABLE_COLUMNS)
     names = [s.strip() for s in spec.split(",") if s.strip()]
-    adding = all(s.startswith("+") for s in names)
+    adding = bool(names) and names[0].startswith("+")
     if not adding and any(s.startswith("+") for s in names):
-        raise click.UsageError("give either columns (-c id,n,lattice) or columns to add (-c +margin,+found_by)")
+        raise click.UsageError(
+            "give either columns (-c id,n,lattice) or columns to add, the list starting with + (-c +margin,found_by)"
+        )
     names = [s.lstrip("+") for s in names]
     unknown = [s for s in names if s not in _export.FACTS]
     if unknown:
@@ -644,7 +647,7 @@ def _columns(spec: str | None) -> list[str]:
     "--columns",
     default=None,
     metavar="COLS",
-    help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,... to add "
+    help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,COL,... to add "
     "to the default ones.",
 )
 @click.option("--sort", default=None, metavar="KEY", help="Sort by KEY (-KEY: descending); default n, contacts, id.")
