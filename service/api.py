@@ -309,11 +309,18 @@ class Catalogue:
 
 
 def _progress_bar(show: bool) -> Callable:
+    """The expansions' bar, drawn from the run's first progress on (when its work starts: not while the
+    cluster starts, whose lines would be written over it)."""
     from tqdm import tqdm
 
-    bar = tqdm(total=0, unit="exp", desc="expansions", file=sys.stderr, disable=not show, dynamic_ncols=True)
+    bars = []
 
     def update(p):
+        if not bars:
+            bars.append(
+                tqdm(total=0, unit="exp", desc="expansions", file=sys.stderr, disable=not show, dynamic_ncols=True)
+            )
+        bar = bars[0]
         bar.total = p.total
         bar.n = p.done
         bar.set_postfix_str(
@@ -322,7 +329,7 @@ def _progress_bar(show: bool) -> Callable:
         )
         bar.refresh()
 
-    update.close = bar.close  # type: ignore[attr-defined]
+    update.close = lambda: bars and bars[0].close()  # type: ignore[attr-defined]
     return update
 
 
@@ -395,7 +402,14 @@ def enumerate(
     from packings.service.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
     from packings.workers.params import Params
 
-    check_run(n, workers=workers, scheduler=scheduler, max_break=max_break, max_attempts=max_attempts)
+    check_run(
+        n,
+        workers=workers,
+        scheduler=scheduler,
+        max_break=max_break,
+        max_attempts=max_attempts,
+        dashboard_address=dashboard_address,
+    )
     compiling = False
     if scheduler is None:
         from packings.workers.kernel_cache import kernels_cached

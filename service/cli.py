@@ -19,7 +19,7 @@ import click
 from packings.service.api import pass_bar, resolve_url
 from packings.service.dask_cluster import DASHBOARD_ADDRESS
 from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
-from packings.service.validate import check_cluster_choice, check_n, int_range
+from packings.service.validate import check_cluster_choice, check_dashboard_address, check_n, int_range
 from packings.workers.params import Params
 
 # What this module imports when it is loaded is kept light (no SQLAlchemy, numpy or Dask): `packings
@@ -65,9 +65,23 @@ def configure_logging(verbose: int) -> None:
     ``-vv`` everything (the level also comes from ``$PACKINGS_LOG``)."""
     import logging
 
+    class BarHandler(logging.StreamHandler):
+        """Each record on a line of its own above the progress bars being drawn (tqdm.write), not
+        over them."""
+
+        def emit(self, record: logging.LogRecord) -> None:
+            if "tqdm" not in sys.modules:  # no bar can be drawn
+                return super().emit(record)
+            from tqdm import tqdm
+
+            try:
+                tqdm.write(self.format(record), file=self.stream)
+            except Exception:  # noqa: BLE001 - as logging's own handlers: reported, never raised
+                self.handleError(record)
+
     default = os.environ.get(LOG_ENV, "WARNING").upper()
     level = {0: getattr(logging, default, logging.WARNING), 1: logging.INFO}.get(verbose, logging.DEBUG)
-    handler = logging.StreamHandler(sys.stderr)
+    handler = BarHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s packings %(levelname)s: %(message)s", "%H:%M:%S"))
     logger = logging.getLogger("packings")
     logger.handlers[:] = [handler]
@@ -153,6 +167,7 @@ def enumerate_cmd(
     """
     from packings.service import api
 
+    check_dashboard_address(dashboard_address, option=True)
     try:
         result = api.enumerate(
             n,
@@ -293,6 +308,7 @@ def catalyse_cmd(
     With --close-packed M, there are no parents: the close-packed fragments of N spheres with at least
     M contacts are listed and decided (finds, at N = 11, the cluster no path reaches)."""
     check_n(n)
+    check_dashboard_address(dashboard_address, option=True)
     if close_packed is not None:
         if glued or k != 1 or n_workers is not None or scheduler is not None:
             raise click.UsageError(
@@ -596,13 +612,16 @@ def _table_row(f: dict, columns: list[str]) -> list:
 
 
 def _columns(spec: str | None) -> list[str]:
-    """The columns of ``-c``: a comma list of facts, or ``+fact,...`` to add to the default ones."""
+    """The columns of ``-c``: a comma list of facts, or ``+fact,...`` to add to the default ones (the first
+    ``+`` adds every one of the list: ``+found_by,source_id`` as ``+found_by,+source_id``)."""
     if not spec:
         return list(_TABLE_COLUMNS)
     names = [s.strip() for s in spec.split(",") if s.strip()]
-    adding = all(s.startswith("+") for s in names)
+    adding = bool(names) and names[0].startswith("+")
     if not adding and any(s.startswith("+") for s in names):
-        raise click.UsageError("give either columns (-c id,n,lattice) or columns to add (-c +margin,+found_by)")
+        raise click.UsageError(
+            "give either columns (-c id,n,lattice) or columns to add, the list starting with + (-c +margin,found_by)"
+        )
     names = [s.lstrip("+") for s in names]
     unknown = [s for s in names if s not in _export.FACTS]
     if unknown:
@@ -628,7 +647,7 @@ def _columns(spec: str | None) -> list[str]:
     "--columns",
     default=None,
     metavar="COLS",
-    help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,... to add "
+    help="The table's or CSV's columns, comma-separated (e.g. id,n,lattice,margin), or +COL,COL,... to add "
     "to the default ones.",
 )
 @click.option("--sort", default=None, metavar="KEY", help="Sort by KEY (-KEY: descending); default n, contacts, id.")

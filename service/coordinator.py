@@ -28,6 +28,7 @@ logged (logger ``packings.service.coordinator``).
 from __future__ import annotations
 
 import logging
+import queue
 import sys
 import threading
 import time
@@ -250,6 +251,82 @@ class _Watchdog(threading.Thread):
         self.stopped.set()
 
 
+class _Departures:
+    """The Dask workers that leave while the run goes on, as the scheduler reports them (its
+    ``remove-worker`` event on the topic ``all``, which any scheduler sends to the clients that
+    subscribe to it), with the run's tasks each held.
+
+    Dask runs a task lost with its worker again on another one (up to its allowed-failures) without a
+    word to the coordinator: a worker lost so would go unseen.  Each one lost (not retired) is logged
+    here in one line, and the expansions of the tasks it held are counted in their ``retries`` (as
+    expansions put back after a lost task are), which ``packings status`` and the dashboard show.
+    ``part_of(key)`` gives the expansions of the run's task ``key`` in flight (None for another's)."""
+
+    TOPIC = "all"
+
+    def __init__(self, client: Client, run_id: int, part_of: Callable[[str], list | None]):
+        self.client, self.run_id, self.part_of = client, run_id, part_of
+        self.reported: queue.SimpleQueue = queue.SimpleQueue()
+        self.counted: set[str] = set()  #: the tasks counted here (lost() does not count them again)
+        self.subscribe()
+
+    def subscribe(self) -> None:
+        """Ask the scheduler for its events (again, after it was reached again: a restarted one knows no
+        subscription)."""
+        self.client.subscribe_topic(self.TOPIC, self._event)
+
+    def _event(self, event) -> None:
+        """In the Client's event loop, before the result of a task run again elsewhere reaches the
+        coordinator (the scheduler sends the event first): which of the run's tasks the worker held."""
+        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else event
+        if not isinstance(msg, dict) or msg.get("action") != "remove-worker":
+            return
+        held = {}
+        for key in msg.get("processing-tasks") or ():
+            part = self.part_of(key)
+            if part is not None:
+                held[key] = part
+        expected = bool(msg.get("expected"))
+        if not expected:
+            self.counted.update(held)
+        self.reported.put((str(msg.get("worker", "?")), expected, list(held.values())))
+
+    def count(self, Session_) -> int:
+        """Count and log, in the coordinator's thread, the workers reported gone since the last call;
+        returns how many were lost."""
+        lost = 0
+        while True:
+            try:
+                worker, expected, parts = self.reported.get_nowait()
+            except queue.Empty:
+                return lost
+            ids = [eid for part in parts for eid, _ in part]
+            if expected:  # retired or closed by its operator: its tasks go elsewhere, no fault
+                log.info(
+                    "run %d: Dask worker %s left (retired); %d task(s) go to other workers",
+                    self.run_id,
+                    worker,
+                    len(parts),
+                )
+                continue
+            lost += 1
+            _try(lambda: store.count_retries(Session_, ids))
+            log.warning(
+                "run %d: Dask worker %s was lost with %d of the run's tasks (%d expansion(s)): "
+                "they run again on other workers (counted in retries)",
+                self.run_id,
+                worker,
+                len(parts),
+                len(ids),
+            )
+
+    def close(self) -> None:
+        try:
+            self.client.unsubscribe_topic(self.TOPIC)
+        except Exception:  # noqa: BLE001 - the Client or its scheduler is gone already
+            pass
+
+
 def cancel_reason(fut) -> str:
     """Why Dask cancelled ``fut``: :data:`CONNECTION_LOST` when its Client lost the scheduler, "unknown"
     if it does not say (the reason Dask records on the future's state)."""
@@ -300,6 +377,8 @@ def run_enumeration(
     start = time.perf_counter()
     ac = as_completed()
     flight: set = set()  #: the tasks in flight (the watchdog cancels them)
+    parts: dict[str, list] = {}  #: the expansions of each task in flight, by its key (read by ``departures``)
+    departures = _Departures(client, info.id, parts.get)
 
     threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
     shown = _Every(PROGRESS_SECONDS, lambda: on_progress(_progress(Reader, info.id)) if on_progress else None)
@@ -316,6 +395,7 @@ def run_enumeration(
             if client.status == "running":
                 try:
                     client.register_plugin(plugin)
+                    departures.subscribe()
                     break
                 except OSError:  # lost again as it was asked (CommClosedError is one)
                     pass
@@ -377,6 +457,7 @@ def run_enumeration(
                 priority=int(eid in isolate),
             )
             fut.expansions = part  # type: ignore[attr-defined]
+            parts[fut.key] = part
             ac.add(fut)
             flight.add(fut)
 
@@ -399,7 +480,10 @@ def run_enumeration(
                 "failed" if status == FAILED else "to be retried",
             )
             return
-        back = store.put_back(Session_, part, f"infrastructure fault, retried: {why}")
+        # a task whose worker was reported lost was counted then (_Departures): put back, not counted again
+        back = store.put_back(
+            Session_, part, f"infrastructure fault, retried: {why}", retry=fut.key not in departures.counted
+        )
         isolate.update(eid for eid, _ in part)
         log.warning(
             "run %d: a task of %d expansion(s) was lost (%s); %d put back, each to be retried alone",
@@ -421,6 +505,8 @@ def run_enumeration(
         while flight:
             for fut in ac:
                 flight.discard(fut)
+                parts.pop(fut.key, None)
+                departures.count(Session_)
                 failed = {}
                 if fut.status == "cancelled" and cancel_reason(fut) == CONNECTION_LOST:
                     # the Client lost the scheduler, which says nothing about the task: back, uncounted
@@ -461,10 +547,12 @@ def run_enumeration(
                 fill()
                 shown()
             fill(force=True)
+        departures.count(Session_)
         shown(force=True)
     except BaseException:
         beat.stop()
         watchdog.stop()
+        departures.close()
         # if the database cannot take this either, the next coordinator puts the leases back
         _try(lambda: store.abandon(Session_, info.id, owner, so_far()))
         e = sys.exc_info()[1]
@@ -474,6 +562,7 @@ def run_enumeration(
         raise
     beat.stop()
     watchdog.stop()
+    departures.close()
     seconds = time.perf_counter() - start
     status = store.finish_run(Session_, info.id, owner, so_far())
     log.info("run %d (n = %d): %s after %.1f s", info.id, n, status, seconds)

@@ -20,8 +20,9 @@ the run being driven (the one whose coordinator is alive, else the latest), its
 clusters by number of contacts and the paper's count of them where it gives one,
 its frontier (pending, leased, done, failed), the faults recovered, expansions per
 second over the last minute, an estimate of the time left (pending expansions over
-that rate: a lower bound, since the frontier grows while a run goes on), each
-worker's expansions, and the failed expansions with their errors.  The JSON is the same snapshot.
+that rate: a lower bound, since the frontier grows while a run goes on), the
+expansions of each worker still in the cluster (those gone, lost or retired, are named
+apart), and the failed expansions with their errors.  The JSON is the same snapshot.
 """
 
 from __future__ import annotations
@@ -48,9 +49,10 @@ PAGE = "/packings"
 class Watcher(threading.Thread):
     """Reads the database every POLL_SECONDS into :attr:`snapshot` (a dict; empty before the first read)."""
 
-    def __init__(self, url: str):
+    def __init__(self, url: str, scheduler=None):
         super().__init__(name="packings-dashboard", daemon=True)
         self.url = url
+        self.scheduler = scheduler  #: the scheduler serving the page: which workers are still there
         self.snapshot: dict = {}
         self.history: deque[tuple[float, int]] = deque()  # (monotonic time, expansions done)
         self.reads = 0
@@ -107,6 +109,11 @@ class Watcher(threading.Thread):
         with sessions(self._engine, readonly=True)() as s:
             data = read_run(s)
         if data.get("run") is not None:
+            live = live_workers(self.scheduler)
+            if live is not None:  # a worker that left (lost or retired) is no longer listed, but counted
+                data["workers_live"] = len(live)
+                data["workers_gone"] = sorted(w["worker"] for w in data["workers"] if w["worker"] not in live)
+                data["workers"] = [w for w in data["workers"] if w["worker"] in live]
             now = time.monotonic()
             if self.history and self.history[-1][1] > data["frontier"]["done"]:
                 self.history.clear()  # another run
@@ -121,12 +128,25 @@ class Watcher(threading.Thread):
         return data
 
 
+def live_workers(scheduler) -> set[str] | None:
+    """The addresses of ``scheduler``'s workers now (read from another thread than its event loop, which
+    may change them meanwhile: asked again then), None without a scheduler."""
+    if scheduler is None:
+        return None
+    for _ in range(10):
+        try:
+            return set(list(scheduler.workers))
+        except RuntimeError:  # changed while read
+            continue
+    return None
+
+
 def read_run(s) -> dict:
     """The snapshot of the run being driven (one session's reads)."""
     from sqlalchemy import func, select
 
     from packings.service import store
-    from packings.service.models import FAILED, ExpansionRow, Run
+    from packings.service.models import FAILED, PASS_GLUED, CatalysisPass, ExpansionRow, Run
     from packings.service.owners import coordinator_alive
     from packings.service.paper import paper_totals
     from packings.service.tasks import summary
@@ -159,6 +179,11 @@ def read_run(s) -> dict:
     ]
     by_contacts = store.run_counts(s, run.id)
     least = json.loads(run.params or "{}").get("min_contacts")
+    passes = s.execute(
+        select(func.count())
+        .select_from(CatalysisPass)
+        .where(CatalysisPass.run_id == run.id, CatalysisPass.kind == PASS_GLUED)
+    ).scalar_one()
     return {
         "run": run.id,
         "n": run.n,
@@ -169,6 +194,7 @@ def read_run(s) -> dict:
         "min_contacts": least,
         "paper": paper_totals([run.n], {run.n: least} if least else None).get(run.n),
         "frontier": frontier,
+        "glued_passes": int(passes),
         **store.faults(s, run.id),
         "workers": workers,
         "failed": failed,
@@ -180,12 +206,14 @@ _WATCHERS: dict[str, Watcher] = {}
 _CURRENT: list[Watcher] = []
 
 
-def watch(url: str) -> Watcher:
-    """Show the runs of the database at ``url`` on the page (one watching thread per database)."""
+def watch(url: str, scheduler=None) -> Watcher:
+    """Show the runs of the database at ``url`` on the page (one watching thread per database), with
+    only the workers still in ``scheduler``'s cluster listed."""
     w = _WATCHERS.get(url)
     if w is None or not w.is_alive():
-        w = _WATCHERS[url] = Watcher(url)
+        w = _WATCHERS[url] = Watcher(url, scheduler)
         w.start()
+    w.scheduler = scheduler or w.scheduler
     _CURRENT[:] = [w]
     return w
 
@@ -215,26 +243,49 @@ def _html(d: dict) -> str:
     found = f"{d['clusters']:,}"
     if d.get("paper") is not None:
         least = f" with at least {d['min_contacts']} contacts" if d.get("min_contacts") else ""
-        found += f" (the paper has {d['paper']:,}{least})"
+        found += f" (the paper has {d['paper']:,}{least}{_glued_note(d)})"
     rows = [
         ("run", f"{d['run']} (n = {d['n']}), {d['status']}"),
         ("clusters found", found),
         ("expansions", f"{fr['done']} done, {fr['pending']} pending, {fr['leased']} leased, {fr['failed']} failed"),
-        ("faults recovered", f"{d['retries']} retries, {d['isolated_failures']} isolated failures"),
+        (
+            "faults recovered",
+            f"{d['retries']} retries (expansions whose task was lost with a worker), "
+            f"{d['isolated_failures']} isolated failures",
+        ),
         ("expansions per second", d.get("rate", "—")),
         ("time left, at least", left + " (the frontier still grows)"),
         ("read at", d["at"]),
     ]
+    gone = d.get("workers_gone")
+    if gone is not None:
+        left = f"; gone (lost or retired): {', '.join(gone)}" if gone else ""
+        rows.insert(4, ("Dask workers", f"{d['workers_live']} in the cluster{left}"))
     if d.get("error"):
         rows.append(("database", d["error"]))
     cells = "".join(f"<tr><th style='text-align:left;padding-right:1em'>{k}</th><td>{v}</td></tr>" for k, v in rows)
     return f"<h2>packings: n = {d['n']}</h2><table>{cells}</table>"
 
 
+def _glued_note(d: dict) -> str:
+    """Why a full run has fewer clusters than the paper, where a glued catalysis pass is what adds the rest
+    (the paths alone miss a cluster at n = 11 and at n = 13): what is true of it at this moment."""
+    if d.get("min_contacts") or d["clusters"] >= d["paper"]:
+        return ""
+    passes = d.get("glued_passes", 0)
+    if passes:
+        return f"; {passes} glued pass{'es' if passes != 1 else ''} made" + (
+            f", {'its' if passes == 1 else 'their'} finds being expanded" if d["status"] == "running" else ""
+        )
+    if d["status"] == "running":
+        return "; the paths alone miss some: a glued pass follows them (unless --no-glued) and adds those"
+    return f"; the paths alone miss some: the glued pass after them (`packings enumerate {d['n']}`) adds those"
+
+
 def packings_doc(scheduler, extra, doc) -> None:
     """The Bokeh document of the page."""
     from bokeh.layouts import column, row
-    from bokeh.models import ColumnDataSource, DataTable, Div, TableColumn
+    from bokeh.models import ColumnDataSource, DataRange1d, DataTable, Div, TableColumn
     from bokeh.plotting import figure
 
     header = Div(text=_html(current()), width=700, styles={"padding-top": "40px"})  # below the navigation bar
@@ -248,8 +299,14 @@ def packings_doc(scheduler, extra, doc) -> None:
     fbars = figure(title="frontier", x_range=states, height=280, width=360, tools="", toolbar_location=None)
     fbars.vbar(x="state", top="expansions", source=frontier, width=0.8)
     rate = ColumnDataSource({"t": [], "rate": []})
-    line = figure(
-        title="expansions per second", height=220, width=820, x_axis_type="datetime", tools="", toolbar_location=None
+    line = figure(  # from zero: a steady rate's small swings are not drawn as a collapse
+        title="expansions per second",
+        height=220,
+        width=820,
+        x_axis_type="datetime",
+        y_range=DataRange1d(start=0),
+        tools="",
+        toolbar_location=None,
     )
     line.line(x="t", y="rate", source=rate)
     workers = ColumnDataSource({"worker": [], "done": [], "seconds": []})
@@ -312,6 +369,7 @@ def _json_handler():
 def serve_json(scheduler) -> None:
     """Add ``/packings.json`` to ``scheduler``'s web server."""
     scheduler.http_application.add_handlers(r".*", [(PAGE + r"\.json", _json_handler())])
+    scheduler.packings_page = True  # packings.service.plugin.serves_page
 
 
 def _register() -> None:
@@ -347,7 +405,7 @@ def dask_setup(scheduler) -> None:
     scheduler.add_plugin(TaskLeftovers())
     url = os.environ.get("PACKINGS_DB")
     if url:
-        watch(url)
+        watch(url, scheduler)
     else:
         log.warning("packings.service.dashboard: PACKINGS_DB is not set; the packings page shows nothing")
     serve_json(scheduler)

@@ -209,8 +209,12 @@ class dask_client:
 
         # Dask's own logs of a failed or lost task ("Compute Failed" with the whole error, "marked as
         # failed because workers died") would repeat what the coordinator logs in one line and keeps
-        # in the database: only Dask's critical messages are shown
-        for name in ("distributed", "bokeh", "tornado"):
+        # in the database: only Dask's critical messages are shown.  Dask gives some of its loggers levels of
+        # their own (distributed.client: warning, whose "Failed to reconnect to scheduler" came before the
+        # coordinator's one line when the scheduler was lost): those too
+        quiet = ("distributed", "bokeh", "tornado")
+        below = tuple(f"{name}." for name in quiet)
+        for name in [*quiet, *(k for k in list(logging.root.manager.loggerDict) if k.startswith(below))]:
             logging.getLogger(name).setLevel(logging.CRITICAL)
         if LOG_LENGTH_ENV not in os.environ:  # read as the Client, scheduler and their streams are made
             dask.config.set({"distributed.admin.low-level-log-length": LOG_LENGTH})
@@ -262,7 +266,7 @@ class dask_client:
                         raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
             packings.service.dashboard.serve_json(self.cluster.scheduler)
             if self.database:
-                packings.service.dashboard.watch(self.database)
+                packings.service.dashboard.watch(self.database, self.cluster.scheduler)
             self._client = Client(self.cluster)
         self._bound_leftovers()
 
@@ -345,9 +349,21 @@ class dask_client:
                 if wanted not in ("0", port):
                     print(f"packings: dashboard port {wanted} is taken; serving it on {port}", file=sys.stderr)
                 link = link.replace("/status", "/packings")
+            elif self._serves_page():
+                link = link.replace("/status", "/packings")
             print(f"dask: {where}; dashboard {link}", file=sys.stderr, flush=True)
             self._announced = True
         return self._client
+
+    def _serves_page(self) -> bool:
+        """Whether the existing scheduler serves the packings page (started with ``--preload
+        packings.service.dashboard``); False where it cannot say (packings not installed beside it)."""
+        from packings.service.plugin import serves_page
+
+        try:
+            return bool(self._client.run_on_scheduler(serves_page))
+        except Exception:  # noqa: BLE001 - Dask's own page is there in any case
+            return False
 
     def __exit__(self, *exc):
         if self._thread is not None:

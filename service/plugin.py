@@ -91,6 +91,13 @@ class TaskLeftovers(SchedulerPlugin):
         bound_key_cache()
 
 
+def serves_page(dask_scheduler) -> bool:
+    """Whether this scheduler serves the packings page (``client.run_on_scheduler(serves_page)``): one
+    started with ``--preload packings.service.dashboard``, or a local cluster's
+    (:func:`packings.service.dashboard.serve_json` marks it)."""
+    return bool(getattr(dask_scheduler, "packings_page", False))
+
+
 class LocalWorkerPlugin(WorkerPlugin):
     """Sets up each worker process of a local cluster (one that ``packings enumerate`` starts): they
     ignore SIGINT.  Ctrl-C in a terminal reaches the whole process group; the coordinator alone answers

@@ -30,7 +30,16 @@ from sqlalchemy import ColumnElement, Select, and_, case, false, func, not_, sel
 from sqlalchemy.orm import Session, aliased, with_expression
 
 from packings.service.errors import UsageError
-from packings.service.models import ClusterRow, ExpansionRow, Run, Transition
+from packings.service.models import (
+    FOUND_CATALYSIS,
+    FOUND_CLOSE_PACKED,
+    FOUND_PATH,
+    FOUND_SEED,
+    ClusterRow,
+    ExpansionRow,
+    Run,
+    Transition,
+)
 from packings.workers.classify import LATTICES
 from packings.workers.outcomes import CIRCULAR
 
@@ -57,6 +66,7 @@ class Key:
     where: Callable[[str, Any], ColumnElement] | None = None
     ops: tuple[str, ...] | None = None  #: the operators allowed (default: by type)
     nullable: bool = False  #: the value may be missing (NULL)
+    values: tuple[str, ...] | None = None  #: a string key's possible values (None: any)
 
     @property
     def allowed(self) -> tuple[str, ...]:
@@ -65,8 +75,8 @@ class Key:
         return EQUALITY if self.type in (bool, str) else OPERATORS
 
 
-def _column(name: str, type_: type, help: str, nullable: bool = False) -> Key:
-    return Key(type_, help, expr=lambda: getattr(ClusterRow, name), nullable=nullable)
+def _column(name: str, type_: type, help: str, nullable: bool = False, values: tuple[str, ...] | None = None) -> Key:
+    return Key(type_, help, expr=lambda: getattr(ClusterRow, name), nullable=nullable, values=values)
 
 
 def _excess() -> ColumnElement:
@@ -124,21 +134,36 @@ KEYS: dict[str, Key] = {
     "min_gap": _column("min_gap", float, "smallest gap between spheres not in contact", nullable=True),
     "margin": _column("margin", float, "smallest eigenvalue of the best stress combination", nullable=True),
     "certificate": _column("certificate", str, "contact graph key (hex)"),
-    "rigid_kind": _column("rigid_kind", str, "first-order or prestress"),
+    "rigid_kind": _column("rigid_kind", str, "first-order or prestress", values=("first-order", "prestress")),
     "rigid_method": _column(
-        "rigid_method", str, "test that decided: first-order, single-flex, single-stress, e_k, sdp"
+        "rigid_method",
+        str,
+        "test that decided: first-order, single-flex, single-stress, e_k, sdp",
+        values=("first-order", "single-flex", "single-stress", "e_k", "sdp"),
     ),
     "found_in_run": _column("found_in_run", int, "run that first stored it", nullable=True),
+    "found_by": _column(
+        "found_by",
+        str,
+        "how it was first found: seed, path, catalysis or close-packed",
+        values=(FOUND_SEED, FOUND_PATH, FOUND_CATALYSIS, FOUND_CLOSE_PACKED),
+    ),
+    "source_id": _column(
+        "source_id", int, "the cluster it was found from (a path's start, a catalysis parent)", nullable=True
+    ),
     "excess": Key(int, "contacts - (3n-6)", expr=_excess),
     "hypostatic": Key(bool, "excess < 0", expr=lambda: _excess() < 0),
     "isostatic": Key(bool, "excess = 0", expr=lambda: _excess() == 0),
     "hyperstatic": Key(bool, "excess > 0", expr=lambda: _excess() > 0),
-    "static": Key(str, "hypostatic, isostatic or hyperstatic", expr=_static),
+    "static": Key(
+        str, "hypostatic, isostatic or hyperstatic", expr=_static, values=("hypostatic", "isostatic", "hyperstatic")
+    ),
     "lattice": _column(
         "lattice",
         str,
         "close-packed lattice: fcc, hcp, both (two layers), random (stacking), 2d, or none",
         nullable=True,
+        values=(*LATTICES, "none"),
     ),
     "close_packed": Key(
         bool, "a fragment of a close-packed lattice (lattice is not none)", expr=_lattice_in(*LATTICES)
@@ -146,7 +171,7 @@ KEYS: dict[str, Key] = {
     "fcc": Key(bool, "a fragment of fcc (lattice fcc or both)", expr=_lattice_in("fcc", "both")),
     "hcp": Key(bool, "a fragment of hcp (lattice hcp or both)", expr=_lattice_in("hcp", "both")),
     "geometries": Key(int, "clusters with this contact graph (1: its adjacency has one geometry)", expr=_geometries),
-    "paths_out": Key(int, "paths followed from it, all runs", expr=_paths_out),
+    "paths_out": Key(int, "paths from it (followed, by symmetry or retraced), all runs", expr=_paths_out),
     "paths_in": Key(int, "paths from other clusters that reached it, all runs", expr=_paths_in),
     "circular": Key(int, "paths from it that came back to it", expr=_circular),
     "reached": Key(
@@ -189,6 +214,8 @@ def parse_value(key: str, text: str) -> Any:
     if type_ is str:
         if len(text) >= 2 and text[0] == text[-1] and text[0] in "'\"":
             text = text[1:-1]
+        if k.values is not None and text not in k.values:
+            raise SelectionError(f"bad value {text!r} for {key}: expected one of {', '.join(k.values)}")
         return text
     try:
         if type_ is bool:

@@ -446,11 +446,11 @@ def release(
         return e.status
 
 
-def put_back(Session_: sessionmaker, leases: list[tuple[int, str]], error: str) -> int:
+def put_back(Session_: sessionmaker, leases: list[tuple[int, str]], error: str, retry: bool = True) -> int:
     """A task was lost to an infrastructure fault (its worker died, the connection closed, the
     scheduler forgot it): its expansions still leased with these tokens go back to pending with
-    their attempt given back, counted in ``retries``; ``error`` is kept as the last error seen.
-    Returns how many."""
+    their attempt given back, counted in ``retries`` (unless ``retry`` is False: counted already, by
+    :func:`count_retries`); ``error`` is kept as the last error seen.  Returns how many."""
     if not leases:
         return 0
     with Session_.begin() as s:
@@ -458,10 +458,25 @@ def put_back(Session_: sessionmaker, leases: list[tuple[int, str]], error: str) 
             s.execute(
                 update(ExpansionRow)
                 .where(ExpansionRow.id == eid, ExpansionRow.status == LEASED, ExpansionRow.lease_token == token)
-                .values(**_back_to_pending(retry=True), error=error[-16000:])
+                .values(**_back_to_pending(retry=retry), error=error[-16000:])
             ).rowcount
             for eid, token in leases
         )
+
+
+def count_retries(Session_: sessionmaker, expansion_ids: list[int]) -> int:
+    """The task of these expansions was lost with its worker and Dask runs it again on another one
+    (the coordinator learns it from the scheduler, :class:`packings.service.coordinator._Departures`):
+    one more ``retries`` each, whatever their state now (the run again may have finished already).
+    Returns how many."""
+    if not expansion_ids:
+        return 0
+    with Session_.begin() as s:
+        return s.execute(
+            update(ExpansionRow)
+            .where(ExpansionRow.id.in_(sorted(set(expansion_ids))))
+            .values(retries=ExpansionRow.retries + 1)
+        ).rowcount
 
 
 def frontier(s: Session, run_id: int) -> dict[str, int]:

@@ -50,14 +50,40 @@ def check_cluster_choice(workers: int | None, scheduler: str | None, *, options:
         raise UsageError(f"give either {w} (a local cluster) or {s} (an existing one), not both")
 
 
+def check_dashboard_address(address: str, *, option: bool = False) -> None:
+    """Refuse a dashboard address that a local cluster could not serve on: it is ``HOST:PORT`` (or
+    ``:PORT``, every interface; ``[v6 address]:PORT``), PORT a number from 0 (any free port) to 65535 and
+    HOST one this machine can resolve (named as the command line's option with ``option``)."""
+    import socket
+
+    name = "--dashboard-address" if option else "dashboard_address"
+    host, sep, port = str(address).rpartition(":")
+    if not sep or not port.isdigit() or int(port) > 65535:
+        raise UsageError(f"{name} must be HOST:PORT with PORT from 0 to 65535, e.g. 127.0.0.1:8787 (got {address!r})")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if host:
+        try:
+            socket.getaddrinfo(host, int(port), type=socket.SOCK_STREAM)
+        except (OSError, UnicodeError):
+            raise UsageError(f"{name} {address!r}: no such host {host!r} on this machine") from None
+
+
 def check_run(
-    n: int, *, workers: int | None = None, scheduler: str | None = None, max_break=None, max_attempts=None
+    n: int,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    max_break=None,
+    max_attempts=None,
+    dashboard_address: str | None = None,
 ) -> None:
     """The checks of a run's parameters (:func:`packings.service.api.enumerate`)."""
     check_n(n)
     check_cluster_choice(workers, scheduler)
     for name, value in (("workers", workers), ("max_break", max_break), ("max_attempts", max_attempts)):
         check_range(name, value)
+    if dashboard_address is not None:
+        check_dashboard_address(dashboard_address)
 
 
 def int_range(name: str):

@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from collections.abc import Callable
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
@@ -275,6 +276,12 @@ def wait_for(
         if time.monotonic() > deadline:
             pytest.fail(f"not within {timeout} s: {what or predicate}")
         time.sleep(interval)
+
+
+def fetch(url: str, timeout: float = 10.0) -> tuple[int, str]:
+    """(status, body) of a GET of ``url`` (a dashboard page)."""
+    with urllib.request.urlopen(url, timeout=timeout) as r:
+        return r.status, r.read().decode()
 
 
 def free_port() -> int:

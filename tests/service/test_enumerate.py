@@ -73,6 +73,23 @@ def test_enumerate_prints_the_table_the_dashboard_and_progress(sqlite_url):
     assert "packings INFO: run 1 (n = 7): resumed" in r.stderr and "packings INFO: run 1 (n = 7): complete" in r.stderr
 
 
+def test_lines_written_during_a_run_are_not_written_over_the_bar(sqlite_url):
+    """The bar is drawn from the run's first progress on (not while the cluster starts, whose line came
+    after it on the same line), and what is logged while it is drawn ("complete after", with -v, before
+    the bar closes) is on a line of its own: each line of standard error, after its last carriage
+    return, is the bar or one message, never the bar followed by a message."""
+    import re
+
+    r = packings("-v", "enumerate", "8", "--db", sqlite_url, "--workers", "1", "--no-glued")
+    assert r.returncode == 0, r.stderr
+    shown = [line.rsplit("\r", 1)[-1] for line in r.stderr.split("\n")]
+    assert any(line.startswith("dask: local cluster") for line in shown), r.stderr
+    complete = [line for line in shown if "): complete after" in line]
+    assert len(complete) == 1 and re.match(r"\d\d:\d\d:\d\d packings INFO: run 1", complete[0]), r.stderr
+    assert "dask: local cluster" not in r.stderr.split("expansions:", 1)[1], r.stderr  # the bar starts after it
+    assert not re.search(r"exp/s[^\r\n]*\]\S", r.stderr), r.stderr  # nothing written right after a bar
+
+
 @pytest.fixture(scope="module")
 def reference10():
     """The serial in-memory enumeration of n = 10 (packings.workers.explore): one order of discovery."""

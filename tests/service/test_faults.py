@@ -576,18 +576,23 @@ def test_fresh_workers_replaces_the_local_worker_processes():
 
 class _DaskCluster:
     """`dask scheduler` and `dask worker` processes on one port, started again as an operator's
-    supervisor would (a Dask worker ends when it loses its scheduler)."""
+    supervisor would (a Dask worker ends when it loses its scheduler).  With ``page``, the database
+    whose runs the scheduler's packings page shows (``--preload packings.service.dashboard``), served
+    on :attr:`dashboard_port`."""
 
-    def __init__(self, workers: int = 2):
+    def __init__(self, workers: int = 2, page: str | None = None):
         import os
         import sys
 
         self.dask = os.path.join(os.path.dirname(sys.executable), "dask")
-        self.port, self.workers = free_port(), workers
+        self.port, self.workers, self.page = free_port(), workers, page
         self.address = f"tcp://127.0.0.1:{self.port}"
+        self.dashboard_port = free_port() if page else 0
         self.scheduler = self.worker = None
 
     def start(self) -> None:
+        import os
+
         self.scheduler = subprocess.Popen(
             [
                 self.dask,
@@ -597,10 +602,12 @@ class _DaskCluster:
                 "--port",
                 str(self.port),
                 "--dashboard-address",
-                "127.0.0.1:0",
+                f"127.0.0.1:{self.dashboard_port}",
+                *(["--preload", "packings.service.dashboard"] if self.page else []),
             ],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            env={**os.environ, "PACKINGS_DB": self.page} if self.page else None,
         )
         wait_until_listening(self.port)
         self.worker = subprocess.Popen(
@@ -608,6 +615,18 @@ class _DaskCluster:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )
+
+    def kill_worker(self) -> str:
+        """kill -9 one worker process (its nanny starts another, at a new address); its address."""
+        import os
+
+        from distributed import Client
+
+        with Client(self.address, timeout="30s") as client:
+            client.wait_for_workers(self.workers, timeout=60)
+            address, pid = sorted(client.run(os.getpid).items())[0]
+        os.kill(pid, signal.SIGKILL)
+        return address
 
     def kill_scheduler(self) -> None:
         self.scheduler.send_signal(signal.SIGKILL)
@@ -641,6 +660,55 @@ def _scheduler_lost_mid_run(cluster: _DaskCluster, url: str, back_after: float |
 
 
 @pytest.mark.slow
+def test_a_worker_lost_under_an_external_scheduler_is_logged_counted_and_shown(pg_url, reference10):
+    """kill -9 of one `dask worker` process during `enumerate --scheduler` on PostgreSQL: Dask runs its
+    tasks again on the other worker by itself (no KilledWorker reaches the coordinator), and yet the
+    loss is logged in one line without -v, counted in the retries that `packings status` shows, and on
+    the scheduler's packings page, whose workers table no longer lists the dead worker; the run
+    completes, exact."""
+    from packings.service.dashboard import _html
+    from tests.helpers import fetch
+
+    cluster = _DaskCluster(workers=2, page=pg_url)
+    try:
+        cluster.start()
+        assert cli("db", "upgrade", "--db", pg_url).returncode == 0
+        run = start("enumerate", "10", "--db", pg_url, "--scheduler", cluster.address, "--no-glued")
+        try:
+            wait_for(lambda: done_count(pg_url) >= 40, run)
+            victim = cluster.kill_worker()
+            out, err = run.communicate(timeout=900)
+        finally:
+            run.kill()
+        assert run.returncode == 0, err
+        assert "n = 10: 263 rigid clusters" in out
+        lost = [line for line in err.splitlines() if "was lost" in line]
+        assert len(lost) == 1 and f"Dask worker {victim} was lost with " in lost[0], err
+        assert " packings WARNING: " in lost[0] and "counted in retries" in lost[0]
+        # the scheduler serves the packings page (its preload): the link printed is the page's
+        assert f"; dashboard http://127.0.0.1:{cluster.dashboard_port}/packings\n" in err, err
+        assert_same_clusters(pg_url, 10, reference10)
+        status = _faults(pg_url)
+        assert status["retries"] > 0 and status["failed"] == 0 and status["leased"] == 0
+        table = cli("status", "--db", pg_url).stdout
+        assert "retries" in table.splitlines()[0] and str(status["retries"]) in table.splitlines()[1].split()
+        url = f"http://127.0.0.1:{cluster.dashboard_port}/packings.json"
+        deadline = time.monotonic() + 60
+        while True:  # the page reads the database every second or so
+            snap = json.loads(fetch(url)[1])
+            if snap.get("retries") == status["retries"] and snap.get("frontier", {}).get("done") == 263:
+                break
+            assert time.monotonic() < deadline, snap
+            time.sleep(0.5)
+        assert victim in snap["workers_gone"] and victim not in {w["worker"] for w in snap["workers"]}
+        assert snap["workers_live"] == 2  # the nanny's new worker
+        page = _html(snap)
+        assert f"{status['retries']} retries" in page and victim in page
+    finally:
+        cluster.stop()
+
+
+@pytest.mark.slow
 def test_the_scheduler_restarted_mid_run_the_coordinator_reconnects_and_completes(pg_url, reference10):
     """With --scheduler, the scheduler is killed mid-run and started again on its port 3 s later (with
     new workers, as a supervisor restarts them): the coordinator reaches it again, puts the lost tasks'
@@ -671,7 +739,8 @@ def test_a_scheduler_that_does_not_come_back_ends_the_run_in_one_line_resumably(
     try:
         code, out, err = _scheduler_lost_mid_run(cluster, pg_url, back_after=None)
         assert code == 1 and "Traceback" not in err, err
-        errors = [line for line in err.splitlines() if "error" in line]
+        # nothing but the faults logged and the one line (no Dask "distributed.client - ERROR" before it)
+        errors = [line for line in err.splitlines() if line.strip() and " packings WARNING: " not in line]
         assert len(errors) == 1 and errors[0].startswith(
             "packings: error: lost the Dask scheduler and could not reach it again in"
         ), err

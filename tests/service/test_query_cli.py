@@ -78,6 +78,10 @@ def test_select_table_limits_and_columns_as_ase_db(catalog, stored, monkeypatch)
     }
     out = ok("select", "n=7", "-c", "+margin,+found_by", "--db", catalog.url).splitlines()
     assert out[0].split() == TABLE_HEADER + ["margin", "found_by"]
+    # one + adds the whole list
+    out = ok("select", "n=7", "-c", "+found_by,source_id", "--db", catalog.url).splitlines()
+    assert out[0].split() == TABLE_HEADER + ["found_by", "source_id"]
+    one_line_error(run("select", "-c", "id,+margin", "--db", catalog.url), "columns to add")
     csv_out = ok("select", "n=7", "--csv", "-c", "id,n", "--db", catalog.url).splitlines()
     assert csv_out[0] == "id,n" and len(csv_out) == 1 + 5
     r = run_many(["select", "-c", "id,colour", "--db", catalog.url])[0]
@@ -92,6 +96,32 @@ def test_select_table_limits_and_columns_as_ase_db(catalog, stored, monkeypatch)
     assert len(table) == 1 + 7 + 1 and table[-1].startswith("7 of 18 clusters")
     as_json = CliRunner().invoke(packings.service.cli.cli, ["select", "--json", "--db", catalog.url]).output
     assert len(json.loads(as_json)) == 18
+
+
+def test_what_a_column_shows_can_be_selected(catalog, stored):
+    """found_by and source_id, shown by -c, are keys of a selection too."""
+    seeds = {i for i, (c, _) in stored.items() if c.found_by == "seed"}
+    out = ok("select", "found_by=seed", "-c", "id,found_by", "--db", catalog.url).splitlines()
+    assert {int(line.split()[0]) for line in out[1:-1]} == seeds and len(seeds) == 2
+    by_path = [i for i, (c, _) in stored.items() if c.n == 8 and c.found_by == "path"]
+    assert ok("select", "n=8,found_by=path", "--count", "--db", catalog.url).strip() == str(len(by_path))
+    assert ok("select", "n=8,found_by=catalysis", "--count", "--db", catalog.url).strip() == "0"
+    source = next(c.source_id for c, _ in stored.values() if c.source_id is not None)
+    expected = sum(c.source_id == source for c, _ in stored.values())
+    assert ok("select", f"source_id={source}", "--count", "--db", catalog.url).strip() == str(expected)
+
+
+def test_a_value_a_key_cannot_take_is_refused_with_the_values_it_can(catalog):
+    """select 'lattice=bcc' selected nothing, silently: a key with a fixed set of values names them."""
+    for selection, words in [
+        ("lattice=bcc", ["bad value 'bcc' for lattice", "fcc, hcp, both, random, 2d, none"]),
+        ("found_by=luck", ["expected one of seed, path, catalysis, close-packed"]),
+        ("static=wobbly", ["hypostatic, isostatic, hyperstatic"]),
+    ]:
+        r = run("select", selection, "--db", catalog.url)
+        one_line_error(r, *words)
+        assert r.returncode == 2
+    assert ok("select", "lattice=both", "--count", "--db", catalog.url).strip() != "0"
 
 
 def test_select_count(catalog):

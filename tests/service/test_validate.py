@@ -42,6 +42,7 @@ def test_the_command_lines_types_take_the_same_bounds(name):
         ({"max_break": 11}, "max_break must be between 1 and 10"),
         ({"max_attempts": 0}, "max_attempts must be between 1 and 100"),
         ({"workers": 2, "scheduler": "tcp://127.0.0.1:1"}, "not both"),
+        ({"dashboard_address": "nonsense"}, "dashboard_address must be HOST:PORT"),
     ],
 )
 def test_the_api_refuses_before_anything_starts(kwargs, words, tmp_path):
@@ -63,6 +64,10 @@ def test_n_out_of_range(n, words):
         (["enumerate", "7", "--max-break", "11"], "11 is not in the range 1<=x<=10"),
         (["enumerate", "3"], "n must be at least 4"),
         (["catalyse", "7", "--workers", "1", "--scheduler", "tcp://127.0.0.1:1"], "give either --workers"),
+        (["enumerate", "7", "--dashboard-address", "nonsense"], "--dashboard-address must be HOST:PORT"),
+        (["enumerate", "7", "--dashboard-address", "127.0.0.1:70000"], "PORT from 0 to 65535"),
+        (["enumerate", "7", "--dashboard-address", "no-such-host.invalid:8787"], "no such host"),
+        (["catalyse", "7", "--glued", "--dashboard-address", "8787"], "--dashboard-address must be HOST:PORT"),
     ],
 )
 def test_the_command_line_refuses_in_one_line_with_status_2(args, words, tmp_path):
@@ -77,3 +82,8 @@ def test_the_command_line_refuses_in_one_line_with_status_2(args, words, tmp_pat
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("packings: error: ") and words in lines[0], r.stderr
     assert not (tmp_path / "x.db").exists()
+
+
+@pytest.mark.parametrize("address", ["127.0.0.1:8787", ":0", "localhost:0", "[::1]:8787", "0.0.0.0:1"])
+def test_a_dashboard_address_a_local_cluster_can_serve_on_passes(address):
+    validate.check_dashboard_address(address)
