@@ -22,7 +22,7 @@ labelled copy of the cluster; its mirror image is another).  A distance that is 
 uniformly in [1, 1 + ε], any other in a window around its reference value wide enough that no sample
 in the basin comes near its edges (checked: ``edge``).  The cluster's basin holds 2 n! / s labelled
 copies (both mirror images of every relabelling, s the number of permutations that preserve every pair
-distance, counted here by brute force over the n! permutations); the integral of identical spheres
+distance, counted here by exhaustive search over the permutations); the integral of identical spheres
 divides by n!.  None of the rigidity matrix, the moment of inertia, the symmetry group of
 ``identity`` or the formula for z is used.
 """
@@ -83,11 +83,11 @@ def _trilaterate(pa, pb, pc, ra, rb, rc, side):
 
 
 def basin_volume(
-    cluster: Cluster, eps: float, samples: int, rng: np.random.Generator, window: float = 4.0, chunk: int = 200_000
+    cluster: Cluster, eps: float, samples: int, rng: np.random.Generator, window: float, chunk: int = 200_000
 ) -> dict:
     """Monte Carlo estimate of the volume (sphere 0 fixed) of the labelled copy of ``cluster``'s basin
     under a square well of width ``eps``: configurations near it, up to rotation, whose pairs within 1 + eps
-    are exactly its contacts.  Non-contact coordinates are drawn within ``window`` eps of their reference
+    are exactly its contacts.  Non-contact coordinates are drawn within ``window`` of their reference
     value.  Returns the estimate, its standard error, the acceptance and ``edge``: the largest
     |offset| / half-width of a non-contact coordinate over the accepted samples (near 1: window too small)."""
     order, anchors = placement(cluster)
@@ -102,8 +102,8 @@ def basin_volume(
         sides.append(np.sign(np.linalg.det(np.array([x[k] - x[a], x[k] - x[b], x[k] - x[c]]))))
     ref = np.array([np.linalg.norm(x[i] - x[j]) for i, j in coords])
     is_contact = np.array([bool(contact[i, j]) for i, j in coords])
-    lo = np.where(is_contact, 1.0, ref - window * eps)
-    hi = np.where(is_contact, 1.0 + eps, ref + window * eps)
+    lo = np.where(is_contact, 1.0, ref - window)
+    hi = np.where(is_contact, 1.0 + eps, ref + window)
     log_box = float(np.log(hi - lo).sum()) + math.log(8.0 * math.pi**2)
     iu, ju = np.triu_indices(n, 1)
     pair_contact = contact[iu, ju]
@@ -125,7 +125,9 @@ def basin_volume(
         for q, (k, (a, b, c)) in enumerate(zip(order[3:], anchors)):
             ra, rb, rc = r[:, 3 + 3 * q], r[:, 4 + 3 * q], r[:, 5 + 3 * q]
             p[:, k] = _trilaterate(p[:, a], p[:, b], p[:, c], ra, rb, rc, sides[q])
-            six_v = np.abs(np.linalg.det(np.stack([p[:, k] - p[:, a], p[:, k] - p[:, b], p[:, k] - p[:, c]], axis=1)))
+            with np.errstate(invalid="ignore"):  # NaN rows: spheres that do not meet, rejected below
+                tet = np.stack([p[:, k] - p[:, a], p[:, k] - p[:, b], p[:, k] - p[:, c]], axis=1)
+                six_v = np.abs(np.linalg.det(tet))
             weight = weight * ra * rb * rc / six_v
         d = np.linalg.norm(p[:, iu] - p[:, ju], axis=2)
         with np.errstate(invalid="ignore"):
@@ -136,7 +138,7 @@ def basin_volume(
         total2 += float((wk * wk).sum())
         accepted += int(ok.sum())
         if ok.any() and (~is_contact).any():
-            off = np.abs(r[ok][:, ~is_contact] - ref[~is_contact]) / (window * eps)
+            off = np.abs(r[ok][:, ~is_contact] - ref[~is_contact]) / window
             edge = max(edge, float(off.max()))
         done += size
     mean = total / samples
@@ -152,56 +154,77 @@ def basin_volume(
 
 def distance_symmetries(cluster: Cluster, tol: float = 1e-6) -> int:
     """The number of permutations of the spheres that preserve every pair distance (rotations and
-    reflections), by brute force over all n! permutations."""
+    reflections), by exhaustive search: sphere i is sent to each sphere whose distances to the images of
+    spheres 0, ..., i - 1 are theirs to sphere i, every branch followed to the end."""
     x = cluster.coords
     d = np.linalg.norm(x[:, None] - x[None, :], axis=2)
-    count = 0
-    for perm in itertools.permutations(range(cluster.n)):
-        p = np.array(perm)
-        count += bool(np.abs(d[np.ix_(p, p)] - d).max() <= tol)
-    return count
+    n = cluster.n
+
+    def extend(image: list[int]) -> int:
+        i = len(image)
+        if i == n:
+            return 1
+        return sum(
+            extend(image + [j])
+            for j in range(n)
+            if j not in image and all(abs(d[image[k], j] - d[k, i]) <= tol for k in range(i))
+        )
+
+    return extend([])
 
 
-def reduced_integral(cluster: Cluster, eps: float, samples: int, rng: np.random.Generator, window: float = 4.0):
-    """(Q / ε^m, its standard error, the sampler's report): Q the configuration integral of ``cluster``'s
-    basin for identical spheres per unit volume, (1/n!) (2 n!/s) times the labelled copy's volume."""
+def reduced_integral(
+    cluster: Cluster, eps: float, samples: int, rng: np.random.Generator, power: float = 0.0, flexes: int = 0
+):
+    """(Q / ε^(m + power), its standard error, the sampler's report): Q the configuration integral of
+    ``cluster``'s basin for identical spheres per unit volume, (1/n!) (2 n!/s) times the labelled copy's
+    volume.  ``power`` is the cluster's eps_power (0 for a regular cluster, a/2 - 1 for one with a flexes
+    and one self-stress).  The windows of the non-contact coordinates are 4 ε wide on each side, or
+    3 sqrt(ε) for a cluster with flexes (which it reaches to a distance of order sqrt(ε))."""
+    window = 3.0 * math.sqrt(eps) if flexes else 4.0 * eps
     est = basin_volume(cluster, eps, samples, rng, window)
-    copies = 2.0 / distance_symmetries(cluster)
-    scale = copies / eps**cluster.m
+    scale = 2.0 / distance_symmetries(cluster) / eps ** (cluster.m + power)
     return scale * est["volume"], scale * est["error"], est
 
 
-def table(sizes=(4, 5, 6, 7), epsilons=(0.1, 0.03, 0.01, 0.003, 0.001), samples=400_000, seed=0) -> list[dict]:
-    """The convergence table: for each rigid cluster of each n and each ε, Q/ε^m against 8π² n^{3/2} z."""
+def table(
+    sizes=(4, 5, 6, 7), epsilons=(0.1, 0.03, 0.01, 0.003, 0.001), samples=400_000, seed=0, singular=False
+) -> list[dict]:
+    """The convergence table: for each rigid cluster of each n and each ε, Q/ε^(m + p) against
+    8π² n^{3/2} z_sw (z for a regular cluster, p its eps_power); with ``singular`` n = 9's singular cluster too."""
     from packings.workers.explore import explore
-    from packings.workers.free_energy import free_energy, log_frame_constant
+    from packings.workers.free_energy import REGULAR, free_energy, log_frame_constant
 
     rng = np.random.default_rng(seed)
+    cases = [(n, index, c) for n in sizes for index, c in enumerate(explore(n).clusters)]
+    if singular:
+        cases += [(9, i, c) for i, c in enumerate(explore(9).clusters) if free_energy(c).kind != REGULAR]
     rows = []
-    for n in sizes:
-        for index, c in enumerate(explore(n).clusters):
-            fe = free_energy(c)
-            predicted = math.exp(log_frame_constant(n) + fe.log_z)
-            for eps in epsilons:
-                start = time.perf_counter()
-                q, err, est = reduced_integral(c, eps, samples, rng)
-                rows.append(
-                    {
-                        "n": n,
-                        "cluster": index,
-                        "m": c.m,
-                        "sigma": fe.sigma,
-                        "eps": eps,
-                        "mc": q,
-                        "mc_error": err,
-                        "formula": predicted,
-                        "ratio": q / predicted,
-                        "ratio_error": err / predicted,
-                        "acceptance": round(est["acceptance"], 4),
-                        "edge": round(est["edge"], 3),
-                        "seconds": round(time.perf_counter() - start, 2),
-                    }
-                )
+    for n, index, c in cases:
+        fe = free_energy(c)
+        predicted = math.exp(log_frame_constant(n)) * fe.square_well
+        for eps in epsilons:
+            start = time.perf_counter()
+            q, err, est = reduced_integral(c, eps, samples, rng, fe.eps_power, fe.flexes)
+            rows.append(
+                {
+                    "n": n,
+                    "cluster": index,
+                    "kind": fe.kind,
+                    "m": c.m,
+                    "sigma": fe.sigma,
+                    "power": fe.eps_power,
+                    "eps": eps,
+                    "mc": q,
+                    "mc_error": err,
+                    "formula": predicted,
+                    "ratio": q / predicted,
+                    "ratio_error": err / predicted,
+                    "acceptance": round(est["acceptance"], 4),
+                    "edge": round(est["edge"], 3),
+                    "seconds": round(time.perf_counter() - start, 2),
+                }
+            )
     return rows
 
 
@@ -212,20 +235,25 @@ def add_arguments(p) -> None:
     )
     p.add_argument("--samples", type=int, default=400_000, help="Monte Carlo samples per cluster and width")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--singular", action="store_true", help="add n = 9's singular cluster (Z ~ κ^m ε^(-1/2))")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
 
 
 def run(args) -> int:
-    rows = table(tuple(args.sizes), tuple(args.eps), args.samples, args.seed)
+    rows = table(tuple(args.sizes), tuple(args.eps), args.samples, args.seed, args.singular)
     if args.json:
         print(json.dumps({"rows": rows}, indent=2))
         return 0
-    print("Q/eps^m (Monte Carlo, square well of width eps) against 8 pi^2 n^(3/2) z (sticky-limit formula)")
-    head = f"{'n':>2} {'#':>2} {'m':>3} {'sigma':>5} {'eps':>7} {'MC':>12} {'+-':>10} {'formula':>12} {'ratio':>8} {'+-':>7}"
+    print("Q/eps^(m+p) (Monte Carlo, square well of width eps) against 8 pi^2 n^(3/2) z (sticky-limit formula)")
+    head = (
+        f"{'n':>2} {'#':>2} {'kind':>9} {'m':>3} {'sigma':>5} {'p':>4} {'eps':>7} {'MC':>12} {'+-':>10} "
+        f"{'formula':>12} {'ratio':>8} {'+-':>7}"
+    )
     print(head + f" {'accept':>7} {'edge':>5}")
     for r in rows:
         print(
-            f"{r['n']:>2} {r['cluster']:>2} {r['m']:>3} {r['sigma']:>5} {r['eps']:>7g} {r['mc']:>12.5g} "
+            f"{r['n']:>2} {r['cluster']:>2} {r['kind']:>9} {r['m']:>3} {r['sigma']:>5} {r['power']:>4g} {r['eps']:>7g} "
+            f"{r['mc']:>12.5g} "
             f"{r['mc_error']:>10.2g} {r['formula']:>12.5g} {r['ratio']:>8.4f} {r['ratio_error']:>7.4f} "
             f"{r['acceptance']:>7.4f} {r['edge']:>5.2f}"
         )

@@ -22,6 +22,7 @@ from packings.workers.free_energy import (
     equilibrium_shares,
     free_energy,
     log_frame_constant,
+    square_well_moment,
     symmetry_numbers,
 )
 from tests.workers.motions import congruent_copy
@@ -115,31 +116,43 @@ def fixture(name: str) -> Cluster:
     return Cluster.from_dict(json.loads((DATA / "clusters_n10.json").read_text())[name])
 
 
-def test_no_value_where_the_formula_does_not_apply(clusters):
-    """Singular (n = 9's one, and one of n = 10), hypostatic and hyperstatic clusters get no z but a reason,
-    and a share of the clusters of n that would leave them out is not given; a regular one of n = 10 gets z."""
+def test_no_z_where_the_formula_does_not_apply_but_the_square_well_term(clusters):
+    """Singular (n = 9's one, and one of n = 10), hypostatic and hyperstatic clusters get no z but a reason, and
+    a share of the clusters of n that would leave them out is not given; with one self-stress and a flexes
+    they get the leading term κ^m ε^(a/2 - 1) z_sw of a square well; a regular one gets z = z_sw, power 0."""
     singular = [fe for fe in map(free_energy, explore(9).clusters) if fe.kind != REGULAR]
     assert [fe.kind for fe in singular] == [SINGULAR]
     cases = [
-        (singular[0], SINGULAR),
-        (free_energy(fixture("n10_m24_prestress")), SINGULAR),
-        (free_energy(fixture("n10_m23_prestress")), HYPOSTATIC),
-        (free_energy(fixture("n10_m25_first-order")), HYPERSTATIC),
+        (singular[0], SINGULAR, 1, 1),
+        (free_energy(fixture("n10_m24_prestress")), SINGULAR, 1, 1),
+        (free_energy(fixture("n10_m23_prestress")), HYPOSTATIC, 2, 1),
+        (free_energy(fixture("n10_m25_first-order")), HYPERSTATIC, 0, 1),
     ]
-    for fe, kind in cases:
+    for fe, kind, a, b in cases:
         assert fe.kind == kind and fe.z is None and fe.log_z is None
         assert fe.reason.startswith(kind) and "Kallus & Holmes-Cerfon 2017" in fe.reason
+        assert (fe.flexes, fe.stresses) == (a, b) and fe.eps_power == a / 2 - 1 and fe.square_well > 0
         assert fe.sigma >= 1 and math.isfinite(fe.log_rotational)
     regular = free_energy(fixture("n10_m24_first-order"))
     assert regular.kind == REGULAR and regular.z > 0 and regular.reason is None
+    assert (regular.flexes, regular.stresses, regular.eps_power, regular.square_well) == (0, 0, 0.0, regular.z)
     assert equilibrium_shares([regular, cases[0][0]], [24, 24]) is None
+
+
+def test_the_square_well_moments_worked_by_hand():
+    """w = (1, -1)/sqrt 2: wᵀσ has the triangular density sqrt 2 (1 - sqrt 2 |h|) on |h| <= 1/sqrt 2, so its
+    density at 0 is sqrt 2, P(h > 0) = 1/2 and E[h_+^(-1/2)] = (4/3) 2^(1/4)."""
+    w = np.array([1.0, -1.0]) / math.sqrt(2.0)
+    assert square_well_moment(w, 0) == pytest.approx(math.sqrt(2.0), rel=1e-4)  # a kink at 0: first order in the step
+    assert square_well_moment(w, 1) == pytest.approx(4.0 / 3.0 * 2.0**0.25, rel=1e-6)
+    assert square_well_moment(w, 2) == pytest.approx(0.5, abs=1e-9)
 
 
 def test_the_formula_against_a_monte_carlo_integration_of_a_square_well(clusters):
     """The configuration integral of each basin of n = 4, 5, 6 under a square well of width ε = 1e-4, by a
     seeded Monte Carlo integration that uses none of the formulas (benchmarks/free_energy.py), divided by
     ε^m, is 8π² n^{3/2} z within its statistical error and the O(ε) of a finite well; its count of the
-    copies of each cluster (permutations preserving every distance, by brute force) is twice σ."""
+    copies of each cluster (permutations preserving every distance, by exhaustive search) is twice σ."""
     rng = np.random.default_rng(2026)
     eps = 1e-4
     for n in (4, 5, 6):
@@ -150,3 +163,17 @@ def test_the_formula_against_a_monte_carlo_integration_of_a_square_well(clusters
             assert est["edge"] < 0.9  # no sample in the basin near the edge of a sampling window
             predicted = math.exp(log_frame_constant(n) + fe.log_z)
             assert abs(q / predicted - 1.0) <= 4.0 * err / predicted + 3.0 * eps
+
+
+def test_the_square_well_terms_against_the_monte_carlo_integration():
+    """The same integration for n = 9's singular cluster (one flex: Q grows as ε^(m - 1/2), its non-contact
+    coordinates drawn within 3 sqrt(ε)) and a hyperstatic cluster of 10 with one extra contact (ε^(m - 1))."""
+    rng = np.random.default_rng(72)
+    eps = 1e-4
+    singular = next(c for c in explore(9).clusters if free_energy(c).kind == SINGULAR)
+    for cluster in (singular, fixture("n10_m25_first-order")):
+        fe = free_energy(cluster)
+        q, err, est = reduced_integral(cluster, eps, 40_000, rng, fe.eps_power, fe.flexes)
+        assert est["edge"] < 0.9
+        predicted = math.exp(log_frame_constant(cluster.n)) * fe.square_well
+        assert abs(q / predicted - 1.0) <= 4.0 * err / predicted + 10.0 * math.sqrt(eps)
