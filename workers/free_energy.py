@@ -211,7 +211,7 @@ def flexes_and_stresses(coords: np.ndarray, contacts, tol_n: float) -> tuple[np.
     return sv[:rank], flexes, u[:, rank:]
 
 
-def square_well_moment(w: np.ndarray, a: int, points: int = 1 << 16) -> float:
+def square_well_moment(w: np.ndarray, a: int, points: int = 1 << 15) -> float:
     """J_a of the module docstring for a unit vector w: E[(wᵀσ)_+^{a/2 - 1}] (a = 1), the density of wᵀσ
     at 0 (a = 0) or P(wᵀσ > 0) (a = 2), σ uniform in [0, 1]^m.
 
