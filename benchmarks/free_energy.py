@@ -18,7 +18,8 @@ anchors a, b, c,
     dx_1 ... dx_{n-1} = r_01² dr_01 dΩ · (r_02 r_12 / r_01) dr_02 dr_12 dφ · ∏_k r_ka r_kb r_kc / (6 V_k) dr_ka dr_kb dr_kc
 
 on each branch (the side of the plane a b c on which k lies: the reference configuration's side, one
-labelled copy of the cluster; its mirror image is another).  A distance that is a contact is drawn
+labelled copy of the cluster; its mirror image is another; where k is nearly in that plane, as a sphere
+in the plane of three it touches, both sides, drawn at random with weight 2).  A distance that is a contact is drawn
 uniformly in [1, 1 + ε], any other in a window around its reference value wide enough that no sample
 in the basin comes near its edges (checked: ``edge``).  The cluster's basin holds 2 n! / s labelled
 copies (both mirror images of every relabelling, s the number of permutations that preserve every pair
@@ -38,10 +39,16 @@ import numpy as np
 
 from packings.workers.cluster import Cluster
 
+#: a sphere whose tetrahedron with its anchors is flatter than this (|det|) may cross their plane within the
+#: basin (a sphere in the plane of three spheres it touches, as in hypostatic clusters): both branches are drawn
+FLAT = 0.1
+
 
 def placement(cluster: Cluster) -> tuple[list[int], list[tuple[int, int, int]]]:
     """An order of the spheres (a contact triangle first) and, for each sphere after the third, three
-    anchors placed before it: the triple with most contacts to it, then the largest tetrahedron."""
+    anchors placed before it.  Next comes a sphere that makes a tetrahedron that is not flat (:data:`FLAT`)
+    with some placed triple, if there is one, then the one with most contacts to the placed spheres; its
+    anchors are such a triple, then the one with most contacts to it, then the largest tetrahedron."""
     x = cluster.coords
     adj = cluster.adjacency()
     n = cluster.n
@@ -49,14 +56,20 @@ def placement(cluster: Cluster) -> tuple[list[int], list[tuple[int, int, int]]]:
     c = int(np.flatnonzero(adj[a] & adj[b])[0])
     order = [a, b, c]
     anchors = []
+
+    def volume(k, t):
+        return abs(np.linalg.det(np.array([x[k] - x[t[0]], x[k] - x[t[1]], x[k] - x[t[2]]])))
+
+    def solid(k):  # whether some triple of the placed spheres makes a tetrahedron with k that is not flat
+        return any(volume(k, t) > FLAT for t in itertools.combinations(order, 3))
+
     while len(order) < n:
-        k = max((s for s in range(n) if s not in order), key=lambda s: (adj[s, order].sum(), -s))
-
-        def key(t):
-            v = abs(np.linalg.det(np.array([x[k] - x[t[0]], x[k] - x[t[1]], x[k] - x[t[2]]])))
-            return (int(adj[k, list(t)].sum()), v)
-
-        anchors.append(max(itertools.combinations(order, 3), key=key))
+        k = max((s for s in range(n) if s not in order), key=lambda s: (solid(s), adj[s, order].sum(), -s))
+        triple = max(
+            itertools.combinations(order, 3),
+            key=lambda t: (volume(k, t) > FLAT, int(adj[k, list(t)].sum()), volume(k, t)),
+        )
+        anchors.append(triple)
         order.append(k)
     return order, anchors
 
@@ -96,10 +109,11 @@ def basin_volume(
     contact = cluster.adjacency()
     # the distance coordinates: (sphere, other) pairs in sampling order
     coords = [(order[1], order[0]), (order[2], order[0]), (order[2], order[1])]
-    sides = []
+    sides = []  # the reference's side of each sphere, 0 where it is flat: then a side at random, weight 2
     for k, (a, b, c) in zip(order[3:], anchors):
         coords += [(k, a), (k, b), (k, c)]
-        sides.append(np.sign(np.linalg.det(np.array([x[k] - x[a], x[k] - x[b], x[k] - x[c]]))))
+        det = np.linalg.det(np.array([x[k] - x[a], x[k] - x[b], x[k] - x[c]]))
+        sides.append(0.0 if abs(det) < FLAT else float(np.sign(det)))
     ref = np.array([np.linalg.norm(x[i] - x[j]) for i, j in coords])
     is_contact = np.array([bool(contact[i, j]) for i, j in coords])
     lo = np.where(is_contact, 1.0, ref - window)
@@ -124,11 +138,12 @@ def basin_volume(
         weight = r01 * r02 * r12
         for q, (k, (a, b, c)) in enumerate(zip(order[3:], anchors)):
             ra, rb, rc = r[:, 3 + 3 * q], r[:, 4 + 3 * q], r[:, 5 + 3 * q]
-            p[:, k] = _trilaterate(p[:, a], p[:, b], p[:, c], ra, rb, rc, sides[q])
+            side = np.full(size, sides[q]) if sides[q] else rng.choice([-1.0, 1.0], size)
+            p[:, k] = _trilaterate(p[:, a], p[:, b], p[:, c], ra, rb, rc, side)
             with np.errstate(invalid="ignore"):  # NaN rows: spheres that do not meet, rejected below
                 tet = np.stack([p[:, k] - p[:, a], p[:, k] - p[:, b], p[:, k] - p[:, c]], axis=1)
                 six_v = np.abs(np.linalg.det(tet))
-            weight = weight * ra * rb * rc / six_v
+            weight = weight * ra * rb * rc / six_v * (1.0 if sides[q] else 2.0)
         d = np.linalg.norm(p[:, iu] - p[:, ju], axis=2)
         with np.errstate(invalid="ignore"):
             ok = np.all(np.where(pair_contact, (d >= 1.0) & (d <= 1.0 + eps), d > 1.0 + eps), axis=1)
