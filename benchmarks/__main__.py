@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import classes, enumeration, memory, paths, retrace, screenshot, soak
+from benchmarks import classes, enumeration, free_energy, memory, paths, retrace, screenshot, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
@@ -20,6 +20,7 @@ SUBCOMMANDS = {
     "retrace": retrace,
     "soak": soak,
     "screenshot": screenshot,
+    "free_energy": free_energy,
 }
 
 

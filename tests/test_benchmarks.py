@@ -485,3 +485,13 @@ def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
         timeout=300,
     )
     assert r.returncode != 0 and "--glued needs --db" in r.stderr
+
+
+def test_the_free_energy_benchmark_tables_monte_carlo_against_the_formula():
+    """n = 5 at two widths of the well: one row per width, the Monte Carlo integral of the trigonal bipyramid's
+    basin within a few standard errors and a few ε of 8π² n^{3/2} z, and closer at the smaller width."""
+    rows = benchmark("free_energy", "--sizes", "5", "--eps", "0.01", "0.0001", "--samples", "20000")["rows"]
+    assert [(r["n"], r["m"], r["sigma"], r["eps"]) for r in rows] == [(5, 9, 6, 0.01), (5, 9, 6, 0.0001)]
+    for r in rows:
+        assert abs(r["ratio"] - 1.0) <= 4.0 * r["ratio_error"] + 3.0 * r["eps"] and r["edge"] < 0.9
+    assert abs(rows[1]["ratio"] - 1.0) < abs(rows[0]["ratio"] - 1.0)
