@@ -32,9 +32,8 @@ Manoharan, Science 327, 560 (2010)):
   are not counted σ times.
 * χ = 2 for a chiral cluster, 1 otherwise.  This package counts a cluster and its mirror image as
   one cluster (Holmes-Cerfon, SIAM Review 2016); the partition function of that one cluster holds
-  both enantiomers, each with weight 1/σ, as the papers count them as two states of equal weight.
-  With χ the ratios between the clusters of this package are the ratios of their equilibrium
-  probabilities.
+  both enantiomers, two states of weight 1/σ each.  With χ the ratios between the clusters of this
+  package are the ratios of their equilibrium probabilities; z / χ is the factor of one enantiomer.
 
 Normalisation.  Constants common to every cluster of n spheres are dropped: the translational volume
 V, the 8π² of the rotation group, the n^{3/2} of fixing the centre of mass and the n! of relabelling
@@ -115,10 +114,11 @@ HYPOSTATIC = "hypostatic"
 HYPERSTATIC = "hyperstatic"
 
 _REASONS = {
-    SINGULAR: "singular: first-order flexible, so Z is not κ^m z: it grows as κ^m ε^(a/2-1) with a coefficient "
-    "that depends on the shape of the potential (Kallus & Holmes-Cerfon 2017)",
+    SINGULAR: "singular: first-order flexible, so Z is not κ^m z: it goes as κ^m ε^(a/2-b) for a flexes and b "
+    "self-stresses, with a coefficient that depends on the shape of the potential (Kallus & Holmes-Cerfon 2017)",
     HYPOSTATIC: "hypostatic: fewer than 3n-6 contacts, rigid only at second order, so Z is not κ^m z: it goes as "
-    "κ^m ε^(a/2-1) with a coefficient that depends on the shape of the potential (Kallus & Holmes-Cerfon 2017)",
+    "κ^m ε^(a/2-b) for a flexes and b self-stresses, with a coefficient that depends on the shape of the potential "
+    "(Kallus & Holmes-Cerfon 2017)",
     HYPERSTATIC: "hyperstatic: more than 3n-6 contacts, so Z is not κ^m z: it grows as κ^m ε^(-b) for b self-stresses, "
     "with a coefficient that depends on the shape of the potential (Kallus & Holmes-Cerfon 2017)",
 }
