@@ -25,8 +25,7 @@ from packings.workers.free_energy import (
     square_well_moment,
     symmetry_numbers,
 )
-from tests.workers.motions import congruent_copy
-from tests.workers.test_identity import glue_away, tetrahedron, tetrahedron_coords
+from tests.helpers import congruent_copy, glue_away, tetrahedron, tetrahedron_coords
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 SETTINGS = settings(derandomize=True, max_examples=20, deadline=None, database=None)
