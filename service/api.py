@@ -466,7 +466,10 @@ def enumerate(
             raise UsageError(str(e)) from None
     url = resolve_url(url)
     if slurm is not None:
+        from packings.service.slurm import require_sbatch
+
         _refuse_sqlite_for_slurm(url)
+        require_sbatch()
     from packings.service.db import open_database, preflight
 
     # a bad URL, server or schema, or a run that another live coordinator holds, is reported before any

@@ -70,11 +70,11 @@ def slurm_cluster_class():
 
 
 def check_options(slurm: dict) -> dict:
-    """The options of a Slurm cluster, checked (a bad one is a :class:`UsageError`, before anything
-    starts): ``jobs`` (default 1), ``cores`` per job (default 1; as many worker processes, one thread
-    each), ``memory`` per job (default :data:`MEMORY_PER_CORE` GiB a core), ``queue`` (the partition;
-    default Slurm's), ``walltime`` (default dask-jobqueue's configuration, ``jobqueue.slurm.walltime``),
-    and any other keyword of ``SLURMCluster``, passed on as it is."""
+    """The options of a Slurm cluster, checked before anything starts (a bad one is a :class:`UsageError`):
+    ``jobs`` (default 1), ``cores`` per job (default 1; as many worker processes, one thread each),
+    ``memory`` per job (default :data:`MEMORY_PER_CORE` GiB a core), ``queue`` (the partition; default
+    Slurm's), ``walltime`` (default dask-jobqueue's configuration, ``jobqueue.slurm.walltime``), and any
+    other keyword of ``SLURMCluster``, passed on as it is."""
     if not isinstance(slurm, dict):
         raise UsageError(f"slurm must be a dict of SLURMCluster options (got {type(slurm).__name__})")
     slurm_cluster_class()  # installed, and imported in this thread
@@ -104,6 +104,12 @@ def check_options(slurm: dict) -> dict:
     return out
 
 
+def require_sbatch() -> None:
+    """:class:`SchedulerError` unless Slurm's commands are on the PATH."""
+    if shutil.which("sbatch") is None:
+        raise SchedulerError("--slurm needs Slurm's commands (sbatch, scancel) on this machine's PATH: none found")
+
+
 def _first_line(text: str) -> str:
     lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
     return lines[0] if lines else ""
@@ -116,8 +122,6 @@ def start_cluster(options: dict, dashboard_address: str, prologue=()):
     memory or walltime Slurm refuses is said here, in one line: :class:`SchedulerError`), and its jobs
     submitted."""
     SLURMCluster = slurm_cluster_class()
-    if shutil.which("sbatch") is None:
-        raise SchedulerError("--slurm needs Slurm's commands (sbatch, scancel) on this machine's PATH: none found")
     kwargs = {k: v for k, v in options.items() if k != "jobs"}
     kwargs["worker_extra_args"] = ["--preload", "packings.service.plugin", *kwargs.get("worker_extra_args", ())]
     kwargs.setdefault("job_name", JOB_NAME)

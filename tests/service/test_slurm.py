@@ -176,6 +176,17 @@ def test_the_python_api_checks_the_slurm_options_too(tmp_path):
     assert not (tmp_path / "packings.db").exists()
 
 
+def test_no_slurm_on_the_machine_is_one_line(pg_url, tmp_path):
+    """--slurm where sbatch is not on the PATH: one line, nothing started."""
+    env = {**os.environ, "PATH": str(Path(sys.executable).parent)}
+    r = cli("enumerate", "9", "--db", pg_url, "--slurm", "--quiet", cwd=tmp_path, env=env)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    [line] = r.stderr.strip().splitlines()
+    assert (
+        line == "packings: error: --slurm needs Slurm's commands (sbatch, scancel) on this machine's PATH: none found"
+    )
+
+
 def test_a_partition_slurm_does_not_have_is_one_line(slurm, pg_url, tmp_path):
     """Slurm is asked (sbatch --test-only) before any job is submitted."""
     r = cli("enumerate", "9", "--db", pg_url, "--slurm", "--queue", "no-such-partition", "--quiet", cwd=tmp_path)
