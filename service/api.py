@@ -371,7 +371,8 @@ def enumerate(
     url: str | None = None,
     *,
     workers: int | None = None,
-    scheduler: str | None = None,
+    scheduler=None,
+    slurm: dict | None = None,
     max_break: int | None = None,
     min_contacts: int | None = None,
     max_attempts: int = 3,
@@ -384,8 +385,10 @@ def enumerate(
     ``status`` ("complete" or "incomplete"), ``by_contacts``, ``total``, ``diagnostics``, ``seconds``,
     ``resumed``, ``errors`` (:class:`packings.service.coordinator.RunResult`).
 
-    The work runs on a new local Dask cluster of ``workers`` processes (default: one per core), or on
-    the existing one whose scheduler is at ``scheduler`` (e.g. ``"tcp://host:8786"``).  ``max_break``
+    The work runs on a new local Dask cluster of ``workers`` processes (default: one per core), on
+    workers in new Slurm batch jobs (``slurm``, below), or on an existing cluster: ``scheduler`` is its
+    scheduler's address (e.g. ``"tcp://host:8786"``) or a Dask cluster object of your own, which is used
+    as it is (neither scaled nor closed).  ``max_break``
     caps the number of contacts broken at once (default: none); ``min_contacts`` keeps only clusters
     with at least that many contacts.  ``progress`` shows a progress bar on standard error.  A local
     cluster serves its Dask dashboard, with the run's own page (``/packings``, :mod:`packings.service.dashboard`),
@@ -398,6 +401,27 @@ def enumerate(
     pass that ran to its end is recorded: the same call again makes none, unless clusters were stored
     since.  The paths alone miss a cluster at n = 11 and at n = 13; with the passes the catalogue is the
     paper's for every n <= 13 (docs/method.md).  ``glued=False`` follows the paths alone.
+
+    ``slurm`` (needs ``pip install 'packings[slurm]'``, Slurm's commands and a PostgreSQL ``url`` that
+    the batch jobs' nodes reach) runs the Dask scheduler in this process and the workers as Slurm
+    jobs (dask-jobqueue's ``SLURMCluster``): ``dict(jobs=2, cores=8, memory="16GB", queue="compute",
+    walltime="04:00:00")`` keeps two jobs of eight single-threaded worker processes each (defaults:
+    one job, one core, 2 GiB a core; :func:`packings.service.slurm.check_options`); any other keyword
+    of ``SLURMCluster`` (``account``, ``job_extra_directives``, ``log_directory``, ...) is passed on.  A
+    job that ends before the run does (``scancel``, its walltime) is replaced, and the expansions its
+    workers held are put back.  With a cluster of your own, give it the preload, so that each worker
+    loads the numerical code before it joins (the database reaches it either way)::
+
+        from dask_jobqueue import SLURMCluster
+        import packings
+
+        if __name__ == "__main__":
+            with SLURMCluster(cores=8, processes=8, memory="16GB", walltime="04:00:00",
+                              worker_extra_args=["--preload", "packings.service.plugin"]) as cluster:
+                cluster.scale(jobs=2)
+                packings.enumerate(12, "postgresql://user@db-host/packings", scheduler=cluster)
+
+    (Its lost jobs are not replaced: that is what ``slurm=`` adds.)
     """
     from packings.service.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
     from packings.workers.params import Params
@@ -406,19 +430,26 @@ def enumerate(
         n,
         workers=workers,
         scheduler=scheduler,
+        slurm=slurm is not None,
         max_break=max_break,
         max_attempts=max_attempts,
         dashboard_address=dashboard_address,
     )
+    if slurm is not None:
+        from packings.service.slurm import check_options
+
+        slurm = check_options(slurm)
+    local = scheduler is None and slurm is None
     compiling = False
-    if scheduler is None:
+    if local or slurm is not None:
         from packings.workers.kernel_cache import kernels_cached
 
-        compiling = kernels_cached() is False  # then the fork server compiles them as it starts
+        compiling = kernels_cached() is False  # then the fork server (or this process, for Slurm) compiles them
+    if local:
         start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
     # a local cluster that has had no worker for this long cannot start them again: stop, resumably
-    # (an existing cluster's workers may join later: wait for them)
-    workerless = None if scheduler else _seconds(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS)
+    # (an existing cluster's workers may join later, and Slurm's jobs may wait in its queue: wait for them)
+    workerless = _seconds(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS) if local else None
     reconnect = _seconds(RECONNECT_ENV, RECONNECT_SECONDS)
     params = Params(max_break=max_break, min_contacts=min_contacts)
     if min_contacts is not None:  # a run restricted so starts from a cluster with that many contacts
@@ -429,6 +460,11 @@ def enumerate(
         except ValueError as e:
             raise UsageError(str(e)) from None
     url = resolve_url(url)
+    if slurm is not None:
+        from packings.service.slurm import require_sbatch
+
+        _refuse_sqlite_for_slurm(url)
+        require_sbatch()
     from packings.service.db import open_database, preflight
 
     # a bad URL, server or schema, or a run that another live coordinator holds, is reported before any
@@ -441,6 +477,10 @@ def enumerate(
             file=sys.stderr,
             flush=True,
         )
+        if slurm is not None:  # here, once, into the cache the jobs load them from, rather than in every job
+            from packings.workers.kernel_cache import compile_apart
+
+            compile_apart()
     from packings.service.plugin import DatabasePlugin
 
     # a local cluster starts in the background, its workers warming up with the database plugin, while the
@@ -453,14 +493,15 @@ def enumerate(
         dashboard_address=dashboard_address,
         database=url,
         reconnect_seconds=reconnect,
+        slurm=slurm,
     ) as dask:
-        if scheduler:
+        if not local:
             dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
         engine = open_database(url, create=True)
         try:
             from packings.service.coordinator import run_enumeration
 
-            if scheduler and engine.dialect.name == "sqlite":
+            if scheduler is not None and engine.dialect.name == "sqlite":
                 print(
                     "packings: warning: SQLite with a scheduler works only if every worker sees this file "
                     f"({engine.url.database}); use PostgreSQL for many machines",
@@ -500,6 +541,19 @@ def enumerate(
             return result
         finally:
             engine.dispose()
+
+
+def _refuse_sqlite_for_slurm(url: str) -> None:
+    """Slurm's jobs run on other machines: they need a database server (:class:`UsageError` otherwise).
+    A SQLite file on a shared file system is no answer: SQLite's locks are not to be trusted over NFS
+    or Lustre, and many writers at once would corrupt it or stall."""
+    from packings.service.db import parse_url
+
+    if parse_url(url).get_backend_name() == "sqlite":
+        raise UsageError(
+            "--slurm needs a PostgreSQL database that the batch jobs reach (--db postgresql://user@host/db): "
+            "SQLite files cannot be shared safely between machines"
+        )
 
 
 def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool, before=None):

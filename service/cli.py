@@ -113,6 +113,27 @@ def cli(verbose: int) -> None:
     help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.",
 )
 @click.option(
+    "--slurm",
+    is_flag=True,
+    help="Run the workers as Slurm batch jobs (needs packings[slurm] and a PostgreSQL --db the jobs reach).",
+)
+@click.option("--jobs", type=int_range("jobs"), default=None, help="With --slurm: jobs kept running (default 1).")
+@click.option(
+    "--cores",
+    type=int_range("cores"),
+    default=None,
+    help="With --slurm: cores per job, one single-threaded worker process each (default 1).",
+)
+@click.option("--memory", default=None, metavar="SIZE", help="With --slurm: memory per job (default 2GiB a core).")
+@click.option("--queue", default=None, metavar="PARTITION", help="With --slurm: the partition (default Slurm's).")
+@click.option(
+    "--walltime",
+    default=None,
+    metavar="TIME",
+    help="With --slurm: each job's time limit, e.g. 04:00:00 (default dask-jobqueue's configuration, 30 min); "
+    "a job that reaches it is replaced.",
+)
+@click.option(
     "--max-break",
     type=int_range("max_break"),
     default=None,
@@ -150,6 +171,12 @@ def enumerate_cmd(
     db_url: str | None,
     n_workers: int | None,
     scheduler: str | None,
+    slurm: bool,
+    jobs: int | None,
+    cores: int | None,
+    memory: str | None,
+    queue: str | None,
+    walltime: str | None,
     max_break: int | None,
     min_contacts: int | None,
     max_attempts: int,
@@ -164,16 +191,23 @@ def enumerate_cmd(
     (an interrupted run goes on where it stopped; a complete one just prints).
     Glued catalysis passes follow the paths unless --no-glued is given (a pass
     that ran to its end is not made again; one over the clusters stored since is).
+    With --slurm the workers run as Slurm batch jobs (docs/cli.md).
     """
     from packings.service import api
 
     check_dashboard_address(dashboard_address, option=True)
+    given = {"jobs": jobs, "cores": cores, "memory": memory, "queue": queue, "walltime": walltime}
+    given = {k: v for k, v in given.items() if v is not None}
+    if given and not slurm:
+        raise click.UsageError(f"--{', --'.join(given)} only with --slurm")
+    check_cluster_choice(n_workers, scheduler, slurm=slurm, options=True)
     try:
         result = api.enumerate(
             n,
             db_url,
             workers=n_workers,
             scheduler=scheduler,
+            slurm=given if slurm else None,
             max_break=max_break,
             min_contacts=min_contacts,
             max_attempts=max_attempts,

@@ -206,10 +206,12 @@ def _try(f: Callable) -> None:
 
 
 class _Watchdog(threading.Thread):
-    """Watches the Dask workers every WATCH_SECONDS.  It calls ``revive()`` (a local cluster's: replace
-    the workers its nannies could not restart).  While there is no worker it logs a warning every
-    minute; after ``timeout`` seconds without one it sets :attr:`stalled` and cancels the tasks in
-    flight (``cancel()``), so that the coordinator stops, resumably, rather than wait for ever."""
+    """Watches the Dask workers every WATCH_SECONDS.  It logs a line for the workers that left since
+    (a killed process, a Slurm job cancelled or past its walltime, a machine lost) and calls
+    ``revive()`` (a local cluster's: replace the workers its nannies could not restart; Slurm's: replace
+    the jobs lost).  While there is no worker it logs a warning every minute; after ``timeout`` seconds
+    without one it sets :attr:`stalled` and cancels the tasks in flight (``cancel()``), so that the
+    coordinator stops, resumably, rather than wait for ever."""
 
     def __init__(
         self,
@@ -227,20 +229,41 @@ class _Watchdog(threading.Thread):
 
     def run(self) -> None:
         since = warned = None
+        seen: set[str] = set()  #: the workers there at the last look
+        ever = False  #: whether any worker has been seen
         while not self.stopped.wait(WATCH_SECONDS):
             try:
                 if self.revive is not None:
                     self.revive()
-                workers = len(self.client.nthreads())
+                present = set(self.client.nthreads())
             except Exception:  # noqa: BLE001 - the scheduler itself is away: Dask reconnects or fails the tasks
                 continue
+            left = seen - present
+            if left:
+                log.warning(
+                    "run %d: %d Dask worker(s) left (%s); %d remain",
+                    self.run_id,
+                    len(left),
+                    ", ".join(sorted(left)[:4]) + (", ..." if len(left) > 4 else ""),
+                    len(present),
+                )
+            seen = present
+            ever = ever or bool(present)
+            workers = len(present)
             now = time.monotonic()
             if workers:
                 since = warned = None
                 continue
             since = since or now
-            if warned is None or now - warned >= 60:
-                log.warning("run %d: no Dask worker for %.0f s", self.run_id, now - since)
+            # none has joined yet (Slurm's jobs may wait in its queue): said after a minute, not at once
+            first = warned is None and (ever or now - since >= 60)
+            if first or (warned is not None and now - warned >= 60):
+                log.warning(
+                    "run %d: no Dask worker for %.0f s%s",
+                    self.run_id,
+                    now - since,
+                    "" if ever else " (none has joined yet)",
+                )
                 warned = now
             if self.timeout is not None and now - since >= self.timeout:
                 self.stalled = True

@@ -1,6 +1,7 @@
 """The Dask side of ``packings enumerate``: the fork server that a local cluster's
-worker processes are forked from, and the connection to a local cluster or an
-existing scheduler, made in the background while the caller opens the database.
+worker processes are forked from, and the connection to a local cluster, to workers
+in Slurm batch jobs (:mod:`packings.service.slurm`) or to an existing cluster, made
+in the background while the caller opens the database.
 
 Loading this module is light (no Dask, SQLAlchemy or numpy until a function runs):
 the command line imports it before it starts the fork server.
@@ -165,27 +166,34 @@ log = logging.getLogger(__name__)
 
 
 class dask_client:
-    """A Client on a new LocalCluster, or on an existing scheduler; errors become one line.
+    """A Client on a new LocalCluster, on new Slurm jobs (``slurm``: the options of
+    :func:`packings.service.slurm.check_options`), or on an existing cluster (``scheduler``: its
+    scheduler's address, or a Dask cluster object of the caller's, e.g. a ``SLURMCluster``); errors
+    become one line.
 
     The connection is made in the background from ``__enter__`` on, so that the caller can do its own
     work meanwhile (a local cluster takes a second or two: its scheduler and dashboard start, its worker
     processes are forked from the fork server (:func:`start_fork_server`) once that has loaded what they
-    need, and run ``plugins``' setup before it is up); :attr:`client` waits for it.
+    need, and run ``plugins``' setup before it is up; Slurm's jobs join whenever Slurm starts them, and
+    get the plugins the coordinator registers then); :attr:`client` waits for it.
     """
 
     def __init__(
         self,
-        scheduler: str | None,
+        scheduler,
         n_workers: int | None,
         quiet: bool,
         plugins=(),
         dashboard_address: str = DASHBOARD_ADDRESS,
         database: str | None = None,
         reconnect_seconds: float = RECONNECT_SECONDS,
+        slurm: dict | None = None,
     ):
         self.scheduler, self.n_workers, self.quiet, self.plugins = scheduler, n_workers, quiet, tuple(plugins)
         self.dashboard_address, self.database = dashboard_address, database
         self.reconnect_seconds = reconnect_seconds
+        self.slurm = slurm
+        self._keeper = None  #: a Slurm cluster's :class:`packings.service.slurm.JobKeeper`
         self.cluster = self._client = self._error = self._thread = None
         self._announced = False
         self._dead_since: dict = {}  #: local worker slot -> when its process was first seen dead
@@ -218,7 +226,23 @@ class dask_client:
             logging.getLogger(name).setLevel(logging.CRITICAL)
         if LOG_LENGTH_ENV not in os.environ:  # read as the Client, scheduler and their streams are made
             dask.config.set({"distributed.admin.low-level-log-length": LOG_LENGTH})
-        if self.scheduler:
+        if self.scheduler is not None and not isinstance(self.scheduler, str):  # the caller's cluster, as it is
+            self._client = Client(self.scheduler)
+        elif self.slurm is not None:
+            import packings.service.dashboard
+            from packings.service.slurm import JobKeeper, start_cluster
+
+            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+            # as a local cluster's workers, no statistical profiler unless asked (the variable, set, reaches the
+            # jobs: sbatch passes this process's environment on)
+            quiet_profile = [] if PROFILE_ENV in os.environ else [f"export {PROFILE_ENV}=False"]
+            self.cluster = start_cluster(self.slurm, self.dashboard_address, prologue=quiet_profile)
+            self._keeper = JobKeeper(self.cluster, self.slurm["jobs"])
+            packings.service.dashboard.serve_json(self.cluster.scheduler)
+            if self.database:
+                packings.service.dashboard.watch(self.database)
+            self._client = Client(self.cluster)
+        elif self.scheduler:
             try:
                 self._client = Client(self.scheduler, timeout="10s")
             except (OSError, TimeoutError, ValueError) as e:
@@ -289,8 +313,11 @@ class dask_client:
     def revive_workers(self) -> int:
         """Replace the local cluster's workers whose nanny gave up (a worker process killed while it
         was starting again leaves its nanny without one, for good): each slot without a live process
-        for :data:`REVIVE_SECONDS` gets a new nanny and worker.  Returns how many were replaced (0 for
-        an existing cluster, whose workers are its operator's)."""
+        for :data:`REVIVE_SECONDS` gets a new nanny and worker; or the Slurm jobs that were lost
+        (:class:`packings.service.slurm.JobKeeper`).  Returns how many were replaced (0 for an existing
+        cluster, whose workers are its operator's)."""
+        if self._keeper is not None:
+            return self._keeper()
         if self.cluster is None:
             return 0
         now = time.monotonic()
@@ -341,7 +368,13 @@ class dask_client:
         if self._error is not None:
             raise self._error
         if not (self.quiet or self._announced):
-            where = self.scheduler or f"local cluster, {len(self._client.nthreads())} worker processes"
+            if self.slurm is not None:
+                jobs, cores = self.slurm["jobs"], self.slurm["cores"]
+                where = f"{jobs} Slurm job(s) of {cores} worker process(es) each, joining as Slurm starts them"
+            elif self.scheduler is not None and not isinstance(self.scheduler, str):
+                where = f"{type(self.scheduler).__name__} at {getattr(self.scheduler, 'scheduler_address', '?')}"
+            else:
+                where = self.scheduler or f"local cluster, {len(self._client.nthreads())} worker processes"
             link = self._client.dashboard_link
             if self.cluster is not None:
                 wanted = self.dashboard_address.rsplit(":", 1)[-1]

@@ -37,6 +37,14 @@ def prepare_process() -> float:
     return seconds
 
 
+def dask_setup(worker) -> None:
+    """``dask worker --preload packings.service.plugin``: each worker process imports the tasks' modules
+    and warms the compiled kernels up (:func:`prepare_process`) before it joins its scheduler, rather than
+    as the database plugin reaches it.  A nanny imports the module to read its options, and loads nothing
+    more: only the worker processes run this.  Slurm's worker jobs start so (:mod:`packings.service.slurm`)."""
+    prepare_process()
+
+
 #: how many task keys Dask's ``key_split`` may remember in a process before its cache is emptied
 KEY_CACHE_LIMIT = 1_000
 

@@ -19,6 +19,8 @@ RANGES: dict[str, tuple[int, int | None]] = {
     "max_attempts": (1, 100),  # tries per expansion before it is marked failed
     "spheres": (1, 10),  # spheres deleted from each parent by catalysis
     "close_packed": (0, None),  # least contacts of a close-packed fragment
+    "jobs": (1, 512),  # Slurm jobs kept running
+    "cores": (1, 1024),  # cores of one Slurm job (a worker process each)
 }
 
 
@@ -42,11 +44,15 @@ def check_range(name: str, value: int | None) -> None:
         raise UsageError(f"{name} must be {bounds} (got {value!r})")
 
 
-def check_cluster_choice(workers: int | None, scheduler: str | None, *, options: bool = False) -> None:
-    """Refuse both a local cluster's ``workers`` and an existing ``scheduler`` (named as the command
-    line's options with ``options``)."""
+def check_cluster_choice(
+    workers: int | None, scheduler: str | None, *, slurm: bool = False, options: bool = False
+) -> None:
+    """Refuse more than one of a local cluster's ``workers``, an existing ``scheduler`` and Slurm's
+    jobs (named as the command line's options with ``options``)."""
+    w, s, j = ("--workers", "--scheduler", "--slurm") if options else ("workers", "scheduler", "slurm")
+    if slurm and (workers is not None or scheduler is not None):
+        raise UsageError(f"{j} starts its own workers: not with {w} or {s}")
     if workers is not None and scheduler is not None:
-        w, s = ("--workers", "--scheduler") if options else ("workers", "scheduler")
         raise UsageError(f"give either {w} (a local cluster) or {s} (an existing one), not both")
 
 
@@ -72,14 +78,16 @@ def check_run(
     n: int,
     *,
     workers: int | None = None,
-    scheduler: str | None = None,
+    scheduler=None,
+    slurm: bool = False,
     max_break=None,
     max_attempts=None,
     dashboard_address: str | None = None,
 ) -> None:
-    """The checks of a run's parameters (:func:`packings.service.api.enumerate`)."""
+    """The checks of a run's parameters (:func:`packings.service.api.enumerate`); ``scheduler`` may be an
+    address or a Dask cluster object, ``slurm`` says whether Slurm's jobs were asked for."""
     check_n(n)
-    check_cluster_choice(workers, scheduler)
+    check_cluster_choice(workers, scheduler, slurm=slurm)
     for name, value in (("workers", workers), ("max_break", max_break), ("max_attempts", max_attempts)):
         check_range(name, value)
     if dashboard_address is not None:

@@ -1,0 +1,357 @@
+"""``packings enumerate N --slurm``: the workers as Slurm batch jobs (dask-jobqueue's SLURMCluster), on a
+real single-node Slurm: munged, slurmctld and slurmd on this machine (tests/slurm/start-slurm.sh, which
+.ci/run runs; this module runs it itself where Slurm is installed but not started and it may).
+
+Without Slurm (or dask-jobqueue) the tests that need it skip, saying why; where the environment variable
+CI is set they fail instead.  The options' checks need neither.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select
+
+from packings.service.db import make_engine, sessions
+from packings.service.models import DONE, ExpansionRow
+from packings.service.slurm import JOB_NAME
+from tests.service.test_enumerate import done_count
+from tests.service.test_enumerate import packings as cli
+from tests.service.test_faults import SURFACE_KILLS
+
+START_SLURM = Path(__file__).resolve().parents[1] / "slurm" / "start-slurm.sh"
+DEADLINE = 900.0  #: seconds a run on Slurm may take before the test gives up (the kernels may compile first)
+
+
+def _controller_answers() -> bool:
+    r = subprocess.run(["scontrol", "ping"], capture_output=True, text=True, timeout=30)
+    return r.returncode == 0 and "UP" in r.stdout
+
+
+def _slurm_problem() -> str | None:
+    """None if this machine has a Slurm to submit to (started now if it can be), else why not."""
+    try:
+        import dask_jobqueue  # noqa: F401
+    except ImportError:
+        return "dask-jobqueue is not installed: pip install 'packings[slurm]'"
+    if shutil.which("sbatch") is None:
+        return "no Slurm here (sbatch not found): apt-get install slurm-wlm munge, then tests/slurm/start-slurm.sh"
+    if _controller_answers():
+        return None
+    if os.geteuid() == 0 and shutil.which("slurmctld"):
+        r = subprocess.run(["bash", str(START_SLURM)], capture_output=True, text=True, timeout=180)
+        if r.returncode == 0 and _controller_answers():
+            return None
+        return f"tests/slurm/start-slurm.sh could not start Slurm: {(r.stderr or r.stdout).strip()[-300:]}"
+    return "Slurm's controller does not answer (scontrol ping): run tests/slurm/start-slurm.sh as root"
+
+
+@pytest.fixture(scope="module")
+def slurm():
+    """A Slurm to submit to, with none of packings' worker jobs in it."""
+    problem = _slurm_problem()
+    if problem:
+        if os.environ.get("CI"):
+            pytest.fail(f"CI needs Slurm for these tests: {problem}")
+        pytest.skip(problem)
+    _wait(lambda: not _our_jobs(), "packings' worker jobs of an earlier run to leave Slurm", 120)
+
+
+def _wait(predicate, what: str, timeout: float, proc=None):
+    """Poll ``predicate`` until it holds (its value is returned), failing after ``timeout`` seconds or
+    if ``proc`` ends first."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = predicate()
+        if value:
+            return value
+        if proc is not None and proc.poll() is not None:
+            pytest.fail(f"the run ended while waiting for {what}: {proc.stderr.read()[-2000:]}")
+        assert time.monotonic() < deadline, f"no {what} after {timeout:.0f} s"
+        time.sleep(0.2)
+
+
+def _our_jobs() -> dict[str, str]:
+    """packings' worker jobs that Slurm holds: job id -> state (PENDING, RUNNING, COMPLETING, ...)."""
+    r = subprocess.run(["squeue", "-h", "-n", JOB_NAME, "-o", "%i %T"], capture_output=True, text=True, timeout=30)
+    assert r.returncode == 0, r.stderr
+    return dict(line.split() for line in r.stdout.splitlines() if line.strip())
+
+
+def _running() -> set[str]:
+    return {job for job, state in _our_jobs().items() if state == "RUNNING"}
+
+
+def _workers_of_jobs(folder: Path) -> dict[str, str]:
+    """Dask worker address -> the Slurm job it ran in, from the jobs' output (slurm-<job id>.out in the
+    folder they were submitted from), where each worker says where it started."""
+    out = {}
+    for log in folder.glob("slurm-*.out"):
+        job = log.stem.removeprefix("slurm-")
+        for address in re.findall(r"Start worker at:\s+(\S+)", log.read_text(errors="replace")):
+            out[address] = job
+    return out
+
+
+def _expansions_by_worker(url: str) -> dict[str, int]:
+    engine = make_engine(url)
+    try:
+        with sessions(engine)() as s:
+            rows = s.execute(select(ExpansionRow.worker).where(ExpansionRow.status == DONE)).scalars().all()
+    finally:
+        engine.dispose()
+    counts: dict[str, int] = {}
+    for w in rows:
+        counts[w] = counts.get(w, 0) + 1
+    return counts
+
+
+def _start(folder: Path, *args, env=None):
+    """``packings`` in ``folder`` (where Slurm writes its jobs' output), its output piped."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "packings.service.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=folder,
+        env={**os.environ, **(env or {})},
+    )
+
+
+def _assert_the_papers_n10(out: str, url: str, paper_counts) -> dict:
+    """The run's --json says complete, with the paper's clusters of 10 by number of contacts (263 in all),
+    and nothing is left failed or leased; returns the run's line of `packings status --json`."""
+    result = json.loads(out)
+    assert result["status"] == "complete" and result["total"] == 263
+    assert result["by_contacts"] == paper_counts["clusters_by_contacts"]["10"]
+    r = cli("status", "--json", "--db", url)
+    [run] = json.loads(r.stdout)
+    assert run["failed"] == 0 and run["leased"] == 0 and run["pending"] == 0
+    return run
+
+
+# --------------------------------------------------------------------------- the options, checked first
+
+
+@pytest.mark.parametrize(
+    "args, says",
+    [
+        (["--slurm", "--workers", "2"], "--slurm starts its own workers: not with --workers or --scheduler"),
+        (["--slurm", "--scheduler", "tcp://127.0.0.1:1"], "not with --workers or --scheduler"),
+        (["--jobs", "2", "--cores", "4"], "--jobs, --cores only with --slurm"),
+        (["--slurm", "--walltime", "soon"], "slurm walltime must be a Slurm time such as 02:00:00"),
+        (["--slurm", "--memory", "lots"], "slurm memory must be an amount such as 4GB"),
+        (["--slurm", "--jobs", "0"], "Invalid value for '--jobs'"),
+        (["--slurm"], "--slurm needs a PostgreSQL database that the batch jobs reach"),
+    ],
+)
+def test_bad_slurm_options_are_one_line_before_anything_starts(tmp_path, args, says):
+    db = tmp_path / "packings.db"
+    r = cli("enumerate", "9", "--db", f"sqlite:///{db}", *args)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    [line] = r.stderr.strip().splitlines()
+    assert line.startswith("packings: error: ") and says in line, line
+    assert not db.exists()  # no database made, and no job submitted (nothing got that far)
+
+
+def test_the_python_api_checks_the_slurm_options_too(tmp_path):
+    import packings
+    from packings.service.errors import UsageError
+
+    url = f"sqlite:///{tmp_path / 'packings.db'}"
+    with pytest.raises(UsageError, match="cores must be between 1 and 1024"):
+        packings.enumerate(9, url, slurm={"cores": 0})
+    with pytest.raises(UsageError, match="slurm processes is the number of cores"):
+        packings.enumerate(9, url, slurm={"cores": 4, "processes": 2})
+    with pytest.raises(UsageError, match="needs a PostgreSQL database"):
+        packings.enumerate(9, url, slurm={"jobs": 2})
+    assert not (tmp_path / "packings.db").exists()
+
+
+def test_no_slurm_on_the_machine_is_one_line(pg_url, tmp_path):
+    """--slurm where sbatch is not on the PATH: one line, nothing started."""
+    env = {**os.environ, "PATH": str(Path(sys.executable).parent)}
+    r = cli("enumerate", "9", "--db", pg_url, "--slurm", "--quiet", cwd=tmp_path, env=env)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    [line] = r.stderr.strip().splitlines()
+    assert (
+        line == "packings: error: --slurm needs Slurm's commands (sbatch, scancel) on this machine's PATH: none found"
+    )
+
+
+def test_a_partition_slurm_does_not_have_is_one_line(slurm, pg_url, tmp_path):
+    """Slurm is asked (sbatch --test-only) before any job is submitted."""
+    r = cli("enumerate", "9", "--db", pg_url, "--slurm", "--queue", "no-such-partition", "--quiet", cwd=tmp_path)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("packings: error: Slurm refuses the worker jobs: ") and "partition" in last, last
+    assert not _our_jobs()
+
+
+# --------------------------------------------------------------------------- runs on Slurm
+
+
+@pytest.mark.slow
+def test_enumerate_10_with_its_workers_as_slurm_jobs(slurm, pg_url, paper_counts, tmp_path):
+    """n = 10 with --slurm --jobs 2 --cores 1: two worker jobs run (squeue shows them), every expansion is
+    done by a worker of one of them, the run finds the 263 clusters, and its jobs leave Slurm with it."""
+    proc = _start(
+        tmp_path, "enumerate", "10", "--db", pg_url, "--slurm", "--jobs", "2", "--cores", "1", "--json", "--quiet"
+    )
+    seen: set[str] = set()
+    try:
+        deadline = time.monotonic() + DEADLINE
+        while proc.poll() is None and time.monotonic() < deadline:
+            seen |= _running()
+            time.sleep(0.2)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    _assert_the_papers_n10(out, pg_url, paper_counts)
+    assert len(seen) == 2
+    _wait(lambda: not _our_jobs(), "end of the run's jobs", 60)
+    jobs_of = _workers_of_jobs(tmp_path)
+    by_worker = _expansions_by_worker(pg_url)
+    assert sum(by_worker.values()) == 263
+    assert set(by_worker) <= set(jobs_of), "an expansion done outside the Slurm jobs"
+    assert {jobs_of[w] for w in by_worker} <= seen
+
+
+@pytest.mark.slow
+def test_a_cancelled_job_loses_nothing_and_is_replaced(slurm, pg_url, paper_counts, tmp_path):
+    """scancel one of the two worker jobs once some expansions are done: the tasks lost with it reach the
+    coordinator (allowed-failures 0), which puts their expansions back (retries); another job is submitted
+    in its place; once its worker has joined the other first job is cancelled too, so that the rest of
+    the run is the replacement's.  The run completes with the 263 clusters, nothing failed or left leased,
+    and the lost job and its worker are each said in one line."""
+    proc = _start(
+        tmp_path,
+        "enumerate",
+        "10",
+        "--db",
+        pg_url,
+        "--slurm",
+        "--jobs",
+        "2",
+        "--cores",
+        "1",
+        "--json",
+        "--quiet",
+        env=SURFACE_KILLS,
+    )
+    try:
+        first = _wait(lambda: len(_running()) == 2 and _running(), "two running jobs", DEADLINE, proc)
+        _wait(lambda: done_count(pg_url) >= 20, "20 expansions done", DEADLINE, proc)
+        victim, other = sorted(first)
+        subprocess.run(["scancel", victim], check=True)
+        replacement = _wait(lambda: set(_running()) - first, "replacement job", 120, proc).pop()
+        _wait(lambda: replacement in set(_workers_of_jobs(tmp_path).values()), "replacement's worker", 120, proc)
+        done_before = done_count(pg_url)
+        subprocess.run(["scancel", other], check=True)
+        out, err = proc.communicate(timeout=DEADLINE)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    run = _assert_the_papers_n10(out, pg_url, paper_counts)
+    assert run["retries"] > 0 and done_before < 263
+    assert re.search(rf"Slurm job {victim} \(\S+\) has lost its workers: submitting another in its place", err), err
+    assert re.search(r"run \d+: 1 Dask worker\(s\) left \(tcp://", err), err
+    jobs_of = _workers_of_jobs(tmp_path)
+    by_job: dict[str, int] = {}
+    for worker, k in _expansions_by_worker(pg_url).items():
+        by_job[jobs_of[worker]] = by_job.get(jobs_of[worker], 0) + k
+    assert by_job.get(replacement, 0) > 0, by_job  # a late joiner got the database plugin and did work
+    _wait(lambda: not _our_jobs(), "end of the run's jobs", 60)
+
+
+def _state(job: str) -> str:
+    """The state Slurm gives ``job`` (RUNNING, TIMEOUT, ...; "" once it has forgotten it)."""
+    r = subprocess.run(["squeue", "-h", "-t", "all", "-j", job, "-o", "%T"], capture_output=True, text=True, timeout=30)
+    return r.stdout.strip()
+
+
+@pytest.mark.slow
+def test_a_job_past_its_walltime_is_replaced(slurm, pg_url, paper_counts, tmp_path):
+    """n = 9 on one job of two cores (two worker processes) with a walltime of one minute.  Once its
+    workers have done a few expansions the run is held (the expansions table locked) until Slurm has
+    ended the job at its walltime (TIMEOUT), so that the limit falls mid-run however fast the machine:
+    another job is submitted in its place, and the run completes in it with the paper's 52 clusters,
+    nothing failed."""
+    from sqlalchemy import text
+
+    proc = _start(
+        tmp_path,
+        "enumerate",
+        "9",
+        "--db",
+        pg_url,
+        "--slurm",
+        "--jobs",
+        "1",
+        "--cores",
+        "2",
+        "--walltime",
+        "1",
+        "--json",
+        "--quiet",
+    )
+    engine = make_engine(pg_url)
+    try:
+        [first] = _wait(_running, "a running job", DEADLINE, proc)
+        _wait(lambda: done_count(pg_url) >= 3, "3 expansions done", DEADLINE, proc)
+        with engine.connect() as conn:  # a transaction, holding the lock until it is rolled back
+            conn.execute(text("LOCK TABLE expansions IN ACCESS EXCLUSIVE MODE"))
+            held = conn.execute(text("SELECT count(*) FROM expansions WHERE status = 'done'")).scalar()
+            _wait(lambda: _state(first) == "TIMEOUT", "end of the first job at its walltime", 180, proc)
+            replacement = _wait(lambda: _running() - {first}, "replacement job", 120, proc).pop()
+            conn.rollback()
+        out, err = proc.communicate(timeout=DEADLINE)
+    finally:
+        proc.kill()
+        engine.dispose()
+    assert proc.returncode == 0, err
+    result = json.loads(out)
+    assert result["status"] == "complete" and result["total"] == 52 and held < 52
+    assert result["by_contacts"] == paper_counts["clusters_by_contacts"]["9"]
+    [run] = json.loads(cli("status", "--json", "--db", pg_url).stdout)
+    assert run["failed"] == 0 and run["leased"] == 0 and run["pending"] == 0
+    assert re.search(rf"Slurm job {first} \(\S+\) has lost its workers: submitting another in its place", err), err
+    jobs_of = _workers_of_jobs(tmp_path)
+    assert any(jobs_of[w] == replacement for w in _expansions_by_worker(pg_url)), "the replacement did nothing"
+    _wait(lambda: not _our_jobs(), "end of the run's jobs", 60)
+
+
+@pytest.mark.slow
+def test_the_recipe_with_a_slurm_cluster_of_ones_own(slurm, pg_url, paper_counts, tmp_path):
+    """packings.enumerate's docstring recipe: a SLURMCluster made and scaled by the caller, given as
+    ``scheduler``, with the preload; the run completes on its job, and the cluster is left as it was
+    (its job still running: the caller closes it)."""
+    import packings
+    from packings.service.slurm import slurm_cluster_class
+
+    SLURMCluster = slurm_cluster_class()
+    with SLURMCluster(
+        cores=1,
+        processes=1,
+        memory="1GB",
+        walltime="00:10:00",
+        job_name=JOB_NAME,
+        log_directory=str(tmp_path),
+        worker_extra_args=["--preload", "packings.service.plugin"],
+        scheduler_options={"dashboard_address": "127.0.0.1:0"},
+    ) as cluster:
+        cluster.scale(jobs=1)
+        result = packings.enumerate(9, pg_url, scheduler=cluster, progress=False)
+        assert result.status == "complete" and result.total == 52
+        assert result.by_contacts == {int(k): v for k, v in paper_counts["clusters_by_contacts"]["9"].items()}
+        assert len(_running()) == 1 and len(cluster.scheduler.workers) == 1
+    _wait(lambda: not _our_jobs(), "end of the cluster's job", 60)
