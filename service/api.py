@@ -224,8 +224,8 @@ class Catalogue:
             return links(s, int(id))
 
     def transitions(self, id: int, *, reaching: bool = False) -> list[dict]:
-        """The paths followed from cluster ``id`` (or, if ``reaching``, those that ended at it), one dict
-        each: ``id``, ``run``, ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1
+        """The transitions from cluster ``id`` (its paths: followed, by symmetry or retraced, and the
+        attempts no path came of; or, if ``reaching``, those that ended at it), one dict each: ``id``, ``run``, ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1
         along the path's tangent, 0 if no path was followed), ``outcome``, ``target`` (the cluster
         reached, None if none is stored) and ``steps``."""
         from sqlalchemy import select
