@@ -235,3 +235,14 @@ def test_the_python_apis_missing_database_error_names_no_option(tmp_path):
     assert "--db" not in str(e.value)
     line = _one_line(run("select", "--db", f"sqlite:///{tmp_path / 'none.db'}"), 1)
     assert line == f"packings: error: {e.value}"
+
+
+def test_a_passs_bar_starts_after_the_cluster_is_announced(sqlite_url):
+    """catalyse's bar, as enumerate's, is drawn from the pass's first progress on: the cluster's line is not
+    written onto it."""
+    assert run("enumerate", "6", "--quiet", "--workers", "1", "--db", sqlite_url).returncode == 0
+    r = run("catalyse", "6", "--glued", "--workers", "1", "--db", sqlite_url)
+    assert r.returncode == 0, r.stderr
+    assert "dask: local cluster" in r.stderr and "clusters of 6" in r.stderr
+    before, bar = r.stderr.split("clusters of 6", 1)
+    assert "dask: local cluster" in before and "dask:" not in bar, r.stderr
