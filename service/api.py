@@ -224,8 +224,8 @@ class Catalogue:
             return links(s, int(id))
 
     def transitions(self, id: int, *, reaching: bool = False) -> list[dict]:
-        """The paths followed from cluster ``id`` (or, if ``reaching``, those that ended at it), one dict
-        each: ``id``, ``run``, ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1
+        """The transitions from cluster ``id`` (its paths: followed, by symmetry or retraced, and the
+        attempts no path came of; or, if ``reaching``, those that ended at it), one dict each: ``id``, ``run``, ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1
         along the path's tangent, 0 if no path was followed), ``outcome``, ``target`` (the cluster
         reached, None if none is stored) and ``steps``."""
         from sqlalchemy import select
@@ -584,15 +584,24 @@ def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress:
 def pass_bar(desc: str, unit: str, quiet: bool, off_terminal: bool = False):
     """A progress bar on standard error (none when ``quiet``; off a terminal tqdm's own choice, none, unless
     ``off_terminal``, as the expansions' bar of a run) and the ``on_progress(done, total)`` that moves it,
-    for a catalysis pass."""
+    for a catalysis pass.  The bar is drawn from the first progress on (as the expansions' bar: not while
+    a cluster starts, whose lines would run into it); the first value has only ``close()``."""
     from tqdm import tqdm
 
     disable = True if quiet else False if off_terminal else None
-    bar = tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=disable)
+    bars: list = []
 
     def progress(done: int, total: int) -> None:
+        if not bars:
+            bars.append(tqdm(total=0, unit=unit, desc=desc, file=sys.stderr, disable=disable))
+        bar = bars[0]
         bar.total = total
         bar.n = done
         bar.refresh()
 
-    return bar, progress
+    class Bar:
+        def close(self) -> None:
+            if bars:
+                bars[0].close()
+
+    return Bar(), progress

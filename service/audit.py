@@ -326,7 +326,8 @@ def format_audit(r: AuditReport) -> str:
         f"n = {n}: tol_a0 {t['tol_a0']:g}, tol_psd {t['tol_psd']:g}, tol_d {t['tol_d']:g}"
         for n, t in r.tolerances.items()
     )
-    out.append(f"audit of {len(r.tolerances)} n ({tol})" if r.tolerances else "audit: no clusters")
+    ns = len(r.tolerances)
+    out.append(f"audit of {ns} value{'s' if ns != 1 else ''} of n ({tol})" if ns else "audit: no clusters")
     near_ids = r.near_clusters
     out.append(
         f"\nnear pairs (gap < tol_a0): {len(near_ids)} cluster{'s' if len(near_ids) != 1 else ''}, "

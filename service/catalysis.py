@@ -502,8 +502,9 @@ def _store(
     return w
 
 
-def format_report(r: CatalysisReport) -> str:
-    """The report as a few lines of text."""
+def format_report(r: CatalysisReport, expanded: bool = False) -> str:
+    """The report as a few lines of text; ``expanded``: the expansions it added have been expanded since (the
+    glued passes of ``packings enumerate``, whose run is complete again when they are reported)."""
     if r.close_packed is not None:
         lines = [
             f"close-packed fragments of n = {r.n} with at least {r.close_packed} contacts, run {r.run_id}:",
@@ -537,6 +538,6 @@ def format_report(r: CatalysisReport) -> str:
     if r.expansions_added:
         lines.append(
             f"  {r.expansions_added} expansion{'s' if r.expansions_added != 1 else ''} added to run "
-            f"{r.run_id}" + (" (marked running again)" if r.run_reopened else "")
+            f"{r.run_id}" + (", and expanded" if expanded else " (marked running again)" if r.run_reopened else "")
         )
     return "\n".join(lines)

@@ -50,7 +50,10 @@ def open_db(db_url: str | None, create: bool = False, migrate: bool = False):
 
 def format_counts(n: int, by_contacts: dict[int, int]) -> str:
     """The paper's table: clusters by number of contacts, relative to 3n - 6."""
-    lines = [f"n = {n}: {sum(by_contacts.values())} rigid clusters", f"{'contacts':>10} {'3n-6+':>6} {'clusters':>9}"]
+    lines = [
+        f"n = {n}: {_export.counted(sum(by_contacts.values()), 'rigid cluster')}",
+        f"{'contacts':>10} {'3n-6+':>6} {'clusters':>9}",
+    ]
     for m, count in sorted(by_contacts.items()):
         lines.append(f"{m:>10} {m - (3 * n - 6):>+6} {count:>9}")
     return "\n".join(lines)
@@ -254,8 +257,8 @@ def enumerate_cmd(
             else f"in {result.seconds:.1f} s"
         )
         click.echo(f"run {result.run_id}: {result.status} {took}; database {display_url(parse_url(url))}")
-        for report in result.catalysis:
-            click.echo(format_report(report))
+        for report in result.catalysis:  # what each pass added, the paths after it expanded
+            click.echo(format_report(report, expanded=result.status == "complete"))
     for err in result.errors[:10]:
         click.echo(f"packings: failed task: {err}", err=True)
     if result.status != "complete":
@@ -369,7 +372,7 @@ def catalyse_cmd(
         parents_stored(sessions(engine, readonly=True), n if glued else n + k)  # said before Dask starts
     except NoParents as e:
         engine.dispose()
-        raise click.ClickException(str(e)) from None
+        raise click.ClickException(str(e) + _glued_instead(n, k, glued)) from None
     # shown off a terminal too (a log file), as enumerate's bars are: a pass may take many minutes
     bar, progress = pass_bar(f"clusters of {n if glued else n + k}", "cluster", quiet, off_terminal=True)
 
@@ -399,6 +402,18 @@ def catalyse_cmd(
         bar.close()
         engine.dispose()
     _echo_report(report, n, as_json)
+
+
+def _glued_instead(n: int, k: int, glued: bool) -> str:
+    """What to say beside "run `packings enumerate N + 1` first" when catalyse N has no parents: what that
+    costs (the count grows like (n-5)!: n + 1 has about n - 4 times the clusters of n), and the pass
+    that needs no clusters of N + 1 (--glued makes its parents from those of N)."""
+    if glued or k != 1:
+        return ""
+    return (
+        f" (n = {n + 1} has about {max(n - 4, 1)} times the clusters of n = {n}, each dearer to expand), or "
+        f"`packings catalyse {n} --glued`, which makes its parents from the stored clusters of {n}"
+    )
 
 
 def _echo_report(report, n: int, as_json: bool) -> None:
@@ -545,6 +560,8 @@ def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
     with _catalogue(db_url) as cat:
         rows, fit = cat.stats(n), cat.fit()
+    if n is not None and not rows:  # as plot and audit: an n asked for that the database does not hold
+        raise click.ClickException(f"no clusters with n = {n} in the database")
     if as_json:
         click.echo(json.dumps(rows))
         return
@@ -562,7 +579,7 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
     """Look for junk clusters: (a) clusters with a non-contact pair within tol_a0 of touching, and what
     adding the pair gives (a stored cluster: a near copy of it); (b) pre-stress margins within a factor
     of 10 of tol_psd; (c) two geometries of one contact graph within 100 tol_d.  A clean catalogue has
-    (a) and (c) empty.  Exits 0 whatever it finds (it is a report)."""
+    (a) and (c) empty.  Exits 0 whatever it finds (it is a report); 1 if --n names an n the database does not hold."""
     from packings.service.audit import audit, format_audit
     from packings.service.db import sessions
 
@@ -572,6 +589,8 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
             report = audit(s, n)
     finally:
         engine.dispose()
+    if n is not None and not report.tolerances:  # as stats and plot: an n the database does not hold
+        raise click.ClickException(f"no clusters with n = {n} in the database")
     click.echo(json.dumps(report.to_dict()) if as_json else format_audit(report))
 
 
@@ -720,7 +739,7 @@ def select_cmd(
                 return
             total = cat.count(selection) if limit is not None and len(table) == limit else len(table)
             footer = (
-                f"{total} clusters"
+                _export.counted(total, "cluster")
                 if total == len(table)
                 else f"{len(table)} of {total} clusters ({total - len(table)} more: --limit 0 shows all)"
             )
@@ -768,11 +787,11 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
     by = ", ".join(f"{o} {c}" for o, c in info["leaving_by_outcome"].items())
     out += [
         f"paths leaving: {info['paths_leaving']}" + (f" ({by})" if by else ""),
-        f"paths reaching: {info['paths_reaching']} from {info['reached_from']} clusters",
+        f"paths reaching: {info['paths_reaching']} from {_export.counted(info['reached_from'], 'cluster')}",
     ]
     out += [
         f"run {r['run']} (n = {r['n']}, {r['run_status']}): expansion {r['expansion']}"
-        + ("" if r["paths"] is None else f", {r['paths']} paths")
+        + ("" if r["paths"] is None else f", {r['paths']} paths followed")
         for r in info["runs"]
     ] or ["in no run's frontier"]
     click.echo("\n".join(out))
@@ -827,7 +846,7 @@ def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | Non
             _export.write_atomic(output, chunks)
         except OSError as e:
             raise click.ClickException(f"cannot write {output}: {e.strerror or e}") from None
-    click.echo(f"wrote {written} clusters ({fmt}) to {output}")
+    click.echo(f"wrote {_export.counted(written, 'cluster')} ({fmt}) to {output}")
 
 
 from packings.service.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws

@@ -335,8 +335,8 @@ class _Departures:
             lost += 1
             _try(lambda: store.count_retries(Session_, ids))
             log.warning(
-                "run %d: Dask worker %s was lost with %d of the run's tasks (%d expansion(s)): "
-                "they run again on other workers (counted in retries)",
+                "run %d: Dask worker %s was lost with %d of the run's tasks (%d expansion(s)), which are run "
+                "again (counted in retries)",
                 self.run_id,
                 worker,
                 len(parts),

@@ -133,11 +133,25 @@ def _missing_sqlite_file(engine: Engine, create: bool) -> bool:
     path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
     if path is None or path.exists():
         return False
-    if not create:
-        raise DatabaseError(f"no database at {path}: run `packings enumerate N` first, or pass --db")
+    if not create:  # said alike to the command line and the Python API
+        raise DatabaseError(
+            f"no database at {path}: run `packings enumerate N` to make one, or give the URL of another "
+            "(or set $PACKINGS_DB)"
+        )
     if not path.parent.exists():
         raise DatabaseError(f"cannot create {path}: directory {path.parent} does not exist")
+    if not os.access(path.parent, os.W_OK):
+        raise DatabaseError(f"cannot create {path}: directory {path.parent} is not writable")
     return True
+
+
+def _unwritable_directory(engine: Engine) -> Path | None:
+    """The directory of ``engine``'s SQLite file, if this process cannot write in it: SQLite then cannot
+    make the journal it keeps beside the file (its own error says only "unable to open database file")."""
+    path = _sqlite_path(engine.url) if engine.dialect.name == "sqlite" else None
+    if path is None or not path.parent.exists() or os.access(path.parent, os.W_OK):
+        return None
+    return path.parent
 
 
 def make_engine(url: str | URL) -> Engine:
@@ -313,6 +327,12 @@ def first_line(e: BaseException) -> str:
 
 
 def connect_error(engine: Engine, e: Exception) -> DatabaseError:
+    where = _unwritable_directory(engine)
+    if where is not None and "unable to open database file" in str(e):
+        return DatabaseError(
+            f"cannot open {engine.url.database}: directory {where} is not writable (SQLite keeps its journal "
+            "beside the database file): make it writable, or move the database"
+        )
     return DatabaseError(f"cannot connect to {display_url(engine.url)}: {first_line(e)}")
 
 

@@ -168,10 +168,25 @@ def render(fmt: str, records: Iterable[dict]) -> Iterator[str]:
     raise ValueError(f"unknown format {fmt!r}: use one of {', '.join(FORMATS)}")
 
 
+def counted(k: int, noun: str, plural: str | None = None) -> str:
+    """``k`` and ``noun`` as English has them: "1 cluster", "2 clusters" (``plural``: other than noun + s)."""
+    return f"{k} {noun if k == 1 else plural or noun + 's'}"
+
+
 def format_for(path: str | None) -> str:
-    """The format a file name implies (.json, .xyz, .extxyz), else extxyz."""
-    suffix = Path(path).suffix.lower().lstrip(".") if path else ""
-    return suffix if suffix in FORMATS else "extxyz"
+    """The format a file name implies (.json, .xyz, .extxyz; standard output, no name: extxyz); any other
+    suffix is a :class:`packings.service.errors.UsageError` (nothing is written in a format the name does
+    not say)."""
+    if not path:
+        return "extxyz"
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix not in FORMATS:
+        from packings.service.errors import UsageError
+
+        raise UsageError(
+            f"cannot tell the format of {path} from its suffix: name it .{', .'.join(FORMATS)}, or give --format"
+        )
+    return suffix
 
 
 def replace_file(path: str | os.PathLike, write: Callable[[IO], None], binary: bool = False) -> Path:

@@ -13,7 +13,7 @@ import math
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, aliased
 
-from packings.service.export import table
+from packings.service.export import counted, table
 from packings.service.fit import fit_factorial
 from packings.service.models import ClusterRow, Transition
 from packings.service.paper import against_paper, verdict
@@ -157,16 +157,16 @@ def format_stats(d: dict) -> str:
     """The tables of one n, as text."""
     n, iso = d["n"], 3 * d["n"] - 6
     head = (
-        f"n = {n}: {d['total']} rigid clusters ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, "
+        f"n = {n}: {counted(d['total'], 'rigid cluster')} ({d['hypostatic']} hypostatic, {d['isostatic']} isostatic, "
         f"{d['hyperstatic']} hyperstatic)"
     )
     if d.get("min_contacts") is not None:
         head = (
-            f"n = {n}: {d['total']} rigid clusters with at least {d['min_contacts']} contacts (runs restricted "
+            f"n = {n}: {counted(d['total'], 'rigid cluster')} with at least {d['min_contacts']} contacts (runs restricted "
             f"by --min-contacts: not every cluster of n = {n}, and left out of the fit)"
         )
     elif not d["complete"]:
-        head = f"n = {n}: {d['total']} rigid clusters so far (partial: no full run of n = {n} is complete)"
+        head = f"n = {n}: {counted(d['total'], 'rigid cluster')} so far (partial: no full run of n = {n} is complete)"
     if d["fit"] is not None:
         head += f"; the fit b·(n−5)! with b = {d['fit']['b']:.3f} gives {d['fit']['predicted']:.0f}"
     paper = (d.get("paper") or {}).get("by_contacts")
@@ -196,7 +196,10 @@ def format_stats(d: dict) -> str:
     else:
         parts.append("close-packed fragments: none")
     if d["unclassified"]:
-        parts.append(f"{d['unclassified']} clusters are not classified yet: run `packings db backfill`")
+        parts.append(
+            f"{counted(d['unclassified'], 'cluster')} {'is' if d['unclassified'] == 1 else 'are'} not classified "
+            "yet: run `packings db backfill`"
+        )
     if d["multi_embedding"]:
         parts.append(
             _titled(
@@ -219,7 +222,7 @@ def format_stats(d: dict) -> str:
     unreached = d["unreached"]
     shown = ", ".join(map(str, unreached[:10])) + (", ..." if len(unreached) > 10 else "")
     parts.append(
-        f"paths followed: {d['paths']}; circular paths: {d['circular_paths']}; "
+        f"paths (followed, by symmetry or retraced): {d['paths']}; circular paths: {d['circular_paths']}; "
         f"clusters no path reaches: {len(unreached)}" + (f" (ids {shown})" if unreached else "")
     )
     return "\n".join(parts)

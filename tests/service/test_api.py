@@ -285,7 +285,7 @@ def test_status_says_interrupted_and_stats_says_partial(engine):
         timeout=300,
         check=True,
     ).stdout
-    assert "n = 7: 1 rigid clusters so far (partial" in text
+    assert "n = 7: 1 rigid cluster so far (partial" in text
     store.start_run(S, 7, Params(), f"{socket.gethostname()}:{os.getpid()}:live")  # taken over by a live one
     with packings.connect(url) as cat:
         assert cat.runs()[0]["status"] == "running"

@@ -10,7 +10,14 @@ import numpy as np
 from sqlalchemy import func, select, text
 
 from packings.service import store
-from packings.service.catalysis import NoParents, catalyse, close_packed_pass, count_stored, covered
+from packings.service.catalysis import (
+    NoParents,
+    catalyse,
+    close_packed_pass,
+    count_stored,
+    covered,
+    format_report,
+)
 from packings.service.db import sessions
 from packings.service.models import (
     COMPLETE,
@@ -96,6 +103,10 @@ def test_catalysis_adds_new_clusters_with_their_origin_and_enumerate_expands_the
     assert r.run_id == run6 and r.parents == 5 and len(r.new) == 1 and r.run_reopened
     new = r.new[0]
     assert new.contacts == 12 and r.expansions_added == 1
+    # the report of a pass that reopened the run says so; within enumerate, whose paths expand what the pass
+    # added before the report is printed under "complete", it says that instead
+    assert format_report(r).endswith(f"1 expansion added to run {run6} (marked running again)")
+    assert format_report(r, expanded=True).endswith(f"1 expansion added to run {run6}, and expanded")
     with S() as s:
         row = s.get(ClusterRow, new.id)
         assert (row.found_by, row.source_id, row.found_in_run) == (FOUND_CATALYSIS, new.parent_id, run6)
@@ -130,7 +141,7 @@ def test_enumerate_glued_adds_what_no_path_reached_expands_it_and_records_the_pa
     assert json.loads(r.stdout)["catalysis"] == [] and json.loads(r.stdout)["total"] == 1
     r = cli("enumerate", "7", "--no-glued", "--quiet", "--workers", "1", "--db", url)
     assert r.returncode == 0, r.stderr
-    assert "n = 7: 1 rigid clusters" in r.stdout and "--glued" not in r.stdout
+    assert "n = 7: 1 rigid cluster\n" in r.stdout and "--glued" not in r.stdout
     assert "fewer than the paper: 1 with 15 contacts (the paper 5)" in r.stdout
     with S() as s:
         assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 0
@@ -190,7 +201,8 @@ def test_catalyse_command(engine, tmp_path):
     fill_database(engine, 6)
     url = url_of(engine)
     line = one_line_error(cli("catalyse", "6", "--db", url))
-    assert "no clusters of 7 spheres stored: run `packings enumerate 7` first" in line
+    assert "no clusters of 7 spheres stored: run `packings enumerate 7` first (n = 7 has about 2 times" in line
+    assert line.endswith("or `packings catalyse 6 --glued`, which makes its parents from the stored clusters of 6")
     line = one_line_error(cli("catalyse", "5", "--spheres", "2", "--db", url, "--quiet"))
     assert "packings enumerate 7" in line
     for n in ("3", "500"):

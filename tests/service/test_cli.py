@@ -138,3 +138,111 @@ def test_main_off_the_main_thread_leaves_the_unraisable_hook_alone():
     r = subprocess.run([sys.executable, "-c", HOOK_OFF_THE_MAIN_THREAD], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     assert r.stdout.split() == ["True", "True"]
+
+
+def _one_line(r, status: int, *words) -> str:
+    """``r`` ended with exit ``status`` and one line on standard error, holding ``words``; the line."""
+    assert r.returncode == status, (r.args, r.returncode, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("packings: error: "), r.stderr
+    assert all(w in lines[0] for w in words), lines[0]
+    return lines[0]
+
+
+def test_one_name_per_quantity_of_paths(sqlite_url):
+    """enumerate's paths_followed counts the paths integrated; stats counts every path stored (followed, by
+    symmetry or retraced) and says so, rather than calling that sum "paths followed" too."""
+    r = run("enumerate", "8", "--json", "--quiet", "--workers", "1", "--no-glued", "--db", sqlite_url)
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)["diagnostics"]
+    every = d["paths_followed"] + d["paths_by_symmetry"] + d["paths_retraced"]
+    assert d["paths_by_symmetry"] > 0 and d["paths_retraced"] > 0
+    (stats,) = json.loads(run("stats", "--json", "--db", sqlite_url).stdout)
+    assert stats["paths"] == every
+    text = run("stats", "--db", sqlite_url).stdout
+    assert f"paths (followed, by symmetry or retraced): {every};" in text and "paths followed" not in text
+
+
+def test_exit_status_nothing_there_is_1_a_malformed_request_2(sqlite_url, tmp_path):
+    """One rule: a well-formed request for what the database does not hold (an id, an n) ends with one line
+    and exit status 1; malformed input (not a number, a value a key cannot take, a file name whose format
+    cannot be told) with one line and exit status 2."""
+    assert run("enumerate", "7", "--quiet", "--workers", "1", "--db", sqlite_url).returncode == 0
+    _one_line(run("show", "999999", "--db", sqlite_url), 1, "no cluster with id 999999")
+    for command in (["stats"], ["audit"], ["plot", "counts", "-o", str(tmp_path / "c.png")]):
+        _one_line(run(*command, "--n", "99", "--db", sqlite_url), 1, "no clusters with n = 99")
+    _one_line(run("show", "abc", "--db", sqlite_url), 2, "'abc' is not a valid integer")
+    _one_line(run("select", "lattice=bcc", "--db", sqlite_url), 2, "expected one of fcc, hcp")
+    _one_line(run("export", "-o", str(tmp_path / "x.pdb"), "--db", sqlite_url), 2, "cannot tell the format of")
+    assert not (tmp_path / "x.pdb").exists()
+    # a format given outright goes into any file name; a known suffix chooses its own
+    r = run("export", "-o", str(tmp_path / "x.pdb"), "--format", "xyz", "--db", sqlite_url)
+    assert r.returncode == 0 and r.stdout.strip().endswith("(xyz) to " + str(tmp_path / "x.pdb")), r.stderr
+    r = run("export", "n=7,contacts=15,id=1", "-o", str(tmp_path / "one.json"), "--db", sqlite_url)
+    assert r.returncode == 0 and r.stdout.startswith("wrote 1 cluster (json) to "), r.stdout  # not "1 clusters"
+    r = run("select", "id=1", "--db", sqlite_url)
+    assert r.stdout.splitlines()[-1] == "1 cluster"
+    assert run("audit", "--n", "7", "--db", sqlite_url).stdout.startswith("audit of 1 value of n (n = 7: ")
+
+
+def _read_only_directory(directory, files=()):
+    """Make ``directory`` one this process cannot write in, holding copies of ``files``: a read-only tmpfs
+    mounted there for root (whom permissions do not stop; skipped where it cannot mount), else mode 555."""
+    import os
+    import shutil
+
+    directory.mkdir()
+    if os.geteuid() != 0:
+        for f in files:
+            shutil.copy(f, directory)
+        directory.chmod(0o555)
+        return lambda: directory.chmod(0o755)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(directory)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()[:120]}")
+    for f in files:
+        shutil.copy(f, directory)
+    subprocess.run(["mount", "-o", "remount,ro", str(directory)], check=True)
+    return lambda: subprocess.run(["umount", "-l", str(directory)], capture_output=True)
+
+
+def test_a_directory_that_cannot_be_written_is_named(tmp_path):
+    """SQLite said only "unable to open database file" of a database in a directory it cannot write in (its
+    journal goes beside the file): the directory is named, to open one there or to create one."""
+    db = tmp_path / "packings.db"
+    assert run("db", "upgrade", "--db", f"sqlite:///{db}").returncode == 0
+    ro = tmp_path / "ro"
+    undo = _read_only_directory(ro, [db])
+    try:
+        line = _one_line(run("stats", "--db", f"sqlite:///{ro / 'packings.db'}"), 1)
+        assert line == (
+            f"packings: error: cannot open {ro / 'packings.db'}: directory {ro} is not writable (SQLite keeps its "
+            "journal beside the database file): make it writable, or move the database"
+        )
+        r = run("enumerate", "7", "--quiet", "--workers", "1", "--db", f"sqlite:///{ro / 'new.db'}")
+        _one_line(r, 1, f"cannot create {ro / 'new.db'}: directory {ro} is not writable")
+    finally:
+        undo()
+
+
+def test_the_python_apis_missing_database_error_names_no_option(tmp_path):
+    """The same words from connect() and from the command line: no option of the command line's."""
+    import packings
+
+    with pytest.raises(packings.PackingsError) as e:
+        packings.connect(f"sqlite:///{tmp_path / 'none.db'}")
+    assert str(e.value).startswith(f"no database at {tmp_path / 'none.db'}: run `packings enumerate N` to make one")
+    assert "--db" not in str(e.value)
+    line = _one_line(run("select", "--db", f"sqlite:///{tmp_path / 'none.db'}"), 1)
+    assert line == f"packings: error: {e.value}"
+
+
+def test_a_passs_bar_starts_after_the_cluster_is_announced(sqlite_url):
+    """catalyse's bar, as enumerate's, is drawn from the pass's first progress on: the cluster's line is not
+    written onto it."""
+    assert run("enumerate", "6", "--quiet", "--workers", "1", "--db", sqlite_url).returncode == 0
+    r = run("catalyse", "6", "--glued", "--workers", "1", "--db", sqlite_url)
+    assert r.returncode == 0, r.stderr
+    assert "dask: local cluster" in r.stderr and "clusters of 6" in r.stderr
+    before, bar = r.stderr.split("clusters of 6", 1)
+    assert "dask: local cluster" in before and "dask:" not in bar, r.stderr

@@ -263,11 +263,12 @@ def test_the_header_says_why_a_run_has_fewer_clusters_than_the_paper():
     assert "<td>1,659 (the paper has 1,659)</td>" in dashboard._html({**d, "status": "complete", "clusters": 1659})
 
 
-def test_the_rate_is_drawn_from_zero():
+def test_the_rate_is_drawn_from_zero(monkeypatch):
     """A steady 42 expansions per second, swinging by 1 %, is not drawn as a collapse: the axis starts at 0."""
     from bokeh.document import Document
     from bokeh.plotting import figure
 
+    monkeypatch.setattr(dashboard, "_CURRENT", [])  # no database: the page's frame alone
     doc = Document()
     dashboard.packings_doc(None, {}, doc)
     [rate] = [f for f in doc.select({"type": figure}) if f.title.text == "expansions per second"]

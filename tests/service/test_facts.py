@@ -286,7 +286,7 @@ def test_upgrade_from_0001_backfills_the_facts(db_url):
     with engine.begin() as c:
         c.execute(text("UPDATE clusters SET lattice = NULL WHERE id = :i"), {"i": ids[1]})
     out = ok("stats", "--db", db_url)
-    assert "1 clusters are not classified yet" in out
+    assert "1 cluster is not classified yet" in out
     assert ok("db", "backfill", "--db", db_url).strip() == "computed the facts of 1 cluster"
     assert ok("db", "backfill", "--db", db_url).strip() == ""  # nothing left to do
     assert ok("db", "backfill", "--all", "--db", db_url).strip() == "computed the facts of 2 clusters"
