@@ -39,12 +39,13 @@ def add_arguments(p) -> None:
     p.add_argument("--json", action="store_true")
 
 
-def render(url: str, wait: float = 5.0, width: int = 1000, height: int = 1100) -> dict:
-    """{"text": the page's text, "png": bytes, "errors": [...]} after ``wait`` seconds."""
-    return asyncio.run(_render(url, wait, width, height))
+def render(url: str, wait: float = 5.0, width: int = 1000, height: int = 1100, until: str | None = None) -> dict:
+    """{"text": the page's text, "png": bytes, "errors": [...]} after ``wait`` seconds; with ``until``, as soon
+    as the page's text holds it (read every 0.2 s), ``wait`` seconds at most."""
+    return asyncio.run(_render(url, wait, width, height, until))
 
 
-async def _render(url: str, wait: float, width: int, height: int) -> dict:
+async def _render(url: str, wait: float, width: int, height: int, until: str | None = None) -> dict:
     from tornado.websocket import websocket_connect
 
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -97,8 +98,14 @@ async def _render(url: str, wait: float, width: int, height: int) -> dict:
         await call("Runtime.enable")
         await call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
         await call("Page.navigate", url=url)
-        await asyncio.sleep(wait)
-        text = (await call("Runtime.evaluate", expression=_TEXT, returnByValue=True))["result"].get("value", "")
+        end = time.monotonic() + wait
+        while True:
+            if until is None:
+                await asyncio.sleep(wait)
+            text = (await call("Runtime.evaluate", expression=_TEXT, returnByValue=True))["result"].get("value", "")
+            if until is None or until in text or time.monotonic() > end:
+                break
+            await asyncio.sleep(0.2)
         png = base64.b64decode((await call("Page.captureScreenshot", format="png"))["data"])
         ws.close()
         return {"text": text, "png": png, "errors": errors}

@@ -8,7 +8,7 @@ import shutil
 import socket
 import subprocess
 import sys
-import time
+import threading
 
 import pytest
 from sqlalchemy import text
@@ -52,18 +52,23 @@ def test_the_page_shows_the_run_as_the_database_has_it(db_url):
         stderr=subprocess.PIPE,
         text=True,
     )
+
+    def page_with_a_rate():
+        """(database before, status, snapshot, database after) of a read of the page that had seen 20
+        expansions done and a rate: two of the page's reads with expansions done between them."""
+        before = _database_now(db_url)
+        status, body = fetch(f"http://127.0.0.1:{port}/packings.json")
+        after = _database_now(db_url)
+        snap = json.loads(body)
+        if snap.get("rate", 0) > 0 and snap.get("frontier", {}).get("done", 0) >= 20:
+            return before, status, snap, after
+        return None
+
     try:
         wait_for(lambda: done_count(db_url) >= 20, proc)
-        time.sleep(1.5)  # a read of the database by the page's thread since
-        # the rate needs two of the page's reads with expansions done between them: at the start of a
-        # fast run a second or two can pass without a write-back, so read the page until it has one
-        for _ in range(20):
-            before = _database_now(db_url)
-            status, body = fetch(f"http://127.0.0.1:{port}/packings.json")
-            after = _database_now(db_url)
-            if json.loads(body).get("rate", 0) > 0 or proc.poll() is not None:
-                break
-            time.sleep(0.5)
+        before, status, snap, after = wait_for(
+            page_with_a_rate, proc, timeout=600, interval=0.5, what="the page shows 20 expansions done and a rate"
+        )
         page_status, page = fetch(f"http://127.0.0.1:{port}/packings")
         # Dask's own page renders its plots on the first request: seconds where the cores are shared
         _, dask_status = fetch(f"http://127.0.0.1:{port}/status", timeout=60.0)
@@ -71,7 +76,6 @@ def test_the_page_shows_the_run_as_the_database_has_it(db_url):
     finally:
         proc.kill()
     assert proc.returncode == 0, err
-    snap = json.loads(body)
     assert status == 200 and (snap["run"], snap["n"], snap["status"]) == (1, 11, "running")
     # read within a second or two before the fetch: between what the database had before and after it
     assert snap["frontier"]["done"] <= after["done"] and snap["clusters"] <= after["clusters"]
@@ -112,7 +116,7 @@ def test_the_page_draws_in_a_browser(sqlite_url):
     )
     try:
         wait_for(lambda: done_count(sqlite_url) >= 5, proc)
-        drawn = render(f"http://127.0.0.1:{port}/packings", wait=3.0)
+        drawn = render(f"http://127.0.0.1:{port}/packings", wait=120.0, until="expansions done")
         proc.communicate(timeout=900)
     finally:
         proc.kill()
@@ -135,85 +139,149 @@ def test_a_taken_dashboard_port_is_said(sqlite_url):
     assert "UserWarning" not in r.stderr
 
 
-class _Slow(Watcher):
-    """A watcher whose read of the database takes ``seconds``."""
+class _Stop(Exception):
+    pass
 
-    def __init__(self, seconds: float):
+
+class _Clock:
+    """The dashboard's clock made virtual (it stands for the ``time`` module there): sleeping moves it on at
+    once, by what was asked; ``on_sleep`` is called in every pause (somebody looking at the page), and after
+    ``stop_after`` pauses a sleep raises _Stop, which ends a watcher run in the test's own thread."""
+
+    def __init__(self, on_sleep=None, stop_after: int | None = None):
+        self.now = 1000.0
+        self.pauses: list[float] = []
+        self.on_sleep, self.stop_after = on_sleep, stop_after
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.pauses.append(seconds)
+        self.now += seconds
+        if self.on_sleep is not None:
+            self.on_sleep()
+        if self.stop_after is not None and len(self.pauses) >= self.stop_after:
+            raise _Stop
+
+
+class _Looked(threading.Event):
+    """The watcher's event that somebody looked, telling whether the watcher waits on it (nobody looks)."""
+
+    waiting = False
+
+    def wait(self, timeout=None):
+        self.waiting = True
+        try:
+            return super().wait(timeout)
+        finally:
+            self.waiting = False
+
+
+class _Slow(Watcher):
+    """A watcher on the virtual clock whose read of the database takes ``seconds`` of it; while ``held``,
+    each read goes on until the test lets one end (``permits.release()``)."""
+
+    def __init__(self, clock: _Clock, seconds: float):
         super().__init__("sqlite:///unused.db")
-        self.seconds = seconds
+        self.clock, self.seconds = clock, seconds
+        self.held = False
+        self.permits = threading.Semaphore(0)
+        self._looked = _Looked()
 
     def read(self) -> dict:
-        time.sleep(self.seconds)
+        if self.held:
+            self.permits.acquire()
+        self.clock.now += self.seconds
         return {"run": None, "reads": self.reads + 1}
 
 
-def _reads_over(w: Watcher, seconds: float, look: bool) -> int:
-    """How many reads ``w`` makes in ``seconds`` after it starts, looked at every 0.05 s or not at all."""
+@pytest.fixture
+def clock(monkeypatch) -> _Clock:
+    c = _Clock()
+    monkeypatch.setattr(dashboard, "time", c)
+    return c
+
+
+def _idle(w: _Slow) -> int:
+    """Start ``w`` with nobody looking, and wait until it has stopped reading; its reads by then."""
     w.start()
-    end = time.monotonic() + seconds
-    while time.monotonic() < end:
-        if look:
-            w.looked_at()
-        time.sleep(0.05)
+    wait_for(lambda: w._looked.waiting, timeout=60, interval=0.01, what="the watcher stops reading")
     return w.reads
 
 
-def test_reads_take_at_most_their_share_of_the_time(monkeypatch):
-    """Looked at all the time, a watcher whose reads take 0.2 s reads every 4 s at READ_SHARE 0.05, not
-    every POLL_SECONDS: 1 or 2 reads in 3 s (a fast read: every POLL_SECONDS)."""
-    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
-    assert 1 <= _reads_over(_Slow(0.2), 3.0, look=True) <= 2
-    assert _reads_over(_Slow(0.0), 1.5, look=True) >= 5
+def test_reads_take_at_most_their_share_of_the_time(clock):
+    """Looked at all the time, a watcher waits POLL_SECONDS between fast reads; a read of 0.2 s at READ_SHARE
+    0.05 is followed by a pause of 3.8 s, so that it takes 5 % of the time (the first read, mostly the engine's
+    start, is not counted)."""
+    for seconds, after in ((0.0, dashboard.POLL_SECONDS), (0.01, dashboard.POLL_SECONDS - 0.01), (0.2, 3.8)):
+        clock.pauses, clock.stop_after = [], 5
+        w = _Slow(clock, seconds)
+        clock.on_sleep = w.looked_at
+        with pytest.raises(_Stop):
+            w.run()
+        assert clock.pauses[0] == dashboard.POLL_SECONDS and clock.pauses[1:] == pytest.approx([after] * 4)
+        assert w.reads == 5
+        if seconds > dashboard.POLL_SECONDS * dashboard.READ_SHARE:
+            assert seconds / (seconds + clock.pauses[-1]) == pytest.approx(dashboard.READ_SHARE)
 
 
-def test_nobody_looking_nothing_is_read_and_a_look_reads_at_once(monkeypatch):
-    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
-    monkeypatch.setattr(dashboard, "IDLE_SECONDS", 0.3)
-    w = _Slow(0.0)
-    idle = _reads_over(w, 2.0, look=False)
-    assert 1 <= idle <= 6  # the first IDLE_SECONDS count as looked at, then nothing
-    time.sleep(0.5)
-    assert w.reads == idle
-    snap = w.looked_at()
-    assert snap["reads"] == idle  # what was read last, at once
-    for _ in range(100):
-        if w.reads > idle:
-            break
-        time.sleep(0.02)
-    assert w.reads > idle and w.looked_at()["reads"] > idle
+def test_nobody_looking_nothing_is_read_and_a_look_reads_at_once(clock):
+    """Nobody looking, a watcher reads every POLL_SECONDS for the first IDLE_SECONDS (counted as looked at),
+    then stops; a look gives at once what was read last, and reading starts again."""
+    w = _Slow(clock, 0.0)
+    idle = _idle(w)
+    assert idle == 1 + round(dashboard.IDLE_SECONDS / dashboard.POLL_SECONDS)
+    assert clock.now - 1000.0 > dashboard.IDLE_SECONDS and w.reads == idle  # it waits, and reads nothing
+    w.held = True  # the next read goes on until let through
+    assert w.looked_at()["reads"] == idle  # what was read last, at once
+    w.permits.release()
+    wait_for(lambda: w.reads > idle, timeout=60, interval=0.01, what="a read after the look")
+    assert w.looked_at()["reads"] == idle + 1
 
 
-def test_the_json_asked_for_after_nobody_looked_is_read_anew(monkeypatch):
+def _ask(w: Watcher, timeout: float | None = None, meanwhile=lambda: None) -> tuple[bool, dict]:
+    """Ask ``w`` for the JSON's snapshot: whether it was given at once (there after one turn of the event
+    loop, with no wait for a read), and the snapshot; ``meanwhile`` runs after that turn."""
+
+    async def ask():
+        task = asyncio.ensure_future(w.fresh(timeout))
+        await asyncio.sleep(0)
+        at_once = task.done()
+        meanwhile()
+        return at_once, await task
+
+    return asyncio.run(ask())
+
+
+def test_the_json_asked_for_after_nobody_looked_is_read_anew(clock):
     """Reading had stopped: the JSON's snapshot comes from a read made after it was asked for, not the one
     made when somebody last looked (a script polling every few minutes would get data as old as its
     interval); asked for again while reading goes on, it is given at once."""
-    monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
-    monkeypatch.setattr(dashboard, "IDLE_SECONDS", 0.3)
-    w = _Slow(0.2)
-    idle = _reads_over(w, 2.0, look=False)
-    time.sleep(0.5)
-    assert w.reads == idle
-    start = time.monotonic()
-    assert asyncio.run(w.fresh())["reads"] == idle + 1
-    assert time.monotonic() - start >= 0.2  # it waited for that read
-    start = time.monotonic()
-    assert asyncio.run(w.fresh())["reads"] == idle + 1 and time.monotonic() - start < 0.15
+    w = _Slow(clock, 0.2)
+    idle = _idle(w)
+    w.held = True
+    at_once, snap = _ask(w, meanwhile=w.permits.release)  # the read the question starts may end, not the next
+    assert not at_once and snap["reads"] == idle + 1  # it waited for that read
+    at_once, snap = _ask(w)
+    assert at_once and snap["reads"] == idle + 1 and w.reads == idle + 1
 
 
-def test_the_json_waits_for_a_new_read_no_longer_than_its_timeout(monkeypatch):
+def test_the_json_waits_for_a_new_read_no_longer_than_its_timeout(clock, monkeypatch):
     """A read slower than the wait allowed: the snapshot there is, after the wait, and the read goes on."""
     monkeypatch.setattr(dashboard, "POLL_SECONDS", 0.1)
     monkeypatch.setattr(dashboard, "IDLE_SECONDS", 0.3)
-    w = _Slow(0.8)
-    _reads_over(w, 1.5, look=False)  # one read, then nobody looks
-    assert w.reads == 1
-    start = time.monotonic()
-    assert asyncio.run(w.fresh(timeout=0.2))["reads"] == 1  # returned before the read (0.8 s) ended
-    assert time.monotonic() - start >= 0.2
-    for _ in range(100):
-        if w.reads > 1:
-            break
-        time.sleep(0.02)
+    w = _Slow(clock, 0.8)
+    assert _idle(w) == 1  # one read, then nobody looks
+    w.held = True  # the read the question starts goes on until let through
+
+    def the_wait_allowed_passes():
+        clock.now += 0.25
+
+    at_once, snap = _ask(w, timeout=0.2, meanwhile=the_wait_allowed_passes)
+    assert not at_once and snap["reads"] == 1 and w.reads == 1  # given after the wait, before the read ended
+    w.permits.release()
+    wait_for(lambda: w.reads > 1, timeout=60, interval=0.01, what="the read ends")
     assert w.looked_at()["reads"] == 2
 
 
