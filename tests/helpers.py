@@ -255,6 +255,15 @@ def one_line_error(r: subprocess.CompletedProcess, *words: str) -> str:
 # --------------------------------------------------------------------------- waiting and processes
 
 
+#: Dask's scheduler gives a task lost with its worker to another one up to allowed-failures (3) times
+#: before it raises KilledWorker; at 0 every task a kill finds on its worker (running or queued there)
+#: reaches the coordinator, so that each kill of a busy worker is a fault the coordinator must absorb,
+#: whatever the timing (at 1 only a task hit twice does, which a fast run may never see).  A task of
+#: several expansions lost so is put back; one alone is charged an attempt, which the tests below
+#: keep out of reach of max-attempts by stopping the kills once a task has been put back.
+SURFACE_KILLS = {"DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
+
+
 def wait_for(
     predicate: Callable[[], Any],
     proc: subprocess.Popen | None = None,

@@ -26,6 +26,7 @@ from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run, Transition
 from packings.workers.params import Params
 from tests.helpers import (
+    SURFACE_KILLS,
     assert_same_clusters,
     catalogue,
     done_count,
@@ -36,14 +37,6 @@ from tests.helpers import (
     wait_until_listening,
 )
 from tests.helpers import packings as cli
-
-#: Dask's scheduler gives a task lost with its worker to another one up to allowed-failures (3) times
-#: before it raises KilledWorker; at 0 every task a kill finds on its worker (running or queued there)
-#: reaches the coordinator, so that each kill of a busy worker is a fault the coordinator must absorb,
-#: whatever the timing (at 1 only a task hit twice does, which a fast run may never see).  A task of
-#: several expansions lost so is put back; one alone is charged an attempt, which the tests below
-#: keep out of reach of max-attempts by stopping the kills once a task has been put back.
-SURFACE_KILLS = {"DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES": "0"}
 
 
 class _LostWorker:

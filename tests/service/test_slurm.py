@@ -23,9 +23,8 @@ from sqlalchemy import select
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, ExpansionRow
 from packings.service.slurm import JOB_NAME
-from tests.service.test_enumerate import done_count
-from tests.service.test_enumerate import packings as cli
-from tests.service.test_faults import SURFACE_KILLS
+from tests.helpers import SURFACE_KILLS, done_count, wait_for
+from tests.helpers import packings as cli
 
 START_SLURM = Path(__file__).resolve().parents[1] / "slurm" / "start-slurm.sh"
 DEADLINE = 900.0  #: seconds a run on Slurm may take before the test gives up (the kernels may compile first)
@@ -62,21 +61,13 @@ def slurm():
         if os.environ.get("CI"):
             pytest.fail(f"CI needs Slurm for these tests: {problem}")
         pytest.skip(problem)
-    _wait(lambda: not _our_jobs(), "packings' worker jobs of an earlier run to leave Slurm", 120)
-
-
-def _wait(predicate, what: str, timeout: float, proc=None):
-    """Poll ``predicate`` until it holds (its value is returned), failing after ``timeout`` seconds or
-    if ``proc`` ends first."""
-    deadline = time.monotonic() + timeout
-    while True:
-        value = predicate()
-        if value:
-            return value
-        if proc is not None and proc.poll() is not None:
-            pytest.fail(f"the run ended while waiting for {what}: {proc.stderr.read()[-2000:]}")
-        assert time.monotonic() < deadline, f"no {what} after {timeout:.0f} s"
-        time.sleep(0.2)
+    wait_for(
+        lambda: not _our_jobs(),
+        None,
+        timeout=120,
+        interval=0.2,
+        what="packings' worker jobs of an earlier run to leave Slurm",
+    )
 
 
 def _our_jobs() -> dict[str, str]:
@@ -218,7 +209,7 @@ def test_enumerate_10_with_its_workers_as_slurm_jobs(slurm, pg_url, paper_counts
     assert proc.returncode == 0, err
     _assert_the_papers_n10(out, pg_url, paper_counts)
     assert len(seen) == 2
-    _wait(lambda: not _our_jobs(), "end of the run's jobs", 60)
+    wait_for(lambda: not _our_jobs(), None, timeout=60, interval=0.2, what="end of the run's jobs")
     jobs_of = _workers_of_jobs(tmp_path)
     by_worker = _expansions_by_worker(pg_url)
     assert sum(by_worker.values()) == 263
@@ -249,12 +240,22 @@ def test_a_cancelled_job_loses_nothing_and_is_replaced(slurm, pg_url, paper_coun
         env=SURFACE_KILLS,
     )
     try:
-        first = _wait(lambda: len(_running()) == 2 and _running(), "two running jobs", DEADLINE, proc)
-        _wait(lambda: done_count(pg_url) >= 20, "20 expansions done", DEADLINE, proc)
+        first = wait_for(
+            lambda: len(_running()) == 2 and _running(), proc, timeout=DEADLINE, interval=0.2, what="two running jobs"
+        )
+        wait_for(lambda: done_count(pg_url) >= 20, proc, timeout=DEADLINE, interval=0.2, what="20 expansions done")
         victim, other = sorted(first)
         subprocess.run(["scancel", victim], check=True)
-        replacement = _wait(lambda: set(_running()) - first, "replacement job", 120, proc).pop()
-        _wait(lambda: replacement in set(_workers_of_jobs(tmp_path).values()), "replacement's worker", 120, proc)
+        replacement = wait_for(
+            lambda: set(_running()) - first, proc, timeout=120, interval=0.2, what="replacement job"
+        ).pop()
+        wait_for(
+            lambda: replacement in set(_workers_of_jobs(tmp_path).values()),
+            proc,
+            timeout=120,
+            interval=0.2,
+            what="replacement's worker",
+        )
         done_before = done_count(pg_url)
         subprocess.run(["scancel", other], check=True)
         out, err = proc.communicate(timeout=DEADLINE)
@@ -270,7 +271,7 @@ def test_a_cancelled_job_loses_nothing_and_is_replaced(slurm, pg_url, paper_coun
     for worker, k in _expansions_by_worker(pg_url).items():
         by_job[jobs_of[worker]] = by_job.get(jobs_of[worker], 0) + k
     assert by_job.get(replacement, 0) > 0, by_job  # a late joiner got the database plugin and did work
-    _wait(lambda: not _our_jobs(), "end of the run's jobs", 60)
+    wait_for(lambda: not _our_jobs(), None, timeout=60, interval=0.2, what="end of the run's jobs")
 
 
 def _state(job: str) -> str:
@@ -306,13 +307,21 @@ def test_a_job_past_its_walltime_is_replaced(slurm, pg_url, paper_counts, tmp_pa
     )
     engine = make_engine(pg_url)
     try:
-        [first] = _wait(_running, "a running job", DEADLINE, proc)
-        _wait(lambda: done_count(pg_url) >= 3, "3 expansions done", DEADLINE, proc)
+        [first] = wait_for(_running, proc, timeout=DEADLINE, interval=0.2, what="a running job")
+        wait_for(lambda: done_count(pg_url) >= 3, proc, timeout=DEADLINE, interval=0.2, what="3 expansions done")
         with engine.connect() as conn:  # a transaction, holding the lock until it is rolled back
             conn.execute(text("LOCK TABLE expansions IN ACCESS EXCLUSIVE MODE"))
             held = conn.execute(text("SELECT count(*) FROM expansions WHERE status = 'done'")).scalar()
-            _wait(lambda: _state(first) == "TIMEOUT", "end of the first job at its walltime", 180, proc)
-            replacement = _wait(lambda: _running() - {first}, "replacement job", 120, proc).pop()
+            wait_for(
+                lambda: _state(first) == "TIMEOUT",
+                proc,
+                timeout=180,
+                interval=0.2,
+                what="end of the first job at its walltime",
+            )
+            replacement = wait_for(
+                lambda: _running() - {first}, proc, timeout=120, interval=0.2, what="replacement job"
+            ).pop()
             conn.rollback()
         out, err = proc.communicate(timeout=DEADLINE)
     finally:
@@ -327,7 +336,7 @@ def test_a_job_past_its_walltime_is_replaced(slurm, pg_url, paper_counts, tmp_pa
     assert re.search(rf"Slurm job {first} \(\S+\) has lost its workers: submitting another in its place", err), err
     jobs_of = _workers_of_jobs(tmp_path)
     assert any(jobs_of[w] == replacement for w in _expansions_by_worker(pg_url)), "the replacement did nothing"
-    _wait(lambda: not _our_jobs(), "end of the run's jobs", 60)
+    wait_for(lambda: not _our_jobs(), None, timeout=60, interval=0.2, what="end of the run's jobs")
 
 
 @pytest.mark.slow
@@ -354,4 +363,4 @@ def test_the_recipe_with_a_slurm_cluster_of_ones_own(slurm, pg_url, paper_counts
         assert result.status == "complete" and result.total == 52
         assert result.by_contacts == {int(k): v for k, v in paper_counts["clusters_by_contacts"]["9"].items()}
         assert len(_running()) == 1 and len(cluster.scheduler.workers) == 1
-    _wait(lambda: not _our_jobs(), "end of the cluster's job", 60)
+    wait_for(lambda: not _our_jobs(), None, timeout=60, interval=0.2, what="end of the cluster's job")
