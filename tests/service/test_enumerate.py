@@ -195,7 +195,7 @@ def test_joining_an_existing_dask_cluster(db_url, paper_counts):
         assert r.returncode == 0, r.stderr
         out = json.loads(r.stdout)
         assert out["by_contacts"] == paper_counts["clusters_by_contacts"]["8"]
-        assert f"dashboard http://127.0.0.1:{dash}/status" in r.stderr
+        assert f"dashboard http://127.0.0.1:{dash}/packings" in r.stderr  # the scheduler serves the page
         # the workers wrote the results themselves: every expansion names a worker of that cluster
         engine = make_engine(db_url)
         with sessions(engine)() as s:
@@ -350,7 +350,8 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
         lambda *a, **kw: nullcontext(SimpleNamespace(client=None, revive_workers=lambda: 0)),
     )
     r = CliRunner().invoke(
-        packings.service.cli.cli, ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet"]
+        packings.service.cli.cli,
+        ["enumerate", "6", "--db", sqlite_url, "--max-attempts", "7", "--quiet", "--no-glued"],
     )
     assert r.exit_code == 0, r.output
     assert seen == {"max_attempts": 7}
