@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-from sqlalchemy import select
+from sqlalchemy import select, text
 
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, ExpansionRow
@@ -245,10 +245,19 @@ def test_a_cancelled_job_loses_nothing_and_is_replaced(slurm, pg_url, paper_coun
         )
         wait_for(lambda: done_count(pg_url) >= 20, proc, timeout=DEADLINE, interval=0.2, what="20 expansions done")
         victim, other = sorted(first)
-        subprocess.run(["scancel", victim], check=True)
-        replacement = wait_for(
-            lambda: set(_running()) - first, proc, timeout=120, interval=0.2, what="replacement job"
-        ).pop()
+        # the run held (the expansions table locked) until the replacement is submitted: on a quiet machine
+        # the other job would otherwise finish the run before the lost one's 10 s are up
+        engine = make_engine(pg_url)
+        try:
+            with engine.connect() as conn:  # a transaction, holding the lock until it is rolled back
+                conn.execute(text("LOCK TABLE expansions IN ACCESS EXCLUSIVE MODE"))
+                subprocess.run(["scancel", victim], check=True)
+                replacement = wait_for(
+                    lambda: set(_running()) - first, proc, timeout=120, interval=0.2, what="replacement job"
+                ).pop()
+                conn.rollback()
+        finally:
+            engine.dispose()
         wait_for(
             lambda: replacement in set(_workers_of_jobs(tmp_path).values()),
             proc,
