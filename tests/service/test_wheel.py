@@ -70,7 +70,9 @@ def test_the_wheel_is_one_package_with_its_migrations(wheel_env):
         "packings/migrations/script.py.mako",
         "packings/migrations/versions/0001_initial.py",
         "packings/workers/paths.py",
-        "packings/cli.py",
+        "packings/__init__.py",
+        "packings/service/cli.py",
+        "packings/service/paper_counts.json",
     ):
         assert name in names, name
 
