@@ -258,6 +258,28 @@ class Catalogue:
         with self.session() as s:
             return stats(s, n, counts_by_n(s))
 
+    def probabilities(self, n: int, kappa: float, width: float | None = None) -> dict:
+        """The equilibrium probability of each stored cluster of n and of each number of contacts at sticky
+        parameter ``kappa``: in the sticky limit Z = κ^m z, or with ``width`` the leading term of a square
+        well that wide (needed from n = 9, where a singular cluster's Z is not κ^m z).  A dict with
+        ``by_contacts`` ({m: probability}) and ``clusters`` (id, contacts, probability; most probable
+        first); :class:`packings.PackingsError` saying why where some cluster has no value
+        (:mod:`packings.service.probabilities`)."""
+        from packings.service.probabilities import probabilities
+
+        with self.session() as s:
+            return probabilities(s, n, kappa, width)
+
+    def network(self, n: int):
+        """The network of the stored clusters of n and the paths between them, a ``networkx.DiGraph``: nodes
+        are cluster ids with their facts, edges carry ``paths`` (multiplicity), ``steps`` (the fewest),
+        ``broken`` (JSON) and, on a self-loop, ``circular`` and ``rearranged``
+        (:mod:`packings.service.network`)."""
+        from packings.service.network import network
+
+        with self.session() as s:
+            return network(s, n)
+
     def fit(self) -> dict | None:
         """The fit of the totals to b·(n−5)!, the n held only by runs restricted by --min-contacts and those
         no full run has completed left out (None if no n is left)."""

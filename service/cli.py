@@ -16,6 +16,7 @@ import threading
 
 import click
 
+from packings.service import plots as _plots
 from packings.service.api import pass_bar, resolve_url
 from packings.service.dask_cluster import DASHBOARD_ADDRESS
 from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
@@ -549,26 +550,51 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
 @db_option
 @click.option("--n", "n", type=int, default=None, help="Only this n.")
 @click.option("--json", "as_json", is_flag=True, help="A JSON list with one object per n.")
-def stats_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
+@click.option(
+    "--kappa",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Add each cluster's and each number of contacts' equilibrium probability at this sticky parameter κ.",
+)
+@_plots.width_option
+def stats_cmd(db_url: str | None, n: int | None, as_json: bool, kappa: float | None, width: float | None) -> None:
     """What the catalogue contains, per n, in the paper's style.
 
     Clusters, singular clusters and close-packed fragments by number of
     contacts; fragments by lattice; adjacency matrices with several
     geometries; the smallest gaps; paths and circular paths; the fit of the
-    totals to b·(n−5)!."""
+    totals to b·(n−5)!.  With --kappa, the equilibrium probabilities from the
+    stored partition functions (an n where they are not defined says why;
+    with --n, that is an error)."""
+    from packings.service.probabilities import UndefinedProbabilities, format_probabilities
     from packings.service.stats import format_fit, format_stats
 
+    if width is not None and kappa is None:
+        raise click.UsageError("--width is the square well of --kappa's probabilities: give --kappa too")
     with _catalogue(db_url) as cat:
         rows, fit = cat.stats(n), cat.fit()
-    if n is not None and not rows:  # as plot and audit: an n asked for that the database does not hold
-        raise click.ClickException(f"no clusters with n = {n} in the database")
+        if n is not None and not rows:  # as plot and audit: an n asked for that the database does not hold
+            raise click.ClickException(f"no clusters with n = {n} in the database")
+        for r in rows if kappa is not None else ():
+            try:
+                r["probabilities"] = cat.probabilities(r["n"], kappa, width)
+            except UndefinedProbabilities as e:
+                if n is not None:
+                    raise click.ClickException(str(e)) from None
+                r["probabilities"] = {"undefined": str(e)}
     if as_json:
         click.echo(json.dumps(rows))
         return
     if not rows:
         click.echo("no clusters" + (f" with n = {n}" if n is not None else ""))
         return
-    click.echo("\n\n".join(format_stats(r) for r in rows) + "\n\n" + format_fit(fit))
+    blocks = [format_stats(r) for r in rows]
+    if kappa is not None:
+        blocks = [
+            b + "\n" + (p.get("undefined") or format_probabilities(p))
+            for b, p in zip(blocks, (r["probabilities"] for r in rows))
+        ]
+    click.echo("\n\n".join(blocks) + "\n\n" + format_fit(fit))
 
 
 @cli.command("audit")
@@ -807,6 +833,7 @@ def _exact(row) -> dict | None:
 
 @cli.command("export", cls=_SelectionCommand)
 @click.argument("selection", required=False, default="")
+@click.argument("network_n", metavar="[N]", required=False, type=int)
 @click.option("--n", "n", type=int, default=None, help="Only clusters of N spheres.")
 @click.option(
     "--format",
@@ -823,9 +850,23 @@ def _exact(row) -> dict | None:
     help="Write to this file (replaced whole, never half-written); default standard output.",
 )
 @db_option
-def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | None, db_url: str | None) -> None:
+def export_cmd(
+    selection: str, network_n: int | None, n: int | None, fmt: str | None, output: str | None, db_url: str | None
+) -> None:
     """Write the clusters that match SELECTION (default: all), ordered by n, contacts, id: extended XYZ
-    (readable by ase.io.read), plain XYZ, or JSON with every fact, coordinates and contacts."""
+    (readable by ase.io.read), plain XYZ, or JSON with every fact, coordinates and contacts.
+
+    `packings export network N -o FILE` writes instead the network of the clusters of N and the paths
+    between them, as GraphML (.graphml) or networkx's node-link JSON (.json, the default on standard
+    output): nodes with their facts, edges with the paths' multiplicity, fewest steps and broken
+    contacts, self-loops for the paths that came back to their start (circles and rearrangements)."""
+    if selection == "network":
+        _export_network(network_n, output, db_url)
+        return
+    if network_n is not None:
+        raise click.UsageError(
+            f"one SELECTION only (got {selection!r} and {network_n}); `export network N` for the network"
+        )
     fmt = fmt or _export.format_for(output)
     _check_selection(selection)
     written = 0
@@ -838,20 +879,44 @@ def export_cmd(selection: str, n: int | None, fmt: str | None, output: str | Non
                 written += 1
                 yield r.record()
 
-        chunks = _export.render(fmt, records())
-        if output is None:
-            _echo_chunks(chunks)
+        if not _write_chunks(_export.render(fmt, records()), output):
             return
-        try:
-            _export.write_atomic(output, chunks)
-        except OSError as e:
-            raise click.ClickException(f"cannot write {output}: {e.strerror or e}") from None
     click.echo(f"wrote {_export.counted(written, 'cluster')} ({fmt}) to {output}")
 
 
-from packings.service.plots import plot as _plot  # noqa: E402 - its own module; imports matplotlib only when it draws
+def _write_chunks(chunks, output: str | None) -> bool:
+    """Write the text ``chunks`` to the file ``output`` (replaced whole; True) or to standard output (None;
+    False, and nothing more is said)."""
+    if output is None:
+        _echo_chunks(chunks)
+        return False
+    try:
+        _export.write_atomic(output, chunks)
+    except OSError as e:
+        raise click.ClickException(f"cannot write {output}: {e.strerror or e}") from None
+    return True
 
-cli.add_command(_plot)
+
+def _export_network(n: int | None, output: str | None, db_url: str | None) -> None:
+    from packings.service import network
+
+    if n is None:
+        raise click.UsageError("`packings export network N`: give N")
+    fmt = network.format_for(output)
+    with _catalogue(db_url) as cat:
+        g = cat.network(n)
+    if not _write_chunks([network.text(g, fmt)], output):
+        return
+    d = network.summary(g)
+    click.echo(
+        f"wrote the network of n = {n} ({fmt}) to {output}: {_export.counted(d['clusters'], 'cluster')}, "
+        f"{_export.counted(d['edges'], 'edge')} between two clusters and {d['self_loops']} self-loops, "
+        f"{_export.counted(d['paths'], 'path')} ({d['circular']} circular, {d['rearranged']} rearranged), "
+        f"{_export.counted(d['components'], 'component')}"
+    )
+
+
+cli.add_command(_plots.plot)  # its own module; imports matplotlib only when it draws
 
 
 def _database_error(e: Exception) -> str | None:

@@ -48,31 +48,19 @@ FACTS = (
     "min_gap",
     "lattice",
     "close_packed",
+    "sigma",
+    "chiral",
+    "log_z",
+    "z_reason",
+    "eps_power",
+    "log_z_square_well",
     "found_in_run",
     "found_by",
     "source_id",
     "created_at",
 )
 #: the facts on an extended XYZ comment line (None values are left out)
-XYZ_FACTS = (
-    "id",
-    "n",
-    "contacts",
-    "excess",
-    "static",
-    "embedding",
-    "geometries",
-    "certificate",
-    "rigid_kind",
-    "rigid_method",
-    "margin",
-    "flexes",
-    "stresses",
-    "singular",
-    "min_gap",
-    "lattice",
-    "close_packed",
-)
+XYZ_FACTS = tuple(f for f in FACTS if f not in ("found_in_run", "found_by", "source_id", "created_at"))
 #: the names ASE's database reserves, and what extended XYZ and ase.Atoms.info call those facts instead
 #: (so that ``ase.db`` takes ``atoms.info`` as key-value pairs as it is)
 ASE_NAMES = {"id": "cluster_id", "stresses": "self_stresses"}

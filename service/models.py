@@ -122,6 +122,16 @@ class ClusterRow(Base):
     source_id: Mapped[int | None] = mapped_column(
         ForeignKey("clusters.id", name="fk_clusters_source_id"), nullable=True
     )
+    #: the sticky-limit partition function Z = κ^m z (packings.workers.free_energy, revision 0008); sigma is
+    #: NULL only for rows stored before 0008 until the backfill ran
+    sigma: Mapped[int | None] = mapped_column(Integer, nullable=True)  #: symmetry number (proper rotations)
+    chiral: Mapped[bool | None] = mapped_column(Boolean, nullable=True)  #: its mirror image is not a rotation of it
+    log_z: Mapped[float | None] = mapped_column(Float, nullable=True)  #: log z; NULL where Z is not κ^m z
+    #: why log_z is NULL: singular, hypostatic or hyperstatic (packings.workers.free_energy.REASONS)
+    z_reason: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    #: a square well of width ε: Z = κ^m ε^eps_power exp(log_z_square_well) to leading order, where computed
+    eps_power: Mapped[float | None] = mapped_column(Float, nullable=True)
+    log_z_square_well: Mapped[float | None] = mapped_column(Float, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     #: not a column: the number of stored clusters sharing this one's contact graph, filled in by
     #: packings.service.selection.query (None when the row was loaded another way)

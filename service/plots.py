@@ -4,12 +4,12 @@ Two layers:
 
 * pure figure functions, which take plain data and return a matplotlib figure:
   :func:`plot_counts`, :func:`plot_gap_cdf`, :func:`plot_by_contacts`,
-  :func:`plot_cluster` and :func:`plot_clusters` (several side by side).  Each
+  :func:`plot_probabilities`, :func:`plot_cluster` and :func:`plot_clusters` (several side by side).  Each
   draws on a new figure of ``size`` inches at ``dpi``, or on the caller's
   matplotlib axes ``ax=`` (a notebook's); given a ``path``, it also writes the
   figure there, in the format its suffix names (:data:`FORMATS`);
 * the ``plot`` click group (subcommands ``counts``, ``gaps``, ``contacts``,
-  ``cluster ID ...`` and ``all``), which reads the data from the database and
+  ``probabilities N``, ``cluster ID ...`` and ``all``), which reads the data from the database and
   calls them.
 
 A figure is :data:`SIZE` inches at :data:`DPI` dots per inch unless told
@@ -52,7 +52,13 @@ CMAP = "viridis"  #: colour map of the cluster pictures (its darkest 15 % left o
 GHOST = 0.3  #: opacity of the contacts drawn through the spheres in a cluster picture
 STICK_COLOR = "0.1"
 GAP_COLOR = "#d62728"  #: the closest pair of spheres not in contact: a dashed line in this colour
-DEFAULT_NAMES = {"counts": "counts.png", "gaps": "gaps.png", "contacts": "contacts.png"}
+DEFAULT_NAMES = {
+    "counts": "counts.png",
+    "gaps": "gaps.png",
+    "contacts": "contacts.png",
+    "probabilities": "probabilities.png",
+}
+KAPPAS = (0.1, 1e4)  #: the sticky parameters ``plot probabilities`` spans by default
 
 
 # --------------------------------------------------------------------------- writing
@@ -349,6 +355,41 @@ def plot_by_contacts(
     ax_.set_title("Rigid clusters by number of contacts")
     ax_.grid(True, which="major", alpha=0.3)
     ax_.legend(title="n (clusters)", fontsize=8, title_fontsize=8, loc="best")
+    return _done(fig, path, ax is None)
+
+
+def plot_probabilities(
+    kappas,
+    by_contacts: dict[int, Sequence[float]],
+    path: str | os.PathLike | None = None,
+    *,
+    n: int,
+    width: float | None = None,
+    singular: Sequence[float] | None = None,
+    ax=None,
+    size: tuple[float, float] | None = None,
+    dpi: float | None = None,
+):
+    """Equilibrium probability against the sticky parameter κ (log x), one line per number of contacts m
+    (:func:`packings.service.probabilities.curves`), and the singular clusters together, dashed, if given:
+    the clusters with more contacts take over as κ grows, as κ^m.  ``width``: the square well's, named in
+    the title (None: the sticky limit).  Returns the figure."""
+    if not by_contacts:
+        raise ValueError("no probabilities to plot")
+    fig, ax_ = _canvas(ax, size, dpi, path)
+    ax_.set_xscale("log")
+    for (m, p), color in zip(sorted(by_contacts.items()), _colors(len(by_contacts))):
+        ax_.plot(kappas, p, lw=1.8, color=color, label=f"{m} contacts")
+    if singular is not None:
+        ax_.plot(kappas, singular, lw=1.4, ls="--", color="0.25", label="singular clusters")
+    ax_.set_xlim(min(kappas), max(kappas))
+    ax_.set_ylim(-0.02, 1.02)
+    ax_.set_xlabel("sticky parameter κ")
+    ax_.set_ylabel("equilibrium probability")
+    where = "sticky limit" if width is None else f"square well of width {width:g}"
+    ax_.set_title(f"Clusters of {n} spheres in equilibrium ({where})")
+    ax_.grid(True, which="major", alpha=0.3)
+    ax_.legend(fontsize=8, loc="best")
     return _done(fig, path, ax is None)
 
 
@@ -777,6 +818,14 @@ db_option = click.option(
 n_option = click.option(
     "--n", "ns", multiple=True, metavar="N[,N...]", help="Only these n (repeat the option, or give a comma list)."
 )
+#: the square well of the probabilities (``packings stats --kappa``, ``packings plot probabilities``)
+width_option = click.option(
+    "--width",
+    type=click.FloatRange(min=0.0, max=1.0, min_open=True, max_open=True),
+    default=None,
+    help="A square well of this width (sphere diameters) instead of the sticky limit: singular clusters "
+    "(n ≥ 9) need it.",
+)
 
 
 def _file_option(default_name: str):
@@ -998,6 +1047,51 @@ def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, si
         size=size,
         dpi=dpi,
         paper=paper_tables(counts, restricted),
+    )
+
+
+@plot.command("probabilities", short_help="Equilibrium probability against κ, by number of contacts.")
+@click.argument("n", type=int)
+@db_option
+@width_option
+@click.option(
+    "--kappa",
+    "kappa_range",
+    type=click.FloatRange(min=0.0, min_open=True),
+    nargs=2,
+    default=KAPPAS,
+    show_default=True,
+    metavar="LO HI",
+    help="The range of the sticky parameter κ (log scale).",
+)
+@_file_option(DEFAULT_NAMES["probabilities"])
+@_figure_options
+def probabilities_cmd(
+    n: int, db_url: str | None, width: float | None, kappa_range, output: str | None, size, dpi
+) -> None:
+    """The equilibrium probability of the stored clusters of N against the sticky parameter κ, by number of
+    contacts, from their partition functions (`packings stats --kappa` gives the numbers at one κ)."""
+    import numpy as np
+
+    from packings.service.probabilities import curves
+
+    lo, hi = kappa_range
+    if not lo < hi:
+        raise click.BadParameter(f"{lo:g} {hi:g}: LO must be below HI", param_hint="'--kappa'")
+    path = _output_file(output, DEFAULT_NAMES["probabilities"])
+    kappas = np.geomspace(lo, hi, 200)
+    with _reading(db_url) as s:
+        got = curves(s, n, kappas, width)
+    _write(
+        plot_probabilities,
+        kappas,
+        got["by_contacts"],
+        path=path,
+        n=n,
+        width=width,
+        singular=got["singular"],
+        size=size,
+        dpi=dpi,
     )
 
 

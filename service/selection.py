@@ -41,7 +41,8 @@ from packings.service.models import (
     Transition,
 )
 from packings.workers.classify import LATTICES
-from packings.workers.outcomes import CIRCULAR
+from packings.workers.free_energy import HYPERSTATIC, HYPOSTATIC, SINGULAR
+from packings.workers.outcomes import CIRCULAR, REARRANGED
 
 OPERATORS = ("=", "!=", "<", "<=", ">", ">=")
 EQUALITY = ("=", "!=")
@@ -116,6 +117,7 @@ def _paths(conds: Callable[[], tuple]) -> Callable[[], ColumnElement]:
 _paths_out = _paths(lambda: (Transition.source_id == ClusterRow.id,))
 _paths_in = _paths(lambda: (Transition.target_id == ClusterRow.id, Transition.source_id != ClusterRow.id))
 _circular = _paths(lambda: (Transition.source_id == ClusterRow.id, Transition.outcome == CIRCULAR))
+_rearranged = _paths(lambda: (Transition.source_id == ClusterRow.id, Transition.outcome == REARRANGED))
 
 
 def _in_run(op: str, run_id: int) -> ColumnElement:
@@ -151,6 +153,20 @@ KEYS: dict[str, Key] = {
     "source_id": _column(
         "source_id", int, "the cluster it was found from (a path's start, a catalysis parent)", nullable=True
     ),
+    "sigma": _column("sigma", int, "symmetry number: the rotations among its symmetries", nullable=True),
+    "chiral": _column("chiral", bool, "its mirror image is not a rotation of it"),
+    "log_z": _column("log_z", float, "log z of its partition function Z = kappa^m z (sticky limit)", nullable=True),
+    "z_reason": _column(
+        "z_reason",
+        str,
+        "why log_z is missing: singular, hypostatic or hyperstatic",
+        nullable=True,
+        values=(SINGULAR, HYPOSTATIC, HYPERSTATIC),
+    ),
+    "eps_power": _column("eps_power", float, "a square well of width eps: Z ~ kappa^m eps^eps_power", nullable=True),
+    "log_z_square_well": _column(
+        "log_z_square_well", float, "a square well: log of Z's coefficient of kappa^m eps^eps_power", nullable=True
+    ),
     "excess": Key(int, "contacts - (3n-6)", expr=_excess),
     "hypostatic": Key(bool, "excess < 0", expr=lambda: _excess() < 0),
     "isostatic": Key(bool, "excess = 0", expr=lambda: _excess() == 0),
@@ -173,7 +189,8 @@ KEYS: dict[str, Key] = {
     "geometries": Key(int, "clusters with this contact graph (1: its adjacency has one geometry)", expr=_geometries),
     "paths_out": Key(int, "paths from it (followed, by symmetry or retraced), all runs", expr=_paths_out),
     "paths_in": Key(int, "paths from other clusters that reached it, all runs", expr=_paths_in),
-    "circular": Key(int, "paths from it that came back to it", expr=_circular),
+    "circular": Key(int, "paths from it that came back to it, every sphere where it was (circles)", expr=_circular),
+    "rearranged": Key(int, "paths from it that ended at it with its spheres permuted", expr=_rearranged),
     "reached": Key(
         bool, "some path from another cluster reaches it (false: only a seed)", expr=lambda: _paths_in() > 0
     ),

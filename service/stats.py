@@ -15,10 +15,10 @@ from sqlalchemy.orm import Session, aliased
 
 from packings.service.export import counted, table
 from packings.service.fit import fit_factorial
-from packings.service.models import ClusterRow, Transition
+from packings.service.models import ClusterRow, ExpansionRow, Transition
 from packings.service.paper import against_paper, verdict
 from packings.service.store import NOT_CLOSE_PACKED, counts_by_n, incomplete_ns
-from packings.workers.outcomes import CIRCULAR
+from packings.workers.outcomes import CIRCULAR, REARRANGED
 
 #: how many of the smallest gaps are listed
 SMALLEST = 10
@@ -64,6 +64,12 @@ def _paths(s: Session, n: int) -> dict:
     )
     followed = s.execute(base).scalar_one()
     circular = s.execute(base.where(Transition.outcome == CIRCULAR)).scalar_one()
+    rearranged = s.execute(base.where(Transition.outcome == REARRANGED)).scalar_one()
+    actually = s.execute(
+        select(func.coalesce(func.sum(ExpansionRow.paths), 0))
+        .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
+        .where(ClusterRow.n == n)
+    ).scalar_one()
     reached_by_path = select(Transition.target_id).where(
         Transition.direction != 0, Transition.target_id != Transition.source_id
     )
@@ -76,7 +82,13 @@ def _paths(s: Session, n: int) -> dict:
         .scalars()
         .all()
     )
-    return {"paths": followed, "circular_paths": circular, "unreached": list(unreached)}
+    return {
+        "paths": followed,
+        "paths_followed": int(actually),
+        "circular_paths": circular,
+        "rearranged_paths": rearranged,
+        "unreached": list(unreached),
+    }
 
 
 def _gaps(s: Session, n: int) -> list[dict]:
@@ -136,7 +148,9 @@ def stats(s: Session, n: int | None = None, every: dict[int, dict[int, int]] | N
                 "min_gap": gaps[0]["min_gap"] if gaps else None,
                 "smallest_gaps": gaps,
                 "circular_paths": paths["circular_paths"],
+                "rearranged_paths": paths["rearranged_paths"],
                 "paths": paths["paths"],
+                "paths_followed": paths["paths_followed"],
                 "unreached": paths["unreached"],
                 "fit": None
                 if fit is None
@@ -222,8 +236,11 @@ def format_stats(d: dict) -> str:
     unreached = d["unreached"]
     shown = ", ".join(map(str, unreached[:10])) + (", ..." if len(unreached) > 10 else "")
     parts.append(
-        f"paths (followed, by symmetry or retraced): {d['paths']}; circular paths: {d['circular_paths']}; "
-        f"clusters no path reaches: {len(unreached)}" + (f" (ids {shown})" if unreached else "")
+        f"paths (every broken subset and direction, as the paper counts them): {d['paths']}, of which "
+        f"{d['paths_followed']} followed (the others taken by symmetry or retraced from their end)\n"
+        f"circular paths (back to every sphere's place): {d['circular_paths']}; paths to a permutational isomer "
+        f"of their start: {d['rearranged_paths']}; clusters no path reaches: {len(unreached)}"
+        + (f" (ids {shown})" if unreached else "")
     )
     return "\n".join(parts)
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import uuid
 from collections import Counter
 from dataclasses import dataclass, replace
@@ -58,8 +59,9 @@ from packings.service.models import (
 from packings.service.owners import busy, coordinator_alive
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
+from packings.workers.free_energy import free_energy
 from packings.workers.identity import alignment, certificate_key, embedding_position, find_match
-from packings.workers.outcomes import CIRCULAR
+from packings.workers.outcomes import CIRCULAR, REARRANGED
 from packings.workers.params import Params
 from packings.workers.rigidity import Rigidity, rigidity
 from packings.workers.seeds import seed_cluster
@@ -179,6 +181,21 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
         "singular": rig.singular,
         "min_gap": gap if np.isfinite(gap) else None,
         "lattice": lattice_value(c),
+        **free_energy_values(c),
+    }
+
+
+def free_energy_values(c: CoreCluster) -> dict:
+    """The columns of the sticky-limit partition function (:func:`packings.workers.free_energy.free_energy`):
+    log z, or NULL and the kind that is why; the symmetry number; the square well's leading term."""
+    fe = free_energy(c)
+    return {
+        "sigma": fe.sigma,
+        "chiral": fe.chiral,
+        "log_z": fe.log_z,
+        "z_reason": None if fe.log_z is not None else fe.kind,
+        "eps_power": fe.eps_power,
+        "log_z_square_well": math.log(fe.square_well) if fe.square_well else None,
     }
 
 
@@ -690,7 +707,9 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                 elif next(r.found_in_run for r in rows if r.id == cid) != task.run_id:
                     others.setdefault(task.run_id, []).append(cid)
             targets = {i: ids[j] for i, j in which.items()}
-            targets.update({i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome == CIRCULAR})
+            targets.update(
+                {i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome in (CIRCULAR, REARRANGED)}
+            )
             targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
             labels = _target_labels(ex, targets, by_id, task.params.tol_d)
             transitions.append(_transition_rows(task, ex, targets, labels))
@@ -747,10 +766,14 @@ def insert_transitions(conn: Connection, rows: Iterable[tuple]) -> None:
     insert_many(conn, _T, TRANSITION_COLUMNS, rows)
 
 
+#: rows stored by an older version: without the lattice (before revision 0002) or the free energy (0008)
+_MISSING_FACTS = ClusterRow.lattice.is_(None) | ClusterRow.sigma.is_(None)
+
+
 def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, on_batch=None) -> int:
     """Compute the facts that rows stored by an older version lack (the
-    lattice, and min_gap from the coordinates); with ``recompute``, every
-    row's.  One transaction per batch, so an interruption loses nothing: a
+    lattice, min_gap, and the free energy's columns from the coordinates);
+    with ``recompute``, every row's.  One transaction per batch, so an interruption loses nothing: a
     row is either done or still NULL.  Returns the number of rows updated."""
     done = 0
     last_id = 0
@@ -758,7 +781,7 @@ def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, 
         with Session_.begin() as s:
             q = select(ClusterRow).where(ClusterRow.id > last_id).order_by(ClusterRow.id).limit(batch)
             if not recompute:
-                q = q.where(ClusterRow.lattice.is_(None))
+                q = q.where(_MISSING_FACTS)
             rows = s.execute(q).scalars().all()
             if not rows:
                 return done
@@ -767,6 +790,8 @@ def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, 
                 gap = c.min_gap()
                 row.min_gap = gap if np.isfinite(gap) else None
                 row.lattice = lattice_value(c)
+                for name, value in free_energy_values(c).items():
+                    setattr(row, name, value)
             last_id = rows[-1].id
             done += len(rows)
         if on_batch is not None:
@@ -776,7 +801,7 @@ def backfill(Session_: sessionmaker, recompute: bool = False, batch: int = 500, 
 def to_backfill(s: Session, recompute: bool = False) -> int:
     """Rows that :func:`backfill` would update: those whose facts are missing, or all."""
     q = select(func.count()).select_from(ClusterRow)
-    return s.execute(q if recompute else q.where(ClusterRow.lattice.is_(None))).scalar_one()
+    return s.execute(q if recompute else q.where(_MISSING_FACTS)).scalar_one()
 
 
 # --------------------------------------------------------------------------- reading

@@ -503,7 +503,10 @@ def store_chains(S, order, seed: int, one_transaction: bool = False) -> dict[int
 
 def embeddings(S, ids: dict[int, int]) -> dict[int, int]:
     """The embedding numbers of the stored clusters ``ids`` (geometry -> id), by geometry."""
+    from sqlalchemy import bindparam, select
+
     from packings.service.models import ClusterRow
 
-    with S() as s:
-        return {k: s.get(ClusterRow, cid).embedding for k, cid in ids.items()}
+    with S() as s:  # the column alone: the schema may be an older revision's
+        q = select(ClusterRow.embedding).where(ClusterRow.id == bindparam("cid"))
+        return {k: s.execute(q, {"cid": cid}).scalar_one() for k, cid in ids.items()}

@@ -30,6 +30,7 @@ from packings.workers.outcomes import (  # noqa: F401 - the outcomes of an attem
     NO_DIRECTION,
     NO_TRIANGLE,
     NOT_1D,
+    REARRANGED,
     RIGID,
 )
 from packings.workers.params import Params
@@ -601,10 +602,25 @@ def _classify(source: Cluster, cert: bytes, broken, sign: int, end: PathEnd, par
     outcome = end.outcome
     if outcome == RIGID:
         if certificate(c) == cert and same_geometry(source, c, params.tol_d):
-            outcome = CIRCULAR
+            outcome = CIRCULAR if same_labelled(source, c, params.tol_d) else REARRANGED
         elif params.min_contacts is not None and c.m < params.min_contacts:
             outcome = BELOW_MIN_CONTACTS
     return Endpoint(broken, sign, outcome, 1, end.steps, c, end.rigidity, end.new_contacts, end.first_step_dim)
+
+
+def same_labelled(a: Cluster, b: Cluster, tol_d: float) -> bool:
+    """Whether ``b`` is ``a`` with every sphere where it was: the same contacts, and the coordinates within
+    ``tol_d`` once aligned with sphere i on sphere i by a proper rotation.  A path that ends so is the
+    paper's circle; one that ends at ``a`` only up to a relabelling, or at its mirror image with the same
+    labels (another configuration, which only a reflection brings back), reached another isomer."""
+    if sorted(a.contacts) != sorted(b.contacts):
+        return False
+    x, y = a.coords - a.coords.mean(axis=0), b.coords - b.coords.mean(axis=0)
+    u, _, vt = np.linalg.svd(x.T @ y)
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(u @ vt))  # the best proper rotation (Kabsch)
+    r = (u * d) @ vt
+    return float(np.max(np.abs(x @ r - y))) <= tol_d
 
 
 def warm_up(apart: bool = True) -> float:

@@ -99,6 +99,7 @@ __all__ = [
     "SINGULAR",
     "HYPOSTATIC",
     "HYPERSTATIC",
+    "REASONS",
     "free_energy",
     "flexes_and_stresses",
     "square_well_moment",
@@ -106,6 +107,7 @@ __all__ = [
     "inertia_tensor",
     "log_frame_constant",
     "equilibrium_shares",
+    "shares",
 ]
 
 REGULAR = "regular"  #: 3n - 6 contacts, first-order rigid: the formula applies
@@ -113,7 +115,7 @@ SINGULAR = "singular"
 HYPOSTATIC = "hypostatic"
 HYPERSTATIC = "hyperstatic"
 
-_REASONS = {
+REASONS = {  #: why z is None, by kind (the column clusters.z_reason holds the kind)
     SINGULAR: "singular: first-order flexible, so Z is not κ^m z: it goes as κ^m ε^(a/2-b) for a flexes and b "
     "self-stresses, with a coefficient that depends on the shape of the potential (Kallus & Holmes-Cerfon 2017)",
     HYPOSTATIC: "hypostatic: fewer than 3n-6 contacts, rigid only at second order, so Z is not κ^m z: it goes as "
@@ -294,9 +296,7 @@ def free_energy(cluster: Cluster, params: Params = DEFAULT) -> FreeEnergy:
         if log_sw is not None:
             coefficient = math.exp(log_vibrational + log_rotational + log_symmetry + log_sw)
             power = 0.5 * a - 1.0
-    return FreeEnergy(
-        kind, None, None, **parts, **logs, eps_power=power, square_well=coefficient, reason=_REASONS[kind]
-    )
+    return FreeEnergy(kind, None, None, **parts, **logs, eps_power=power, square_well=coefficient, reason=REASONS[kind])
 
 
 def equilibrium_shares(energies: list[FreeEnergy], contacts: list[int], log_kappa: float = 0.0) -> list[float] | None:
@@ -305,6 +305,19 @@ def equilibrium_shares(energies: list[FreeEnergy], contacts: list[int], log_kapp
     that leaves out a cluster would look valid and be wrong)."""
     if any(e.log_z is None for e in energies):
         return None
-    logs = np.array([e.log_z + m * log_kappa for e, m in zip(energies, contacts)])
-    w = np.exp(logs - logs.max())
-    return (w / w.sum()).tolist()
+    return shares(np.array([e.log_z for e in energies]), np.array(contacts), log_kappa).tolist()
+
+
+def shares(log_z: np.ndarray, contacts: np.ndarray, log_kappa, log_eps: float = 0.0, eps_power=0.0) -> np.ndarray:
+    """Equilibrium probabilities κ^m ε^p e^{log z} / Σ (the same) of clusters of one n, given their log
+    coefficients ``log_z``, contacts m and ε powers p (0: the sticky limit), at each of the sticky parameters
+    e^{log_kappa} (a scalar: one row of shares; an array of K: K rows).  Computed in logarithms, so that
+    κ^m of m up to 3n is no overflow."""
+    log_kappa = np.asarray(log_kappa, dtype=np.float64)
+    logs = (
+        np.asarray(log_z, dtype=np.float64)
+        + np.multiply.outer(log_kappa, np.asarray(contacts, dtype=np.float64))
+        + np.asarray(eps_power, dtype=np.float64) * log_eps
+    )
+    w = np.exp(logs - logs.max(axis=-1, keepdims=True))
+    return w / w.sum(axis=-1, keepdims=True)

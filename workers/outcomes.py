@@ -19,7 +19,10 @@ OVERLAP = "overlap"  #: the projected endpoint has overlapping spheres
 TOO_LONG = "too-long"  #: max_path_steps reached without a new contact
 
 # Outcomes of one (broken subset, direction) beyond those of a path (packings.workers.expand).
-CIRCULAR = "circular"  #: the path came back to the cluster it left
+CIRCULAR = "circular"  #: the path came back to the cluster it left, every sphere where it was: the paper's circle
+#: the path ended at the cluster it left with its spheres permuted: another permutational isomer of it (an edge
+#: of the labelled network, a self-loop of the unlabelled one), not a circle
+REARRANGED = "rearranged"
 NOT_1D = "not-1d"  #: removing the subset leaves a solution set of dimension != 1 (no path)
 HELD = "held"  #: a broken contact the rest holds at its length: the set is a smaller subset's, whose path is followed
 NO_DIRECTION = "no-direction"  #: no tangent direction lengthens every broken contact

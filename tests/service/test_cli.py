@@ -151,7 +151,7 @@ def _one_line(r, status: int, *words) -> str:
 
 def test_one_name_per_quantity_of_paths(sqlite_url):
     """enumerate's paths_followed counts the paths integrated; stats counts every path stored (followed, by
-    symmetry or retraced) and says so, rather than calling that sum "paths followed" too."""
+    symmetry or retraced), as the paper counts paths, with the number followed beside it."""
     r = run("enumerate", "8", "--json", "--quiet", "--workers", "1", "--no-glued", "--db", sqlite_url)
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)["diagnostics"]
@@ -159,8 +159,9 @@ def test_one_name_per_quantity_of_paths(sqlite_url):
     assert d["paths_by_symmetry"] > 0 and d["paths_retraced"] > 0
     (stats,) = json.loads(run("stats", "--json", "--db", sqlite_url).stdout)
     assert stats["paths"] == every
+    assert stats["paths_followed"] == d["paths_followed"] < every
     text = run("stats", "--db", sqlite_url).stdout
-    assert f"paths (followed, by symmetry or retraced): {every};" in text and "paths followed" not in text
+    assert f"as the paper counts them): {every}, of which {d['paths_followed']} followed (the others" in text
 
 
 def test_exit_status_nothing_there_is_1_a_malformed_request_2(sqlite_url, tmp_path):

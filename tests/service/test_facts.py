@@ -216,7 +216,8 @@ def test_stats_json_agrees_with_the_rows(catalog, rows, paper_counts):
         assert [(g["min_gap"], g["id"]) for g in d["smallest_gaps"]] == gaps[:10]
         paths = [t for t in transitions if t.direction != 0 and by_id[t.source_id].n == n]
         assert d["paths"] == len(paths) > 0
-        assert d["circular_paths"] == sum(t.outcome == "circular" for t in paths)
+        assert d["circular_paths"] == sum(t.outcome == "circular" for t in paths) == 0  # no circle below n = 10
+        assert d["rearranged_paths"] == sum(t.outcome == "rearranged" for t in paths) > 0
         reached = {t.target_id for t in transitions if t.direction != 0 and t.target_id not in (None, t.source_id)}
         assert d["unreached"] == [c.id for c in mine if c.id not in reached]
         assert d["fit"]["b"] > 0 and d["fit"]["predicted"] == pytest.approx(d["fit"]["b"] * math.factorial(n - 5))
@@ -235,7 +236,8 @@ def test_stats_prints_the_tables(catalog):
         "adjacency matrices with more than one geometry",
         "smallest gap",
         "smallest gaps",
-        "circular paths",
+        "circular paths (back to every sphere's place): 0",
+        "paths to a permutational isomer of their start:",
         "fit of the totals to b·(n−5)!",
         "contacts  3n-6+  clusters  paper  singular",
         "     18     +0        13     13",
@@ -251,11 +253,13 @@ def test_path_keys_agree_with_the_transitions(catalog, rows):
     out = Counter(t.source_id for t in moving)
     into = Counter(t.target_id for t in moving if t.target_id is not None and t.target_id != t.source_id)
     circ = Counter(t.source_id for t in moving if t.outcome == "circular")
+    rearranged = Counter(t.source_id for t in moving if t.outcome == "rearranged")
     records = json.loads(ok("select", "--json", "--db", catalog.url))
     assert len(records) == len(clusters)
     sel = {
         "paths_out>0": sum(1 for c in clusters if out[c.id] > 0),
         "circular>0": sum(1 for c in clusters if circ[c.id] > 0),
+        "rearranged>1": sum(1 for c in clusters if rearranged[c.id] > 1),
         "!reached": sum(1 for c in clusters if into[c.id] == 0),
         "paths_in>=3": sum(1 for c in clusters if into[c.id] >= 3),
     }

@@ -155,6 +155,9 @@ SYNTHETIC = [
         singular=True,
         min_gap=None,
         lattice="fcc",
+        sigma=1,
+        chiral=True,
+        z_reason="singular",
     ),
     dict(
         n=9,
@@ -169,6 +172,11 @@ SYNTHETIC = [
         singular=True,
         min_gap=0.05,
         lattice="both",
+        sigma=2,
+        chiral=False,
+        z_reason="hypostatic",
+        eps_power=0.0,
+        log_z_square_well=-7.5,
     ),
     dict(
         n=9,
@@ -241,6 +249,7 @@ def frontier(catalog, rows):
         out=Counter(a for a, _, _ in moving),
         into=Counter(b for a, b, _ in moving if b is not None and b != a),
         circ=Counter(a for a, _, o in moving if o == "circular"),
+        rear=Counter(a for a, _, o in moving if o == "rearranged"),
         geom=Counter((c.n, c.certificate) for c in rows),
     )
 
@@ -310,6 +319,19 @@ CASES = {
     "paths_in=0": lambda c, f: f.into[c.id] == 0,
     "paths_in>2": lambda c, f: f.into[c.id] > 2,
     "circular>0": lambda c, f: f.circ[c.id] > 0,
+    "rearranged>0": lambda c, f: f.rear[c.id] > 0,
+    "rearranged>=2": lambda c, f: f.rear[c.id] >= 2,
+    "sigma=2": lambda c, f: c.sigma == 2,
+    "sigma>1,n=7": lambda c, f: c.n == 7 and _gt(c.sigma, 1),
+    "!sigma": lambda c, f: c.sigma is None,
+    "chiral": lambda c, f: c.chiral is True,
+    "!chiral": lambda c, f: c.chiral is False,
+    "log_z": lambda c, f: c.log_z is not None,
+    "log_z<-3": lambda c, f: c.log_z is not None and c.log_z < -3,
+    "z_reason=singular": lambda c, f: c.z_reason == "singular",
+    "z_reason": lambda c, f: c.z_reason is not None,
+    "eps_power=0": lambda c, f: c.eps_power == 0,
+    "log_z_square_well<-5": lambda c, f: c.log_z_square_well is not None and c.log_z_square_well < -5,
     "reached": lambda c, f: f.into[c.id] > 0,
     "!reached,n=7": lambda c, f: c.n == 7 and f.into[c.id] == 0,
     "run=1,n=9": lambda c, f: False,
@@ -341,8 +363,11 @@ def test_the_data_tells_keys_apart(rows, frontier):
     assert {c.min_gap is None for c in rows} == {True, False}
     assert {c.lattice for c in rows} == {"fcc", "both", "hcp", "none", None}
     assert set(frontier.geom.values()) == {1, 2}
-    for counts in (frontier.out, frontier.into, frontier.circ):
+    for counts in (frontier.out, frontier.into, frontier.rear):  # no circle below n = 10 (test_expand)
         assert {counts[c.id] > 0 for c in rows} == {True, False}
+    assert {c.sigma is None for c in rows} == {c.log_z is None for c in rows} == {True, False}
+    assert {c.chiral for c in rows} == {True, False, None}
+    assert {c.z_reason for c in rows} == {"singular", "hypostatic", None}
     assert len({frontier.into[c.id] for c in rows}) > 2
 
 

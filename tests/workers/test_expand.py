@@ -7,12 +7,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from packings.workers.cluster import Cluster
-from packings.workers.expand import CIRCULAR, NOT_1D, break_sizes, expand
+from packings.workers.expand import CIRCULAR, NOT_1D, REARRANGED, break_sizes, expand, same_labelled
 from packings.workers.identity import certificate_hex
 from packings.workers.params import Params
 from packings.workers.paths import RIGID
 from packings.workers.seeds import seed_cluster
-from tests.helpers import catalogue, congruent_copy
+from tests.helpers import catalogue, congruent_copy, random_orthogonal, relabel
 
 P = Params()
 
@@ -36,7 +36,7 @@ def test_expand_octahedron_reaches_only_itself_and_the_polytetrahedron():
     seed = seed_cluster(6)
     ex = expand(seed, P)
     assert ex.subsets_tried == 12
-    ends = {certificate_hex(e.cluster) for e in ex.endpoints if e.outcome in (RIGID, CIRCULAR)}
+    ends = {certificate_hex(e.cluster) for e in ex.endpoints if e.outcome in (RIGID, CIRCULAR, REARRANGED)}
     assert len(ends) == 2  # n = 6 has two rigid clusters
     for e in ex.endpoints:
         if e.cluster is not None:
@@ -202,18 +202,58 @@ def test_hyperstatic_cluster_breaks_pairs():
     d = json.loads((Path(__file__).parents[1] / "data" / "clusters_n10.json").read_text())
     c = Cluster.from_dict(d["n10_m25_first-order"])
     ex = expand(c, P)
-    sizes = Counter(len(e.broken) for e in ex.endpoints if e.outcome in (RIGID, CIRCULAR))
+    sizes = Counter(len(e.broken) for e in ex.endpoints if e.outcome in (RIGID, CIRCULAR, REARRANGED))
     assert sizes[2] > 0
     singles = [e for e in ex.endpoints if len(e.broken) == 1]
     assert any(e.outcome == NOT_1D and e.dim == 0 for e in singles)
 
 
-def test_every_path_of_the_bipyramid_is_circular():
-    """n = 5 has one rigid cluster: each of its 9 contacts opens a path back to itself."""
+def test_every_path_of_the_bipyramid_reaches_another_isomer_of_it_not_a_circle():
+    """n = 5 has one rigid cluster: each of its 9 contacts opens a path to the bipyramid with its spheres
+    permuted (a rearrangement), never back to every sphere's place (a circle)."""
     ex = expand(seed_cluster(5), P)
     assert ex.subsets_tried == 9
-    assert set(ex.outcomes()) == {CIRCULAR}
+    assert set(ex.outcomes()) == {REARRANGED}
     assert ex.rigid_endpoints() == []
+
+
+def test_no_circle_below_ten_spheres_and_those_of_ten_widen():
+    """The paper finds its first circle at n = 11.  Below n = 10 none; n = 10's are all paths of its singular
+    clusters whose set is two-dimensional from the first step on (docs/method.md); every other path that
+    comes back to its start's contact graph and shape ends at another isomer of it."""
+    for n in (6, 7, 8, 9):
+        assert catalogue(n).outcomes[CIRCULAR] == 0 and catalogue(n).outcomes[REARRANGED] > 0
+    ten = catalogue(10)
+    circles = [
+        e for c in ten.clusters if c.m == 24 and _singular(c) for e in expand(c, P).endpoints if e.outcome == CIRCULAR
+    ]
+    assert len(circles) == ten.outcomes[CIRCULAR] > 0
+    assert all(e.first_step_dim == 2 and e.new_contacts == e.broken for e in circles)
+
+
+def _singular(c: Cluster) -> bool:
+    from packings.workers.free_energy import SINGULAR, free_energy
+
+    return free_energy(c).kind == SINGULAR
+
+
+@settings(derandomize=True, max_examples=20, deadline=None, database=None)
+@given(seed=st.integers(0, 2**32 - 1), which=st.integers(0, 4))
+def test_same_labelled_is_the_same_configuration_up_to_a_rotation_only(seed, which):
+    """A rotated, translated copy with every label kept is the same labelled configuration; its mirror image
+    is not (no cluster here is planar).  Relabelled by one of its symmetries it is the same configuration
+    exactly when the symmetry is a rotation: as many as its symmetry number σ."""
+    from packings.workers.free_energy import symmetry_numbers
+    from packings.workers.identity import symmetries
+
+    c = catalogue(7).clusters[which]
+    rng = np.random.default_rng(seed)
+    moved = c.coords @ random_orthogonal(rng, False).T + rng.standard_normal(3)
+    assert same_labelled(c, Cluster(moved, c.contacts), P.tol_d)
+    mirrored = c.coords @ random_orthogonal(rng, True).T
+    assert not same_labelled(c, Cluster(mirrored, c.contacts), P.tol_d)
+    proper = sum(same_labelled(c, relabel(c, t), P.tol_d) for t in symmetries(c, P.tol_d))
+    assert proper == symmetry_numbers(c, P.tol_d)[0]
 
 
 def test_rigid_endpoints_are_exact_and_record_how_they_were_reached():

@@ -22,6 +22,7 @@ from packings.workers.free_energy import (
     equilibrium_shares,
     free_energy,
     log_frame_constant,
+    shares,
     square_well_moment,
     symmetry_numbers,
 )
@@ -179,3 +180,28 @@ def test_the_square_well_terms_against_the_monte_carlo_integration():
         assert est["edge"] < 0.9
         predicted = math.exp(log_frame_constant(cluster.n)) * fe.square_well
         assert abs(q / predicted - 1.0) <= 4.0 * err / predicted + 10.0 * math.sqrt(eps)
+
+
+@SETTINGS
+@given(
+    log_z=st.lists(st.floats(-30.0, 30.0), min_size=2, max_size=8),
+    data=st.data(),
+    log_kappa=st.floats(-5.0, 9.0),
+    factor=st.floats(-3.0, 3.0),
+)
+def test_shares_sum_to_one_and_scale_as_kappa_to_the_contacts(log_z, data, log_kappa, factor):
+    """Shares are probabilities, unchanged by relabelling the clusters, and multiplying κ by e^f multiplies
+    the odds of cluster a against b by e^(f (m_a - m_b)): κ^m is the only place κ enters."""
+    k = len(log_z)
+    contacts = np.array(data.draw(st.lists(st.integers(30, 40), min_size=k, max_size=k)))
+    log_z = np.array(log_z)
+    p = shares(log_z, contacts, log_kappa)
+    assert p.sum() == pytest.approx(1.0) and (p >= 0).all()
+    perm = np.array(data.draw(st.permutations(range(k))))
+    assert shares(log_z[perm], contacts[perm], log_kappa) == pytest.approx(p[perm], abs=1e-12)
+    q = shares(log_z, contacts, log_kappa + factor)
+    if p[0] > 1e-200 and p[1] > 1e-200 and q[0] > 1e-200 and q[1] > 1e-200:
+        odds = math.log(q[0] / q[1]) - math.log(p[0] / p[1])
+        assert odds == pytest.approx(factor * (contacts[0] - contacts[1]), abs=1e-6)
+    both = shares(log_z, contacts, np.array([log_kappa, log_kappa + factor]))
+    assert both == pytest.approx(np.vstack([p, q]), abs=1e-12)
