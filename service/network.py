@@ -3,8 +3,9 @@
 A node per stored cluster of n, with its facts (:func:`packings.service.export.facts`, missing values
 left out); a directed edge from each cluster to each cluster its paths reached, with
 
-* ``paths``: how many attempts (broken subset and direction) went that way, counted as the paper
-  counts paths (those taken by symmetry or retraced from their end included),
+* ``paths``: how many attempts (broken subset and direction) ended at that cluster, counted as the paper
+  counts paths (those taken by symmetry or retraced from their end included); a path that reached no
+  stored cluster (floppy, too long, ...) is in no edge,
 * ``steps``: the fewest steps of one of them,
 * ``broken``: the broken subsets, as JSON ``[[[i, j], ...], ...]`` in the source's labels, distinct and sorted,
 * ``circular`` and ``rearranged`` on a self-loop: of its paths, how many came back to every sphere's

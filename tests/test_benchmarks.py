@@ -466,6 +466,25 @@ def test_the_retrace_benchmark_counts_the_paths_a_complete_run_follows_from_both
     assert r.returncode != 0 and "no complete run of n = 10" in r.stderr
 
 
+def test_the_network_benchmark_reports_the_network_of_a_run(run_of_9):
+    """n = 9: one component holding the 52 clusters, every path that reached a cluster counted once, no
+    circle, and a route from the seed along the paths' directions whose every step is an edge."""
+    import networkx as nx
+
+    import packings
+
+    url, diagnostics = run_of_9
+    (report,) = benchmark("network", "--n", "9", "--db", url)
+    assert (report["clusters"], report["components"], report["circular"]) == (52, 1, 0)
+    assert report["rearranged"] == diagnostics["rearranged"] > 0
+    assert report["paths"] == diagnostics["rigid"] + diagnostics["rearranged"]  # the paths that reached a cluster
+    with packings.connect(url) as cat:
+        g = cat.network(9)
+    assert report["diameter"] == nx.diameter(nx.Graph(g.to_undirected())) > 1
+    route = [x["id"] for x in report["route"]]
+    assert g.nodes[route[0]]["found_by"] == "seed" and all(g.has_edge(a, b) for a, b in zip(route, route[1:]))
+
+
 def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
     """n = 9's 52 clusters in a record, then a sphere of 20 of them moved: the record holds every stored
     cluster and every remainder decided, at a few dozen bytes each (a digest in a table half full at most
