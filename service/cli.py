@@ -34,6 +34,20 @@ db_option = click.option(
     metavar="URL",
     help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
 )
+#: where the work runs: a local cluster of K workers, or an existing Dask cluster
+workers_option = click.option(
+    "--workers",
+    "n_workers",
+    type=int_range("workers"),
+    default=None,
+    help="Worker processes of the local Dask cluster (default: one per core).",
+)
+scheduler_option = click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.",
+)
 dashboard_option = click.option(
     "--dashboard-address",
     default=DASHBOARD_ADDRESS,
@@ -103,19 +117,8 @@ def cli(verbose: int) -> None:
 @cli.command("enumerate")
 @click.argument("n", type=int)
 @db_option
-@click.option(
-    "--workers",
-    "n_workers",
-    type=int_range("workers"),
-    default=None,
-    help="Worker processes of the local Dask cluster (default: one per core).",
-)
-@click.option(
-    "--scheduler",
-    default=None,
-    metavar="ADDRESS",
-    help="Join an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.",
-)
+@workers_option
+@scheduler_option
 @click.option(
     "--slurm",
     is_flag=True,
@@ -308,19 +311,8 @@ def enumerate_cmd(
     "every other stacking), decided in this process; the rigid ones not yet stored are added "
     "(found_by = close-packed).",
 )
-@click.option(
-    "--workers",
-    "n_workers",
-    type=int_range("workers"),
-    default=None,
-    help="Worker processes of the local Dask cluster (default: one per core).",
-)
-@click.option(
-    "--scheduler",
-    default=None,
-    metavar="ADDRESS",
-    help="Use an existing Dask cluster, e.g. tcp://host:8786, instead of starting one.",
-)
+@workers_option
+@scheduler_option
 @dashboard_option
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
