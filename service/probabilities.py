@@ -7,8 +7,8 @@ stored partition functions (docs/method.md, "Free energies in the sticky limit")
 * the sticky limit, Z = κ^m z (``clusters.log_z``): defined only where every cluster of n is regular
   (first-order rigid with 3n − 6 contacts; n ≤ 8), since for the others Z is not κ^m times a number;
 * a square well of width ε (``width``), Z = κ^m ε^p z_sw to leading order (``clusters.eps_power``,
-  ``clusters.log_z_square_well``): defined where every cluster has that term (one self-stress at most and
-  at most two flexes: every cluster of n ≤ 10).
+  ``clusters.log_z_square_well``): defined where every cluster has that term (one self-stress at most,
+  at most two flexes, and a stress that leaves the well more than a point: every cluster of n ≤ 10).
 
 Where some cluster has no value the probabilities are not given, never computed over the others: the
 error says how many clusters lack it and why.
@@ -94,8 +94,8 @@ def weights(s: Session, n: int, width: float | None = None) -> Weights:
         _refuse(
             n,
             [r for r in rows if r.log_z_square_well is None],
-            "with more than one self-stress or more "
-            "than two flexes: no square well's leading term is computed for {them}, so no probabilities are given",
+            "no square well's leading term is computed for {them} (more than one self-stress, more than two "
+            "flexes, or a stress that leaves the well a single point), so no probabilities are given",
         )
         log, power = [r.log_z_square_well for r in rows], [r.eps_power for r in rows]
     return Weights(

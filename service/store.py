@@ -195,7 +195,7 @@ def free_energy_values(c: CoreCluster) -> dict:
         "log_z": fe.log_z,
         "z_reason": None if fe.log_z is not None else fe.kind,
         "eps_power": fe.eps_power,
-        "log_z_square_well": math.log(fe.square_well) if fe.square_well else None,
+        "log_z_square_well": None if fe.square_well is None else math.log(fe.square_well),
     }
 
 

@@ -76,8 +76,9 @@ integrating over t,
 of the well enters: for another potential σ_k has the distribution of the normalised Boltzmann
 factor across the well instead of the uniform one.  J_a is computed from the distribution of wᵀ σ,
 built on a grid one term at a time (:func:`square_well_moment`).  Clusters with more than one self-stress or more than two
-flexes get no value (``square_well`` None); neither does any cluster for potentials other than the
-square well.
+flexes get no value (``square_well`` None); nor do those with J_a = 0 (a stress w that wᵀσ cannot
+satisfy the slice's equation with except at one point, e.g. all of one sign with no flex: their leading
+term is of a higher order in ε); nor does any cluster for potentials other than the square well.
 """
 
 from __future__ import annotations
@@ -217,15 +218,21 @@ def square_well_moment(w: np.ndarray, a: int, points: int = 1 << 15) -> float:
     """J_a of the module docstring for a unit vector w: E[(wᵀσ)_+^{a/2 - 1}] (a = 1), the density of wᵀσ
     at 0 (a = 0) or P(wᵀσ > 0) (a = 2), σ uniform in [0, 1]^m.
 
-    The distribution of h = wᵀσ is built one term at a time on a grid of ``points`` over its range: with F
-    the distribution function of the first terms, adding w_k σ_k gives the density (F(x - lo) - F(x - hi)) / |w_k|
-    ([lo, hi] the range of w_k σ_k), integrated again by the trapezoidal rule; F is interpolated linearly, so
-    the error is of the order of the squared grid step.  E[h_+^{-1/2}] = 2 ∫_0^∞ p(t²) dt.
+    The distribution of h = wᵀσ is built one term at a time, the largest |w_k| first, on a grid of ``points``
+    over its range: with F the distribution function of the first terms, adding w_k σ_k gives the density
+    (F(x - lo) - F(x - hi)) / |w_k| ([lo, hi] the range of w_k σ_k), integrated again by the trapezoidal
+    rule; F is interpolated linearly, so the error is of the order of the squared grid step.  A term
+    narrower than a few grid steps would divide that step's rounding by a small |w_k|: it is taken as its
+    mean w_k / 2 instead, a shift of h (its spread, w_k² / 12 in variance, is below the grid's
+    resolution).  E[h_+^{-1/2}] = 2 ∫_0^∞ p(t²) dt.
     """
     if a not in (0, 1, 2):
         raise ValueError("J_a is computed for a = 0, 1, 2 only")
     w = np.asarray(w, dtype=np.float64)
-    w = w[np.abs(w) > 1e-15]
+    w = w[np.argsort(-np.abs(w), kind="stable")]
+    narrow = np.abs(w) < 8.0 * float(np.abs(w).sum()) / points
+    shift = 0.5 * float(w[narrow].sum())  # h = (the wide terms' sum) + shift
+    w = w[~narrow]
     lo_k, hi_k = np.minimum(w, 0.0), np.maximum(w, 0.0)
     lo, hi = float(lo_k.sum()), float(hi_k.sum())
     x = np.linspace(lo, hi, points)
@@ -236,22 +243,25 @@ def square_well_moment(w: np.ndarray, a: int, points: int = 1 << 15) -> float:
         density = (np.interp(x - lo_k[k], x, cdf, 0.0, 1.0) - np.interp(x - hi_k[k], x, cdf, 0.0, 1.0)) / abs(w[k])
         cdf = np.concatenate([[0.0], np.cumsum(0.5 * (density[1:] + density[:-1]) * step)])
     if a == 0:
-        return float(np.interp(0.0, x, density))
+        return float(np.interp(-shift, x, density, 0.0, 0.0))
     if a == 2:
-        return float(1.0 - np.interp(0.0, x, cdf))
-    if hi <= 0.0:
+        return float(1.0 - np.interp(-shift, x, cdf, 0.0, 1.0))
+    if hi + shift <= 0.0:
         return 0.0
-    t = np.linspace(0.0, math.sqrt(hi), points)
-    f = np.interp(t * t, x, density)
+    t = np.linspace(0.0, math.sqrt(hi + shift), points)
+    f = np.interp(t * t - shift, x, density, 0.0, 0.0)
     return float(2.0 * (t[1] - t[0]) * (f.sum() - 0.5 * (f[0] + f[-1])))
 
 
 def _square_well_log(flexes: np.ndarray, stresses: np.ndarray, edges: np.ndarray, n: int) -> float | None:
-    """log(C_a J_a) of the module docstring (b = 1, a <= 2), None if the stress form is not definite."""
+    """log(C_a J_a) of the module docstring (b = 1, a <= 2); None if the stress form is not definite, or
+    if J_a = 0: a self-stress whose every nonzero entry has the sign that keeps wᵀσ from the value it must
+    take (e.g. all of one sign with no flex), so that the slice of the well is one point and the leading
+    term is of a higher order in ε than this module computes."""
     a = flexes.shape[1]
     w = stresses[:, 0]
     if a == 0:
-        return math.log(square_well_moment(w, 0))
+        return _log_positive(square_well_moment(w, 0))
     dv = flexes.reshape(n, 3, a)
     dv = dv[edges[:, 0]] - dv[edges[:, 1]]  # (m, 3, a)
     m_form = np.einsum("k,kxa,kxb->ab", w, dv, dv)
@@ -261,7 +271,13 @@ def _square_well_log(flexes: np.ndarray, stresses: np.ndarray, edges: np.ndarray
     if ev[0] <= 0:
         return None
     log_c = 0.5 * a * math.log(2.0 * math.pi) - math.lgamma(0.5 * a) - 0.5 * float(np.log(ev).sum())
-    return log_c + math.log(square_well_moment(w, a))
+    moment = _log_positive(square_well_moment(w, a))
+    return None if moment is None else log_c + moment
+
+
+def _log_positive(x: float) -> float | None:
+    """log x, or None where x is not positive (to the grid's precision: below 1e-12)."""
+    return math.log(x) if x > 1e-12 and math.isfinite(x) else None
 
 
 def free_energy(cluster: Cluster, params: Params = DEFAULT) -> FreeEnergy:

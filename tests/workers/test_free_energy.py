@@ -205,3 +205,22 @@ def test_shares_sum_to_one_and_scale_as_kappa_to_the_contacts(log_z, data, log_k
         assert odds == pytest.approx(factor * (contacts[0] - contacts[1]), abs=1e-6)
     both = shares(log_z, contacts, np.array([log_kappa, log_kappa + factor]))
     assert both == pytest.approx(np.vstack([p, q]), abs=1e-12)
+
+
+def test_the_square_well_moment_of_a_stress_with_entries_of_every_size():
+    """n = 11's singular cluster whose self-stress has entries from 0.28 down to rounding (one flex): J_1 is
+    E[(wᵀσ)_+^(-1/2)], about 1.60 by a seeded Monte Carlo estimate; building the distribution term by term
+    must not divide the grid's rounding by the tiny entries (it once gave a negative J and a failed write-back)."""
+    from packings.workers.free_energy import flexes_and_stresses
+
+    cluster = Cluster.from_dict(json.loads((DATA / "n11_stress_widths.json").read_text())["n11_singular_stress_widths"])
+    _, flexes, stresses = flexes_and_stresses(cluster.coords, cluster.contacts, 1e-8)
+    w = stresses[:, 0]
+    assert flexes.shape[1] == 1 and np.abs(w).min() < 1e-6 < 0.2 < np.abs(w).max()
+    h = np.random.default_rng(0).random((400_000, w.size)) @ w
+    for sign in (1.0, -1.0):
+        mc = np.mean(np.where(sign * h > 0, np.abs(h) ** -0.5, 0.0))
+        assert square_well_moment(sign * w, 1) == pytest.approx(mc, rel=0.02)
+        assert square_well_moment(sign * w, 2) == pytest.approx(np.mean(sign * h > 0), abs=0.005)
+    fe = free_energy(cluster)
+    assert fe.kind == SINGULAR and fe.eps_power == -0.5 and fe.square_well > 0
