@@ -6,10 +6,9 @@ documents the tables for users who query them with plain SQL or pandas.
 
 Conventions:
 
-* Coordinates are stored as the raw little-endian float64 bytes of the n x 3
-  array (``coords``), so they read back bit-exactly; ``coords_json`` holds the
-  same numbers as JSON text for plain-SQL users (round-trip exact as well:
-  Python writes floats with the shortest repr that reads back identically).
+* Coordinates are stored once, as the raw little-endian float64 bytes of the
+  n x 3 array (``coords``), so they read back bit-exactly (``packings export``
+  and the Python API give them as numbers).
 * Contact lists are JSON text: ``[[i, j], ...]`` with ``i < j``, sorted.
 * The attempts of an expansion are one row of ``attempts``, packed
   (:mod:`packings.service.paths_codec`); ``edges`` holds the clusters each
@@ -104,7 +103,6 @@ class ClusterRow(Base):
     certificate: Mapped[str] = mapped_column(String(200))  #: packings.workers.identity.certificate_key
     embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate, by shape
     coords: Mapped[bytes] = mapped_column(LargeBinary)  #: n x 3 float64, little-endian
-    coords_json: Mapped[str] = mapped_column(Text)
     contact_list: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
     rigid_kind: Mapped[str] = mapped_column(String(32))  #: packings.workers.rigidity kind (first-order / prestress)
     rigid_method: Mapped[str] = mapped_column(String(32))  #: which test decided

@@ -169,7 +169,6 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
         "contacts": c.m,
         "certificate": certificate_key(c),
         "coords": np.ascontiguousarray(c.coords, dtype="<f8").tobytes(),
-        "coords_json": json.dumps(c.coords.tolist()),
         "contact_list": contacts_json(c.contacts),
         "rigid_kind": rig.kind,
         "rigid_method": rig.method,

@@ -384,7 +384,7 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
     trip over): the same rows after, and the schema is head again."""
     fill_database(engine, 8)
     before = _table_counts(engine)
-    revisions = ["0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
+    revisions = ["0009", "0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
     for revision in revisions[1:]:
         migrate(engine, revision, down=True)
         assert current_revision(engine) == revision
@@ -472,6 +472,25 @@ def test_revision_0008_refuses_outcomes_it_cannot_pack(engine):
         migrate(engine, "head")
     assert current_revision(engine) == "0007"
     assert "attempts" not in inspect(engine).get_table_names()
+
+
+def test_revision_0009_drops_the_json_coordinates_and_the_downgrade_writes_them_again(engine):
+    """The coordinates are stored once (clusters.coords) from 0009 on; going down to 0008 writes
+    coords_json again, as the service wrote it: numbers that read back equal to coords, bit for bit."""
+    import numpy as np
+
+    fill_database(engine, 7)
+    assert "coords_json" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
+    migrate(engine, "0008", down=True)
+    with engine.connect() as c:
+        rows = c.execute(text("SELECT n, coords, coords_json FROM clusters")).all()
+    assert len(rows) == 5
+    for n, coords, coords_json in rows:
+        x = np.frombuffer(coords, dtype="<f8").reshape(n, 3)
+        assert coords_json == json.dumps(x.tolist()) and np.array_equal(np.array(json.loads(coords_json)), x)
+    assert not {c["name"]: c for c in inspect(engine).get_columns("clusters")}["coords_json"]["nullable"]
+    migrate(engine, "head")
+    assert "coords_json" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
 
 
 REPOSITORY = Path(__file__).resolve().parents[2]

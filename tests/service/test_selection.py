@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from types import SimpleNamespace
 
@@ -215,7 +214,6 @@ def rows(catalog):
                 ClusterRow(
                     **values,
                     coords=x.astype("<f8").tobytes(),
-                    coords_json=json.dumps(x.tolist()),
                     contact_list="[[0, 1]]",
                     found_in_run=None,
                     found_by="seed",

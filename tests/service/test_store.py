@@ -68,9 +68,6 @@ def test_coordinates_read_back_bit_exactly(run8):
     with S() as s:
         c = s.execute(select(ClusterRow)).scalar_one()
         assert np.array_equal(c.to_core().coords, seed_cluster(8).coords)
-        import json
-
-        assert np.array_equal(np.array(json.loads(c.coords_json)), seed_cluster(8).coords)
 
 
 def test_claim_leases_with_fresh_tokens(run8):
