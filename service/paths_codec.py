@@ -30,8 +30,10 @@ service and migration 0008 both use it, and a later version must keep reading ve
 
 from __future__ import annotations
 
+import functools
 import zlib
 from dataclasses import dataclass
+from itertools import chain
 from typing import Iterable, Sequence
 
 import numpy as np
@@ -93,61 +95,49 @@ _UINT = {1: "<u1", 2: "<u2", 4: "<u4"}
 
 
 def pack(n: int, attempts: Sequence[Attempt]) -> bytes:
-    """``attempts`` (of a cluster of ``n`` spheres) packed: :func:`unpack` gives them back."""
+    """``attempts`` (of a cluster of ``n`` spheres) packed: :func:`unpack` gives them back.  Each column
+    is made from a list in one go (an expansion may have hundreds of thousands of attempts)."""
     if not 0 < n < 256:
         raise CodecError(f"cannot pack attempts of {n} spheres (1 to 255)")
     a = len(attempts)
+    try:
+        outcome = [_OUTCOME_CODE[t.outcome] for t in attempts]
+    except KeyError as e:
+        raise CodecError(f"unknown outcome {e.args[0]!r}: add it at the end of paths_codec.OUTCOMES") from None
     targets: dict[int, int] = {}
-    direction = np.empty(a, dtype="<i1")
-    outcome = np.empty(a, dtype="<u1")
-    target = np.empty(a, dtype="<u4")
-    steps = np.empty(a, dtype="<u4")
-    nb = np.empty(a, dtype="<u4")
-    nf = np.empty(a, dtype="<u4")
-    broken: list[int] = []
-    formed: list[int] = []
-    labelled = np.zeros(a, dtype=bool)
-    labels: list[int] = []
-    for k, t in enumerate(attempts):
-        direction[k] = t.direction
-        try:
-            outcome[k] = _OUTCOME_CODE[t.outcome]
-        except KeyError:
-            raise CodecError(f"unknown outcome {t.outcome!r}: add it at the end of paths_codec.OUTCOMES") from None
-        target[k] = 0 if t.target is None else 1 + targets.setdefault(int(t.target), len(targets))
-        steps[k] = t.steps
-        nb[k] = len(t.broken)
-        nf[k] = len(t.new_contacts)
-        for i, j in t.broken:
-            broken += (i, j)
-        for i, j in t.new_contacts:
-            formed += (i, j)
-        if t.labels is not None:
-            if len(t.labels) != n:
-                raise CodecError(f"labels of {len(t.labels)} spheres in attempts of {n}")
-            labelled[k] = True
-            labels.extend(t.labels)
+    target = [0 if t.target is None else 1 + targets.setdefault(int(t.target), len(targets)) for t in attempts]
+    nb = [len(t.broken) for t in attempts]
+    nf = [len(t.new_contacts) for t in attempts]
+    broken = list(chain.from_iterable(chain.from_iterable(t.broken for t in attempts)))
+    formed = list(chain.from_iterable(chain.from_iterable(t.new_contacts for t in attempts)))
+    labelled = [t.labels is not None for t in attempts]
+    labels = list(chain.from_iterable(t.labels for t in attempts if t.labels is not None))
+    if len(labels) != n * sum(labelled):
+        raise CodecError(f"labels of other than {n} spheres in attempts of {n}")
     for name, values in (("pairs", broken), ("pairs", formed), ("labels", labels)):
         if values and not 0 <= min(values) <= max(values) < n:
             raise CodecError(f"{name} outside spheres 0..{n - 1}")
+    steps = np.array([t.steps for t in attempts], dtype=np.int64)
+    if a and not 0 <= steps.min() <= steps.max() < 1 << 32:
+        raise CodecError("steps outside 0..2**32 - 1")
     steps_w = _width(int(steps.max()) if a else 0, (2, 4))
-    count_w = _width(int(max(nb.max(), nf.max())) if a else 0, (1, 2))
+    count_w = _width(max(nb + nf, default=0), (1, 2))
     target_w = _width(len(targets))
     header = np.array(
-        [n, a, len(targets), int(labelled.sum()), len(broken) // 2, len(formed) // 2, steps_w, count_w], dtype="<u4"
+        [n, a, len(targets), sum(labelled), len(broken) // 2, len(formed) // 2, steps_w, count_w], dtype="<u4"
     )
     columns = (
         header,
         np.fromiter(targets, dtype="<i8", count=len(targets)),
-        direction,
-        outcome,
-        target.astype(_UINT[target_w]),
+        np.array([t.direction for t in attempts], dtype="<i1"),
+        np.array(outcome, dtype="<u1"),
+        np.array(target, dtype=_UINT[target_w]),
         steps.astype(_UINT[steps_w]),
-        nb.astype(_UINT[count_w]),
-        nf.astype(_UINT[count_w]),
+        np.array(nb, dtype=_UINT[count_w]),
+        np.array(nf, dtype=_UINT[count_w]),
         np.array(broken, dtype="<u1"),
         np.array(formed, dtype="<u1"),
-        np.packbits(labelled),
+        np.packbits(np.array(labelled, dtype=bool)),
         np.array(labels, dtype="<u1"),
     )
     return bytes([VERSION]) + zlib.compress(b"".join(c.tobytes() for c in columns), 9)
@@ -178,22 +168,29 @@ class Packed:
         t = int(self.target[k])
         return None if t < 0 else int(self.targets[t])
 
+    @functools.cached_property
+    def _attempts(self) -> list[Attempt]:
+        """Every attempt, made from the columns as Python lists in one go."""
+        targets = [None, *self.targets.tolist()]
+        labels = [None, *map(tuple, self.labels.tolist())]
+        return [
+            Attempt(b, d, OUTCOMES[o], targets[t + 1], st, f, labels[r + 1])
+            for b, d, o, t, st, f, r in zip(
+                _split(self.broken, self.broken_at),
+                self.direction.tolist(),
+                self.outcome.tolist(),
+                self.target.tolist(),
+                self.steps.tolist(),
+                _split(self.formed, self.formed_at),
+                self.labels_at.tolist(),
+            )
+        ]
+
     def attempt(self, k: int) -> Attempt:
-        b = self.broken[self.broken_at[k] : self.broken_at[k + 1]].tolist()
-        f = self.formed[self.formed_at[k] : self.formed_at[k + 1]].tolist()
-        r = int(self.labels_at[k])
-        return Attempt(
-            tuple((i, j) for i, j in b),
-            int(self.direction[k]),
-            OUTCOMES[self.outcome[k]],
-            self.target_id(k),
-            int(self.steps[k]),
-            tuple((i, j) for i, j in f),
-            None if r < 0 else tuple(self.labels[r].tolist()),
-        )
+        return self._attempts[k]
 
     def __iter__(self):
-        return (self.attempt(k) for k in range(len(self)))
+        return iter(self._attempts)
 
     def to(self, target: int, labelled: bool = False) -> np.ndarray:
         """The positions of the attempts that reached cluster ``target`` (with labels only, if
@@ -205,6 +202,13 @@ class Packed:
         if labelled:
             mask &= self.labels_at >= 0
         return np.flatnonzero(mask)
+
+
+def _split(pairs: np.ndarray, at: np.ndarray) -> list[tuple[tuple[int, int], ...]]:
+    """The pairs of each attempt: ``pairs[at[k]:at[k + 1]]`` as a tuple of (i, j) tuples, for each k."""
+    every = list(zip(pairs[:, 0].tolist(), pairs[:, 1].tolist()))
+    bounds = at.tolist()
+    return [tuple(every[i:j]) for i, j in zip(bounds, bounds[1:])]
 
 
 def unpack(data: bytes) -> Packed:

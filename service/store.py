@@ -739,17 +739,10 @@ def _target_labels(
 
 
 def _attempts(ex: CoreExpansion, targets: dict[int, int], labels: dict[int, tuple[int, ...]]) -> list[Attempt]:
-    """The attempts of ``ex``, each with the cluster it reached (``targets``) and its labels."""
+    """The attempts of ``ex``, each with the cluster it reached (``targets``) and its labels (the endpoints'
+    own pairs, shared, not copied: an expansion may have hundreds of thousands of attempts)."""
     return [
-        Attempt(
-            tuple((int(i), int(j)) for i, j in e.broken),
-            e.direction,
-            e.outcome,
-            targets.get(i),
-            e.steps,
-            tuple((int(a), int(b)) for a, b in e.new_contacts),
-            labels.get(i),
-        )
+        Attempt(e.broken, e.direction, e.outcome, targets.get(i), e.steps, e.new_contacts, labels.get(i))
         for i, e in enumerate(ex.endpoints)
     ]
 

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
@@ -287,6 +288,9 @@ def _copy_as_0002(source, target) -> None:
                 {k: v for k, v in r.items() if k in table.c}
                 for r in src.execute(Base.metadata.tables[name].select()).mappings()
             ]
+            if name == "clusters":  # the coordinates as JSON too, as revisions before 0009 hold them
+                for r in rows:
+                    r["coords_json"] = json.dumps(np.frombuffer(r["coords"], dtype="<f8").reshape(r["n"], 3).tolist())
             dst.execute(table.insert(), rows)
         table = old.tables["transitions"]
         dst.execute(table.insert(), [{k: v for k, v in r.items() if k in table.c} for r in transitions])
@@ -477,8 +481,6 @@ def test_revision_0008_refuses_outcomes_it_cannot_pack(engine):
 def test_revision_0009_drops_the_json_coordinates_and_the_downgrade_writes_them_again(engine):
     """The coordinates are stored once (clusters.coords) from 0009 on; going down to 0008 writes
     coords_json again, as the service wrote it: numbers that read back equal to coords, bit for bit."""
-    import numpy as np
-
     fill_database(engine, 7)
     assert "coords_json" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
     migrate(engine, "0008", down=True)

@@ -86,7 +86,7 @@ def test_the_outcomes_are_every_name_an_attempt_may_have_once():
     [
         (8, Attempt(((0, 1),), 1, "vanished", None, 0, ()), "unknown outcome"),
         (8, Attempt(((0, 8),), 1, outcomes.RIGID, None, 0, ()), "outside"),
-        (8, Attempt(((0, 1),), 1, outcomes.RIGID, 5, 0, (), (0, 1, 2)), "labels of 3 spheres"),
+        (8, Attempt(((0, 1),), 1, outcomes.RIGID, 5, 0, (), (0, 1, 2)), "labels of other than 8 spheres"),
         (256, Attempt(((0, 1),), 1, outcomes.RIGID, None, 0, ()), "256 spheres"),
     ],
 )
