@@ -238,7 +238,8 @@ def arrivals_of(url: str, run_id: int, mode: str, ids) -> dict[int, tuple[tuple[
     from sqlalchemy import select
 
     import packings
-    from packings.service.models import ExpansionRow, Transition
+    from packings.service.models import ExpansionRow
+    from packings.service.store import arrivals_at
 
     ids = sorted(set(ids))
     out: dict[int, list] = {cid: [] for cid in ids}
@@ -258,26 +259,13 @@ def arrivals_of(url: str, run_id: int, mode: str, ids) -> dict[int, tuple[tuple[
         }
         finished = {cid: at for cid, _, at, _ in rows}
         loaded = _loaded(rows) if mode == "run" else {}
-        for run, target, source, broken, new, steps, labels in s.execute(
-            select(
-                Transition.run_id,
-                Transition.target_id,
-                Transition.source_id,
-                Transition.broken,
-                Transition.new_contacts,
-                Transition.steps,
-                Transition.target_labels,
-            )
-            .where(Transition.target_id.in_(ids), Transition.target_labels.is_not(None))
-            .order_by(Transition.id)
-        ):
-            if run != run_id:
-                continue
-            if mode == "run":
-                read, came = loaded.get(target), finished.get(source)
-                if read is None or came is None or came > read:
-                    continue
-            out[target].append((source, json.loads(broken), json.loads(new), steps, json.loads(labels)))
+        for (_, target), came_to in arrivals_at(s, {(run_id, cid) for cid in ids}).items():
+            for source, broken, new, steps, labels in came_to:
+                if mode == "run":
+                    read, came = loaded.get(target), finished.get(source)
+                    if read is None or came is None or came > read:
+                        continue
+                out[target].append((source, broken, new, steps, labels))
     return {cid: (tuple(rows), took.get(cid, 0)) for cid, rows in out.items()}
 
 

@@ -32,7 +32,8 @@ def count(url: str, n: int) -> dict:
     from sqlalchemy import func, select
 
     import packings
-    from packings.service.models import COMPLETE, ClusterRow, ExpansionRow, Run, Transition, core_cluster
+    from packings.service.models import COMPLETE, AttemptsRow, ClusterRow, ExpansionRow, Run, core_cluster
+    from packings.service.store import transitions
     from packings.workers.identity import symmetries
     from packings.workers.outcomes import RIGID
     from packings.workers.params import Params
@@ -65,21 +66,18 @@ def count(url: str, n: int) -> dict:
                 select(ExpansionRow.outcomes).where(ExpansionRow.run_id == run_id, ExpansionRow.outcomes.is_not(None))
             ).scalars()
         )
-        with_direction = s.execute(
-            select(func.count()).select_from(Transition).where(Transition.run_id == run_id, Transition.direction != 0)
-        ).scalar()
+        with_direction = s.execute(select(func.sum(AttemptsRow.paths)).where(AttemptsRow.run_id == run_id)).scalar()
         k = Counter()
-        for source, broken, target, new in s.execute(
-            select(Transition.source_id, Transition.broken, Transition.target_id, Transition.new_contacts).where(
-                Transition.run_id == run_id, Transition.direction != 0, Transition.outcome == RIGID
-            )
-        ):
+        for t in transitions(s, run=run_id):
+            if t.direction == 0 or t.outcome != RIGID:
+                continue
+            source, target = t.source_id, t.target_id
             if (
                 source in rigid
                 and target in rigid
                 and (source in regular or target in regular)
-                and json.loads(broken)
-                and json.loads(new)
+                and t.broken
+                and t.new_contacts
             ):
                 k[(source, target)] += 1
     order = {cid: len(symmetries(core_cluster(n, *rigid[cid]), tol_d)) for cid in {c for pair in k for c in pair}}

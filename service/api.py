@@ -225,28 +225,28 @@ class Catalogue:
 
     def transitions(self, id: int, *, reaching: bool = False) -> list[dict]:
         """The transitions from cluster ``id`` (its paths: followed, by symmetry or retraced, and the
-        attempts no path came of; or, if ``reaching``, those that ended at it), one dict each: ``id``, ``run``, ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1
-        along the path's tangent, 0 if no path was followed), ``outcome``, ``target`` (the cluster
-        reached, None if none is stored) and ``steps``."""
-        from sqlalchemy import select
-
-        from packings.service.models import Transition as T
+        attempts no path came of; or, if ``reaching``, those that ended at it), in the order they were
+        written, one dict each: ``attempt`` (its place among its expansion's attempts), ``run``,
+        ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1 along the path's
+        tangent, 0 if no path was followed), ``outcome``, ``target`` (the cluster reached, None if none
+        is stored), ``steps`` and ``new_contacts`` (the pairs formed at the endpoint)."""
+        from packings.service.store import transitions
 
         self.get(id)
-        where = T.target_id == int(id) if reaching else T.source_id == int(id)
         with self.session() as s:
             return [
                 {
-                    "id": t.id,
+                    "attempt": t.attempt,
                     "run": t.run_id,
                     "source": t.source_id,
-                    "broken": json.loads(t.broken),
+                    "broken": [list(p) for p in t.broken],
                     "direction": t.direction,
                     "outcome": t.outcome,
                     "target": t.target_id,
                     "steps": t.steps,
+                    "new_contacts": [list(p) for p in t.new_contacts],
                 }
-                for t in s.execute(select(T).where(where).order_by(T.id)).scalars()
+                for t in (transitions(s, target=int(id)) if reaching else transitions(s, source=int(id)))
             ]
 
     def stats(self, n: int | None = None) -> list[dict]:

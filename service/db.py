@@ -232,8 +232,8 @@ def transaction_locks(conn, keys) -> None:
         conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key(*key)})
 
 
-#: rows an insert_many statement takes at once: an expansion of a cluster with many contacts writes
-#: hundreds of thousands of transitions, made as they are inserted rather than all held at once
+#: rows an insert_many statement takes at once (the rows may be made as they are inserted rather than
+#: all held at once)
 INSERT_CHUNK = 10_000
 
 

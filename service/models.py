@@ -6,12 +6,13 @@ documents the tables for users who query them with plain SQL or pandas.
 
 Conventions:
 
-* Coordinates are stored as the raw little-endian float64 bytes of the n x 3
-  array (``coords``), so they read back bit-exactly; ``coords_json`` holds the
-  same numbers as JSON text for plain-SQL users (round-trip exact as well:
-  Python writes floats with the shortest repr that reads back identically).
-* Contact lists and broken-contact lists are JSON text: ``[[i, j], ...]`` with
-  ``i < j``, sorted.
+* Coordinates are stored once, as the raw little-endian float64 bytes of the
+  n x 3 array (``coords``), so they read back bit-exactly (``packings export``
+  and the Python API give them as numbers).
+* Contact lists are JSON text: ``[[i, j], ...]`` with ``i < j``, sorted.
+* The attempts of an expansion are one row of ``attempts``, packed
+  (:mod:`packings.service.paths_codec`); ``edges`` holds the clusters each
+  expansion reached, so that paths are counted and followed back in SQL.
 * Clusters are keyed by ``(n, certificate, embedding)``; ``certificate`` is the
   portable hex key of :func:`packings.workers.identity.certificate_key`, and
   ``embedding`` numbers the distinct geometries sharing one contact graph, by
@@ -102,7 +103,6 @@ class ClusterRow(Base):
     certificate: Mapped[str] = mapped_column(String(200))  #: packings.workers.identity.certificate_key
     embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate, by shape
     coords: Mapped[bytes] = mapped_column(LargeBinary)  #: n x 3 float64, little-endian
-    coords_json: Mapped[str] = mapped_column(Text)
     contact_list: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
     rigid_kind: Mapped[str] = mapped_column(String(32))  #: packings.workers.rigidity kind (first-order / prestress)
     rigid_method: Mapped[str] = mapped_column(String(32))  #: which test decided
@@ -122,8 +122,8 @@ class ClusterRow(Base):
     source_id: Mapped[int | None] = mapped_column(
         ForeignKey("clusters.id", name="fk_clusters_source_id"), nullable=True
     )
-    #: the sticky-limit partition function Z = κ^m z (packings.workers.free_energy, revision 0008); sigma is
-    #: NULL only for rows stored before 0008 until the backfill ran
+    #: the sticky-limit partition function Z = κ^m z (packings.workers.free_energy, revision 0010); sigma is
+    #: NULL only for rows stored before 0010 until the backfill ran
     sigma: Mapped[int | None] = mapped_column(Integer, nullable=True)  #: symmetry number (proper rotations)
     chiral: Mapped[bool | None] = mapped_column(Boolean, nullable=True)  #: its mirror image is not a rotation of it
     log_z: Mapped[float | None] = mapped_column(Float, nullable=True)  #: log z; NULL where Z is not κ^m z
@@ -234,29 +234,40 @@ class CatalysisPass(Base):
     finished_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
-class Transition(Base):
-    """One attempt from a cluster: the contacts broken, the direction followed,
-    what came of it, and the cluster reached (if it is stored)."""
+class AttemptsRow(Base):
+    """Every attempt of one expansion (run, source cluster) in one row: the contacts broken, the direction
+    followed, what came of each, the cluster reached (if it is stored), the steps, the contacts formed
+    and the endpoint's labels as the target is stored, packed by :mod:`packings.service.paths_codec`
+    (``data``).  ``attempts``, ``paths``, ``circular`` and ``rearranged`` count them, so that counting paths reads no
+    packed data; :class:`Edge` says which clusters each reached."""
 
-    __tablename__ = "transitions"
+    __tablename__ = "attempts"
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True)  #: in order of writing
     run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"))
     source_id: Mapped[int] = mapped_column(ForeignKey("clusters.id"))
-    broken: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
-    direction: Mapped[int] = mapped_column(Integer)  #: +1 / -1 along the tangent, 0 if no path was followed
-    outcome: Mapped[str] = mapped_column(String(32))
-    target_id: Mapped[int | None] = mapped_column(ForeignKey("clusters.id"), nullable=True)
-    steps: Mapped[int] = mapped_column(Integer, default=0)
-    new_contacts: Mapped[str] = mapped_column(Text, default="[]")  #: JSON [[i, j], ...] formed at the endpoint
-    #: JSON [t_0, ..., t_(n-1)]: sphere i of the endpoint (in the source's labels) is sphere t_i of the target
-    #: as stored.  Set where the target's path breaking the contacts formed retraces this one (both clusters
-    #: first-order rigid: docs/method.md), NULL elsewhere and on rows
-    #: stored before revision 0006
-    target_labels: Mapped[str | None] = mapped_column(Text, nullable=True)
+    attempts: Mapped[int] = mapped_column(Integer)  #: subsets tried, with each direction
+    paths: Mapped[int] = mapped_column(Integer)  #: attempts with a direction (followed, by symmetry or retraced)
+    circular: Mapped[int] = mapped_column(Integer)  #: paths that came back to the source, every sphere in place
+    #: paths that ended at the source with its spheres permuted (revision 0010; 0 on rows stored before)
+    rearranged: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    data: Mapped[bytes] = mapped_column(LargeBinary)  #: packings.service.paths_codec.pack
 
-    __table_args__ = (
-        UniqueConstraint("run_id", "source_id", "broken", "direction", name="uq_transitions_attempt"),
-        Index("ix_transitions_target", "target_id"),
-        Index("ix_transitions_source", "source_id"),
-    )
+    __table_args__ = (UniqueConstraint("source_id", "run_id", name="uq_attempts_source_run"),)
+
+
+class Edge(Base):
+    """The clusters reached from each expansion: (target, source, run) with the number of its attempts
+    that ended at the target, and how many of those carry the endpoint's labels (a path of the target
+    may retrace them: docs/method.md).  Keyed by target first: the paths reaching a cluster, and the
+    arrivals a task reads, are a range of the key (SQLite: WITHOUT ROWID, the key is the table)."""
+
+    __tablename__ = "edges"
+
+    target_id: Mapped[int] = mapped_column(ForeignKey("clusters.id"), primary_key=True)
+    source_id: Mapped[int] = mapped_column(ForeignKey("clusters.id"), primary_key=True)
+    run_id: Mapped[int] = mapped_column(ForeignKey("runs.id"), primary_key=True)
+    paths: Mapped[int] = mapped_column(Integer)  #: attempts from source that reached target (each a path)
+    labelled: Mapped[int] = mapped_column(Integer)  #: of those, the ones with the endpoint's labels
+
+    __table_args__ = {"sqlite_with_rowid": False}

@@ -22,10 +22,11 @@ from collections import defaultdict
 from pathlib import Path
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, aliased
+from sqlalchemy.orm import Session
 
 from packings.service.errors import NotFound, UsageError
-from packings.service.models import ClusterRow, Transition
+from packings.service.models import ClusterRow
+from packings.service.store import transitions
 from packings.workers.outcomes import CIRCULAR, REARRANGED
 
 FORMATS = ("graphml", "json")  #: by the file name's suffix
@@ -42,22 +43,18 @@ def network(s: Session, n: int):
         g.add_node(row.id, **{k: v for k, v in facts(row).items() if v is not None and k != "id"})
     if not g:
         raise NotFound(f"no clusters with n = {n} in the database")
-    src = aliased(ClusterRow)
-    q = (
-        select(Transition.source_id, Transition.target_id, Transition.broken, Transition.steps, Transition.outcome)
-        .join(src, src.id == Transition.source_id)
-        .where(src.n == n, Transition.direction != 0, Transition.target_id.is_not(None))
-    )
     edges: dict[tuple[int, int], dict] = defaultdict(lambda: {"paths": 0, "steps": None, "broken": set()})
-    for source, target, broken, steps, outcome in s.execute(q):
-        e = edges[(source, target)]
+    for t in transitions(s):
+        if t.source_id not in g or t.direction == 0 or t.target_id is None:
+            continue
+        e = edges[(t.source_id, t.target_id)]
         e["paths"] += 1
-        e["steps"] = steps if e["steps"] is None else min(e["steps"], steps)
-        e["broken"].add(broken)
-        if outcome in (CIRCULAR, REARRANGED):
-            e[outcome] = e.get(outcome, 0) + 1
+        e["steps"] = t.steps if e["steps"] is None else min(e["steps"], t.steps)
+        e["broken"].add(t.broken)
+        if t.outcome in (CIRCULAR, REARRANGED):
+            e[t.outcome] = e.get(t.outcome, 0) + 1
     for (source, target), e in sorted(edges.items()):
-        broken = json.dumps(sorted(json.loads(b) for b in e.pop("broken")))
+        broken = json.dumps(sorted([list(p) for p in b] for b in e.pop("broken")))
         if source == target:
             e = {CIRCULAR: 0, REARRANGED: 0, **e}
         g.add_edge(source, target, broken=broken, **e)

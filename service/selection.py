@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import operator
 import re
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
@@ -35,14 +36,14 @@ from packings.service.models import (
     FOUND_CLOSE_PACKED,
     FOUND_PATH,
     FOUND_SEED,
+    AttemptsRow,
     ClusterRow,
+    Edge,
     ExpansionRow,
     Run,
-    Transition,
 )
 from packings.workers.classify import LATTICES
 from packings.workers.free_energy import HYPERSTATIC, HYPOSTATIC, SINGULAR
-from packings.workers.outcomes import CIRCULAR, REARRANGED
 
 OPERATORS = ("=", "!=", "<", "<=", ">", ">=")
 EQUALITY = ("=", "!=")
@@ -103,21 +104,27 @@ def _geometries() -> ColumnElement:
     )
 
 
-def _paths(conds: Callable[[], tuple]) -> Callable[[], ColumnElement]:
-    """The number of paths (transitions with a direction) that satisfy ``conds``, over every run."""
-    return lambda: (
-        select(func.count())
-        .select_from(Transition)
-        .where(Transition.direction != 0, *conds())
-        .correlate(ClusterRow)
-        .scalar_subquery()
-    )
+def _sum(column, *conds) -> ColumnElement:
+    """The sum of ``column`` over the rows that satisfy ``conds`` (0 if none), for each cluster."""
+    return select(func.coalesce(func.sum(column), 0)).where(*conds).correlate(ClusterRow).scalar_subquery()
 
 
-_paths_out = _paths(lambda: (Transition.source_id == ClusterRow.id,))
-_paths_in = _paths(lambda: (Transition.target_id == ClusterRow.id, Transition.source_id != ClusterRow.id))
-_circular = _paths(lambda: (Transition.source_id == ClusterRow.id, Transition.outcome == CIRCULAR))
-_rearranged = _paths(lambda: (Transition.source_id == ClusterRow.id, Transition.outcome == REARRANGED))
+def _paths_out() -> ColumnElement:
+    """Paths (attempts with a direction) from the cluster, over every run."""
+    return _sum(AttemptsRow.paths, AttemptsRow.source_id == ClusterRow.id)
+
+
+def _paths_in() -> ColumnElement:
+    """Paths from other clusters that reached the cluster, over every run."""
+    return _sum(Edge.paths, Edge.target_id == ClusterRow.id, Edge.source_id != ClusterRow.id)
+
+
+def _circular() -> ColumnElement:
+    return _sum(AttemptsRow.circular, AttemptsRow.source_id == ClusterRow.id)
+
+
+def _rearranged() -> ColumnElement:
+    return _sum(AttemptsRow.rearranged, AttemptsRow.source_id == ClusterRow.id)
 
 
 def _in_run(op: str, run_id: int) -> ColumnElement:
@@ -353,17 +360,12 @@ def links(s: Session, cluster_id: int) -> dict:
     """What the database holds about a cluster besides its row: the paths
     leaving it (by outcome), the paths reaching it, and the runs whose frontier
     holds it."""
-    leaving = dict(
-        s.execute(
-            select(Transition.outcome, func.count())
-            .where(Transition.source_id == cluster_id, Transition.direction != 0)
-            .group_by(Transition.outcome)
-            .order_by(Transition.outcome)
-        ).all()
-    )
+    from packings.service.store import transitions
+
+    leaving = dict(sorted(Counter(t.outcome for t in transitions(s, source=cluster_id) if t.direction != 0).items()))
     reaching, sources = s.execute(
-        select(func.count(), func.count(Transition.source_id.distinct())).where(
-            Transition.target_id == cluster_id, Transition.direction != 0
+        select(func.coalesce(func.sum(Edge.paths), 0), func.count(Edge.source_id.distinct())).where(
+            Edge.target_id == cluster_id
         )
     ).one()
     runs = [
@@ -378,7 +380,7 @@ def links(s: Session, cluster_id: int) -> dict:
     return {
         "paths_leaving": sum(leaving.values()),
         "leaving_by_outcome": leaving,
-        "paths_reaching": reaching,
+        "paths_reaching": int(reaching),
         "reached_from": sources,
         "runs": runs,
     }

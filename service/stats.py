@@ -1,7 +1,7 @@
 """What a catalogue contains, per n, in the paper's style: ``packings stats``.
 
 :func:`stats` reads the facts stored with every cluster (contacts, singular,
-lattice, min_gap, certificate) and the transitions, and returns one plain dict
+lattice, min_gap, certificate) and the paths (attempts and edges), and returns one plain dict
 per n; :func:`format_stats` prints them as tables.  Transition counts add up
 over every run of that n (normally there is one).
 """
@@ -15,10 +15,9 @@ from sqlalchemy.orm import Session, aliased
 
 from packings.service.export import counted, table
 from packings.service.fit import fit_factorial
-from packings.service.models import ClusterRow, ExpansionRow, Transition
+from packings.service.models import AttemptsRow, ClusterRow, Edge, ExpansionRow
 from packings.service.paper import against_paper, verdict
 from packings.service.store import NOT_CLOSE_PACKED, counts_by_n, incomplete_ns
-from packings.workers.outcomes import CIRCULAR, REARRANGED
 
 #: how many of the smallest gaps are listed
 SMALLEST = 10
@@ -54,25 +53,19 @@ def _multi_embedding(s: Session, n: int) -> dict[str, int]:
 
 
 def _paths(s: Session, n: int) -> dict:
-    """Counts over the transitions that start at clusters of n."""
+    """Counts over the paths (attempts with a direction) that start at clusters of n, and the clusters
+    of n no path from another cluster reached."""
     src = aliased(ClusterRow)
-    base = (
-        select(func.count())
-        .select_from(Transition)
-        .join(src, src.id == Transition.source_id)
-        .where(src.n == n, Transition.direction != 0)
-    )
-    followed = s.execute(base).scalar_one()
-    circular = s.execute(base.where(Transition.outcome == CIRCULAR)).scalar_one()
-    rearranged = s.execute(base.where(Transition.outcome == REARRANGED)).scalar_one()
-    actually = s.execute(
+    sums = (func.coalesce(func.sum(c), 0) for c in (AttemptsRow.paths, AttemptsRow.circular, AttemptsRow.rearranged))
+    paths, circular, rearranged = s.execute(
+        select(*sums).join(src, src.id == AttemptsRow.source_id).where(src.n == n)
+    ).one()
+    followed = s.execute(
         select(func.coalesce(func.sum(ExpansionRow.paths), 0))
         .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
         .where(ClusterRow.n == n)
     ).scalar_one()
-    reached_by_path = select(Transition.target_id).where(
-        Transition.direction != 0, Transition.target_id != Transition.source_id
-    )
+    reached_by_path = select(Edge.target_id).where(Edge.target_id != Edge.source_id)
     unreached = (
         s.execute(
             select(ClusterRow.id)
@@ -83,10 +76,10 @@ def _paths(s: Session, n: int) -> dict:
         .all()
     )
     return {
-        "paths": followed,
-        "paths_followed": int(actually),
-        "circular_paths": circular,
-        "rearranged_paths": rearranged,
+        "paths": int(paths),
+        "paths_followed": int(followed),
+        "circular_paths": int(circular),
+        "rearranged_paths": int(rearranged),
         "unreached": list(unreached),
     }
 

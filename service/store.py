@@ -8,8 +8,8 @@ service safe under concurrency and failure:
   begins IMMEDIATE, so claims are serial, and SQLAlchemy's SQLite dialect
   leaves ``FOR UPDATE`` out of every statement here).
 * Write-back (:func:`record_expansions`): one transaction per task inserts
-  the new clusters of its expansions, their pending expansions and the
-  transitions, and marks the expansions done, each only if it is still leased
+  the new clusters of its expansions, their pending expansions and their
+  attempts (one packed row per expansion, and the clusters it reached: edges), and marks the expansions done, each only if it is still leased
   with the token the task was given (its first statement marks it done on that
   condition; if it matches no row, nothing of it is written).  A task run
   twice therefore changes nothing the second time, and a task that dies
@@ -30,7 +30,6 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass, replace
 from importlib import metadata
-from itertools import chain
 from typing import TYPE_CHECKING, Iterable, Iterator
 
 import numpy as np
@@ -48,15 +47,17 @@ from packings.service.models import (
     LEASED,
     PENDING,
     RUNNING,
+    AttemptsRow,
     ClusterRow,
+    Edge,
     ExpansionRow,
     Run,
-    Transition,
     core_cluster,
     remember_core_cluster,
     utcnow,
 )
 from packings.service.owners import busy, coordinator_alive
+from packings.service.paths_codec import Attempt, Packed, pack, summary, unpack
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.free_energy import free_energy
@@ -81,8 +82,8 @@ def code_version() -> str:
 
 
 def contacts_json(pairs) -> str:
-    """``[[i, j], ...]`` exactly as ``json.dumps`` writes it (a write-back writes two per attempt: the few
-    sets of broken and new contacts of n spheres recur, so those given as tuples are remembered)."""
+    """``[[i, j], ...]`` exactly as ``json.dumps`` writes it (the contact list of every cluster a write-back
+    compares or stores: the contacts given as tuples are remembered)."""
     if isinstance(pairs, tuple):
         try:
             return _contacts_json(pairs)
@@ -102,7 +103,8 @@ _contacts_json = functools.lru_cache(maxsize=65536)(_format_contacts)
 
 # The statements a task runs for every expansion, built once: building one costs about as much as
 # running it on SQLite.  Core statements on the tables, so that no ORM object is made per row.
-_E, _C, _R, _T = ExpansionRow.__table__, ClusterRow.__table__, Run.__table__, Transition.__table__
+_E, _C, _R = ExpansionRow.__table__, ClusterRow.__table__, Run.__table__
+_A, _EDGES = AttemptsRow.__table__, Edge.__table__
 _TASKS = (
     select(
         _E.c.id,
@@ -130,24 +132,22 @@ _HAVE_EXPANSIONS = select(_E.c.cluster_id).where(
 _INSERT_CLUSTER = insert(_C)
 _RENUMBER = update(_C).where(_C.c.id == bindparam("cid")).values(embedding=bindparam("new_embedding"))
 _INSERT_EXPANSION = insert(_E)
-#: a transition's values, in this order (as tuples: see :func:`insert_transitions`)
-TRANSITION_COLUMNS = (
-    "run_id",
-    "source_id",
-    "broken",
-    "direction",
-    "outcome",
-    "target_id",
-    "steps",
-    "new_contacts",
-    "target_labels",
+#: an attempts row's values, in this order, and an edge's (see :func:`insert_attempts`)
+ATTEMPTS_COLUMNS = ("run_id", "source_id", "attempts", "paths", "circular", "rearranged", "data")
+EDGE_COLUMNS = ("target_id", "source_id", "run_id", "paths", "labelled")
+#: the expansions with paths that arrived at these clusters and can be retraced from them (edges.labelled),
+#: in the order they were written (the arrivals' order: packings.workers.expand.arrivals keeps the first
+#: of each set of contacts)
+_ARRIVALS_DATA = (
+    select(_EDGES.c.target_id, _A.c.run_id, _A.c.source_id, _A.c.id, _A.c.data)
+    .join_from(_EDGES, _A, (_A.c.source_id == _EDGES.c.source_id) & (_A.c.run_id == _EDGES.c.run_id))
+    .where(
+        _EDGES.c.target_id.in_(bindparam("cids", expanding=True)),
+        _EDGES.c.run_id.in_(bindparam("runs", expanding=True)),
+        _EDGES.c.labelled > 0,
+    )
+    .order_by(_A.c.id)
 )
-#: the paths that arrived at these clusters and can be retraced from them (transitions.target_labels), of
-#: every run: a condition on run_id would let SQLite search the unique index (run_id, ...), every
-#: transition of the run, instead of ix_transitions_target; the caller keeps its run's
-_ARRIVALS = select(
-    _T.c.run_id, _T.c.target_id, _T.c.source_id, _T.c.broken, _T.c.new_contacts, _T.c.steps, _T.c.target_labels
-).where(_T.c.target_id.in_(bindparam("cids", expanding=True)), _T.c.target_labels.is_not(None))
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -171,7 +171,6 @@ def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
         "contacts": c.m,
         "certificate": certificate_key(c),
         "coords": np.ascontiguousarray(c.coords, dtype="<f8").tobytes(),
-        "coords_json": json.dumps(c.coords.tolist()),
         "contact_list": contacts_json(c.contacts),
         "rigid_kind": rig.kind,
         "rigid_method": rig.method,
@@ -547,16 +546,7 @@ def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
             for row in s.execute(_TASKS, {"eids": sorted(tokens)}).all()
             if row.status == LEASED and row.lease_token == tokens[row.id]
         ]
-        came: dict[tuple[int, int], list[tuple]] = {}
-        wanted = {(row.run_id, row.cluster_id) for row in rows}
-        if wanted:
-            for run_id, target, source, broken, new, steps, labels in s.execute(
-                _ARRIVALS, {"cids": sorted({cid for _, cid in wanted})}
-            ):
-                if (run_id, target) in wanted:
-                    came.setdefault((run_id, target), []).append(
-                        (source, json.loads(broken), json.loads(new), steps, json.loads(labels))
-                    )
+        came = arrivals_at(s, {(row.run_id, row.cluster_id) for row in rows})
     return {
         row.id: Task(
             row.id,
@@ -568,6 +558,30 @@ def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
         )
         for row in rows
     }
+
+
+def arrivals_at(s: Session | Connection, wanted: set[tuple[int, int]]) -> dict[tuple[int, int], list[tuple]]:
+    """The paths of run r that arrived at cluster c with the endpoint's labels, for each (r, c) in ``wanted``:
+    rows (source id, broken, new contacts, steps, labels) as :func:`packings.workers.expand.arrivals` takes
+    them, in the order they were written.  Only the packed attempts of the expansions that reached c
+    (edges.labelled) are read."""
+    came: dict[tuple[int, int], list[tuple]] = {}
+    if not wanted:
+        return came
+    packed: dict[int, Packed] = {}
+    for target, run_id, source, aid, data in s.execute(
+        _ARRIVALS_DATA, {"cids": sorted({c for _, c in wanted}), "runs": sorted({r for r, _ in wanted})}
+    ):
+        if (run_id, target) not in wanted:
+            continue
+        p = packed.get(aid)
+        if p is None:
+            p = packed[aid] = unpack(data)
+        out = came.setdefault((run_id, target), [])
+        for k in p.to(target, labelled=True):
+            a = p.attempt(k)
+            out.append((source, a.broken, a.new_contacts, a.steps, a.labels))
+    return came
 
 
 @functools.lru_cache(maxsize=64)
@@ -635,7 +649,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
     lease was given to another, writes nothing for it); its summary is then None.  The others are
     written together: all of them or, if anything fails, none.  One transaction for a task's few
     expansions rather than one each: a write-back's fixed costs (BEGIN and COMMIT, on SQLite the one
-    write lock, the query of the stored clusters, the inserts of transitions and expansions) are paid
+    write lock, the query of the stored clusters, the inserts of attempts and expansions) are paid
     once per task.
     """
     prepared = []
@@ -682,7 +696,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         by_id = {r.id: r.cluster for rows in stored.values() for r in rows}  # and those inserted below
         inserted: dict[int, list[int]] = {}  # by run: clusters inserted now, which get their expansion directly
         others: dict[int, list[int]] = {}  # by run: clusters found by another run, which may have none in this one
-        transitions = []
+        written = []
         for k, f, distinct, which in live:
             task, ex = f.task, f.expansion
             ids, new_clusters = [], 0
@@ -712,7 +726,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             )
             targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
             labels = _target_labels(ex, targets, by_id, task.params.tol_d)
-            transitions.append(_transition_rows(task, ex, targets, labels))
+            written.append((task.run_id, task.cluster_id, task.cluster.n, _attempts(ex, targets, labels)))
             summaries[k] = {
                 "expansion": task.expansion_id,
                 "new_clusters": new_clusters,
@@ -721,52 +735,58 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             }
         for run_id in sorted(inserted.keys() | others.keys()):
             ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
-        insert_transitions(s, chain.from_iterable(transitions))
+        insert_attempts(s, written)
     return summaries
 
 
 def _target_labels(
     ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, CoreCluster], tol_d: float
-) -> dict[int, str]:
-    """transitions.target_labels of the attempts of ``ex`` that a path of their target may retrace
-    (:meth:`packings.workers.expand.Expansion.retraceable`): each endpoint relabelled onto its target as
-    stored (``by_id``: the core clusters of the rows the write-back matched or inserted), as JSON; and of
-    the attempts taken from such a path (:attr:`packings.workers.expand.Endpoint.reached`)."""
+) -> dict[int, tuple[int, ...]]:
+    """The labels (:attr:`packings.service.paths_codec.Attempt.labels`) of the attempts of ``ex`` that a path
+    of their target may retrace (:meth:`packings.workers.expand.Expansion.retraceable`): each endpoint
+    relabelled onto its target as stored (``by_id``: the core clusters of the rows the write-back matched
+    or inserted); and of the attempts taken from such a path (:attr:`packings.workers.expand.Endpoint.reached`)."""
     out = {}
     for i, e in enumerate(ex.endpoints):
         if e.reached is not None:
-            out[i] = json.dumps(list(e.reached.labels))
+            out[i] = tuple(int(k) for k in e.reached.labels)
         elif ex.retraceable(i):
             t = alignment(e.cluster, by_id[targets[i]], tol_d, same=True)
             if t is not None:  # it matched the row: only a tolerance's rounding could make it None
-                out[i] = json.dumps(t.tolist())
+                out[i] = tuple(int(k) for k in t)
     return out
 
 
-def _transition_rows(task: Task, ex: CoreExpansion, targets: dict[int, int], labels: dict[int, str]) -> Iterator[tuple]:
-    """The transitions of ``ex``, one row (:data:`TRANSITION_COLUMNS`) per attempt, made as they are inserted."""
-    for i, e in enumerate(ex.endpoints):
-        yield (
-            task.run_id,
-            task.cluster_id,
-            contacts_json(e.broken),
-            e.direction,
-            e.outcome,
-            targets.get(i),
-            e.steps,
-            contacts_json(e.new_contacts),
-            labels.get(i),
-        )
+def _attempts(ex: CoreExpansion, targets: dict[int, int], labels: dict[int, tuple[int, ...]]) -> list[Attempt]:
+    """The attempts of ``ex``, each with the cluster it reached (``targets``) and its labels (the endpoints'
+    own pairs, shared, not copied: an expansion may have hundreds of thousands of attempts)."""
+    return [
+        Attempt(e.broken, e.direction, e.outcome, targets.get(i), e.steps, e.new_contacts, labels.get(i))
+        for i, e in enumerate(ex.endpoints)
+    ]
 
 
-def insert_transitions(conn: Connection, rows: Iterable[tuple]) -> None:
-    """Insert transitions, each a tuple of :data:`TRANSITION_COLUMNS`' values (a write-back inserts a
-    few dozen a cluster, and up to hundreds of thousands for one with many contacts:
-    :func:`packings.service.db.insert_many`)."""
-    insert_many(conn, _T, TRANSITION_COLUMNS, rows)
+def attempts_rows(run_id: int, source_id: int, n: int, attempts: list[Attempt]) -> tuple[tuple, list[tuple]]:
+    """The ``attempts`` row (:data:`ATTEMPTS_COLUMNS`' values) of one expansion's attempts and its
+    ``edges`` rows (:data:`EDGE_COLUMNS`')."""
+    sm = summary(attempts)
+    row = (run_id, source_id, sm.attempts, sm.paths, sm.circular, sm.rearranged, pack(n, attempts))
+    return row, [(t, source_id, run_id, p, lab) for t, (p, lab) in sorted(sm.edges.items())]
 
 
-#: rows stored by an older version: without the lattice (before revision 0002) or the free energy (0008)
+def insert_attempts(conn: Connection, expansions: Iterable[tuple[int, int, int, list[Attempt]]]) -> None:
+    """Insert the attempts of expansions, each given as (run id, source id, n, attempts): one ``attempts``
+    row each, and its ``edges`` (:func:`packings.service.db.insert_many`)."""
+    rows, edges = [], []
+    for run_id, source_id, n, attempts in expansions:
+        row, e = attempts_rows(run_id, source_id, n, attempts)
+        rows.append(row)
+        edges += e
+    insert_many(conn, _A, ATTEMPTS_COLUMNS, rows)
+    insert_many(conn, _EDGES, EDGE_COLUMNS, edges)
+
+
+#: rows stored by an older version: without the lattice (before revision 0002) or the free energy (0010)
 _MISSING_FACTS = ClusterRow.lattice.is_(None) | ClusterRow.sigma.is_(None)
 
 
@@ -805,6 +825,58 @@ def to_backfill(s: Session, recompute: bool = False) -> int:
 
 
 # --------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One attempt as it is read back: what a row of the former ``transitions`` table held, with the
+    expansion's ``attempts`` row (``row``, in order of writing) and the attempt's place in it (``attempt``)."""
+
+    row: int
+    attempt: int
+    run_id: int
+    source_id: int
+    broken: tuple[tuple[int, int], ...]
+    direction: int
+    outcome: str
+    target_id: int | None
+    steps: int
+    new_contacts: tuple[tuple[int, int], ...]
+    labels: tuple[int, ...] | None
+
+
+def transitions(
+    s: Session | Connection, *, source: int | None = None, target: int | None = None, run: int | None = None
+) -> Iterator[Transition]:
+    """The stored attempts, in the order they were written: those from cluster ``source``, those that
+    reached cluster ``target`` (read through ``edges``: only the expansions that reached it are unpacked),
+    those of ``run``; all of them when none is given."""
+    q = select(_A.c.id, _A.c.run_id, _A.c.source_id, _A.c.data).order_by(_A.c.id)
+    if target is not None:
+        q = q.join(_EDGES, (_EDGES.c.source_id == _A.c.source_id) & (_EDGES.c.run_id == _A.c.run_id)).where(
+            _EDGES.c.target_id == target
+        )
+    if source is not None:
+        q = q.where(_A.c.source_id == source)
+    if run is not None:
+        q = q.where(_A.c.run_id == run)
+    for row, run_id, source_id, data in s.execute(q):
+        p = unpack(data)
+        for k in range(len(p)) if target is None else p.to(target):
+            a = p.attempt(int(k))
+            yield Transition(
+                row,
+                int(k),
+                run_id,
+                source_id,
+                a.broken,
+                a.direction,
+                a.outcome,
+                a.target,
+                a.steps,
+                a.new_contacts,
+                a.labels,
+            )
 
 
 def run_counts(s: Session, run_id: int) -> dict[int, int]:

@@ -1,5 +1,5 @@
-"""What can come of one attempt (a broken subset of contacts and a direction): the names stored in
-``transitions.outcome`` and counted in ``expansions.outcomes``.
+"""What can come of one attempt (a broken subset of contacts and a direction): the names stored (numbered
+by ``packings.service.paths_codec.OUTCOMES``) and counted in ``expansions.outcomes``.
 
 Plain names in a module of their own, so that the service can name them without importing the
 numerical code (and its compiled kernels).

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from sqlalchemy import create_engine, inspect, text
 
@@ -40,7 +42,7 @@ def test_new_database_is_created_at_head_only_when_allowed(sqlite_url, tmp_path)
     assert list(tmp_path.iterdir()) == []
     eng = open_database(sqlite_url, create=True)
     assert current_revision(eng) == head_revision()
-    assert {"runs", "clusters", "expansions", "transitions"} <= set(inspect(eng).get_table_names())
+    assert {"runs", "clusters", "expansions", "attempts", "edges"} <= set(inspect(eng).get_table_names())
     eng.dispose()
 
 
@@ -250,20 +252,48 @@ def _how_found(engine) -> dict[int, tuple[str, int | None]]:
         return {i: (f, s) for i, f, s in c.execute(text("SELECT id, found_by, source_id FROM clusters"))}
 
 
+def _old_transitions(source) -> list[dict]:
+    """The attempts of ``source`` (at head) as rows of the ``transitions`` table of revisions before 0008."""
+    from packings.service.store import transitions
+
+    with source.connect() as src:
+        return [
+            {
+                "run_id": t.run_id,
+                "source_id": t.source_id,
+                "broken": json.dumps([list(p) for p in t.broken]),
+                "direction": t.direction,
+                "outcome": t.outcome,
+                "target_id": t.target_id,
+                "steps": t.steps,
+                "new_contacts": json.dumps([list(p) for p in t.new_contacts]),
+                "target_labels": None if t.labels is None else json.dumps(list(t.labels)),
+            }
+            for t in transitions(src)
+        ]
+
+
 def _copy_as_0002(source, target) -> None:
-    """Every row of ``source`` (at head) into ``target`` (at 0002): the columns 0002 has."""
+    """Every row of ``source`` (at head) into ``target`` (at 0002): the columns 0002 has, the attempts
+    as its ``transitions``."""
     from sqlalchemy import MetaData
 
     old = MetaData()
     old.reflect(target, only=["runs", "clusters", "expansions", "transitions"])
+    transitions = _old_transitions(source)
     with source.connect() as src, target.begin() as dst:
-        for name in ("runs", "clusters", "expansions", "transitions"):
+        for name in ("runs", "clusters", "expansions"):
             table = old.tables[name]
             rows = [
                 {k: v for k, v in r.items() if k in table.c}
                 for r in src.execute(Base.metadata.tables[name].select()).mappings()
             ]
+            if name == "clusters":  # the coordinates as JSON too, as revisions before 0009 hold them
+                for r in rows:
+                    r["coords_json"] = json.dumps(np.frombuffer(r["coords"], dtype="<f8").reshape(r["n"], 3).tolist())
             dst.execute(table.insert(), rows)
+        table = old.tables["transitions"]
+        dst.execute(table.insert(), [{k: v for k, v in r.items() if k in table.c} for r in transitions])
 
 
 def test_revision_0003_backfills_how_stored_clusters_were_found(engine, tmp_path):
@@ -279,7 +309,7 @@ def test_revision_0003_backfills_how_stored_clusters_were_found(engine, tmp_path
     assert len(seeds) == 2 and len(written) == 18
     assert all(s is not None for f, s in written.values() if f == "path")
     with engine.connect() as c:
-        reached = set(c.execute(text("SELECT target_id FROM transitions WHERE target_id <> source_id")).scalars())
+        reached = set(c.execute(text("SELECT target_id FROM edges WHERE target_id <> source_id")).scalars())
     assert seeds & reached
     with _another(engine, tmp_path) as target:
         migrate(target, "0002")
@@ -340,10 +370,11 @@ def test_db_upgrade_migrates_a_0002_database_holding_clusters(engine, tmp_path):
 
 def _table_counts(engine) -> dict:
     with engine.connect() as c:
-        out = {
-            t: c.execute(text(f"SELECT count(*) FROM {t}")).scalar()
-            for t in ("runs", "clusters", "expansions", "transitions")
-        }
+        out = {t: c.execute(text(f"SELECT count(*) FROM {t}")).scalar() for t in ("runs", "clusters", "expansions")}
+        packed = "attempts" in inspect(c).get_table_names()
+        out["attempts"] = c.execute(
+            text("SELECT sum(attempts) FROM attempts" if packed else "SELECT count(*) FROM transitions")
+        ).scalar()
         out["by_contacts"] = sorted(
             c.execute(text("SELECT n, contacts, count(*) FROM clusters GROUP BY n, contacts")).all()
         )
@@ -357,7 +388,7 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
     trip over): the same rows after, and the schema is head again."""
     fill_database(engine, 8)
     before = _table_counts(engine)
-    revisions = ["0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
+    revisions = ["0010", "0009", "0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
     for revision in revisions[1:]:
         migrate(engine, revision, down=True)
         assert current_revision(engine) == revision
@@ -367,6 +398,101 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
         assert current_revision(engine) == revision
         assert _table_counts(engine) == before
     assert current_revision(engine) == head_revision()
+
+
+def _transition_rows(engine) -> list[tuple]:
+    """Every row of ``transitions`` (revision 0007 or before) but its id, in the order of the ids."""
+    with engine.connect() as c:
+        return [
+            tuple(r)
+            for r in c.execute(
+                text(
+                    "SELECT run_id, source_id, broken, direction, outcome, target_id, steps, new_contacts, "
+                    "target_labels FROM transitions ORDER BY id"
+                )
+            )
+        ]
+
+
+def _paths_read(engine) -> dict:
+    """What the catalogue reads of the paths: every cluster's transitions both ways, links and path keys,
+    the stats, and the arrivals a task of each cluster would read."""
+    from sqlalchemy import select
+
+    import packings
+    from packings.service import store
+    from packings.service.models import ClusterRow
+    from packings.service.selection import KEYS
+
+    with packings.connect(engine.url.render_as_string(hide_password=False)) as cat:
+        ids = [r.id for r in cat.select()]
+        with cat.session() as s:
+            runs = [r["run"] for r in cat.runs()]
+            arrivals = store.arrivals_at(s, {(r, c) for r in runs for c in ids})
+            values = [KEYS[k].expr() for k in ("paths_out", "paths_in", "circular", "reached")]
+            keys = [tuple(r) for r in s.execute(select(ClusterRow.id, *values).order_by(ClusterRow.id))]
+        return {
+            "leaving": {i: cat.transitions(i) for i in ids},
+            "reaching": {i: cat.transitions(i, reaching=True) for i in ids},
+            "links": {i: cat.links(i) for i in ids},
+            "keys": keys,
+            "stats": cat.stats(),
+            "arrivals": arrivals,
+        }
+
+
+def test_revision_0008_packs_the_transitions_and_unpacks_them_back(engine):
+    """A database holding runs of n = 7 and 8 at 0007 (one row per attempt) upgraded to 0008 reads the same
+    transitions, links, path keys, stats and arrivals as the database written at head; the downgrade
+    gives back the same transitions rows, in the same order, and the upgrade again the same packed rows."""
+    fill_database(engine, 7)
+    fill_database(engine, 8)
+    written = _paths_read(engine)
+    with engine.connect() as c:
+        packed = [tuple(r) for r in c.execute(text("SELECT * FROM attempts ORDER BY id"))]
+        edges = sorted(tuple(r) for r in c.execute(text("SELECT * FROM edges")))
+    assert len(packed) == 18 and edges
+    rows = [tuple(r.values()) for r in _old_transitions(engine)]
+    migrate(engine, "0007", down=True)
+    assert not {"attempts", "edges"} & set(inspect(engine).get_table_names())
+    assert _transition_rows(engine) == rows
+    assert sum(1 for r in rows if r[-1] is not None) > 0  # labels went down too
+    migrate(engine, "head")
+    with engine.connect() as c:
+        assert [tuple(r) for r in c.execute(text("SELECT * FROM attempts ORDER BY id"))] == packed
+        assert sorted(tuple(r) for r in c.execute(text("SELECT * FROM edges"))) == edges
+    assert _paths_read(engine) == written
+    assert "transitions" not in inspect(engine).get_table_names()
+
+
+def test_revision_0008_refuses_outcomes_it_cannot_pack(engine):
+    """A transitions table holding an outcome this code does not number is not converted: the upgrade
+    stops with the outcome named, and leaves the database at 0007."""
+    fill_database(engine, 7)
+    migrate(engine, "0007", down=True)
+    with engine.begin() as c:
+        c.execute(text("UPDATE transitions SET outcome = 'vanished' WHERE id = (SELECT min(id) FROM transitions)"))
+    with pytest.raises(Exception, match="vanished"):
+        migrate(engine, "head")
+    assert current_revision(engine) == "0007"
+    assert "attempts" not in inspect(engine).get_table_names()
+
+
+def test_revision_0009_drops_the_json_coordinates_and_the_downgrade_writes_them_again(engine):
+    """The coordinates are stored once (clusters.coords) from 0009 on; going down to 0008 writes
+    coords_json again, as the service wrote it: numbers that read back equal to coords, bit for bit."""
+    fill_database(engine, 7)
+    assert "coords_json" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
+    migrate(engine, "0008", down=True)
+    with engine.connect() as c:
+        rows = c.execute(text("SELECT n, coords, coords_json FROM clusters")).all()
+    assert len(rows) == 5
+    for n, coords, coords_json in rows:
+        x = np.frombuffer(coords, dtype="<f8").reshape(n, 3)
+        assert coords_json == json.dumps(x.tolist()) and np.array_equal(np.array(json.loads(coords_json)), x)
+    assert not {c["name"]: c for c in inspect(engine).get_columns("clusters")}["coords_json"]["nullable"]
+    migrate(engine, "head")
+    assert "coords_json" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
 
 
 REPOSITORY = Path(__file__).resolve().parents[2]

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from sqlalchemy import select, text
 
-from packings.service.models import ClusterRow, Transition
+from packings.service import store
+from packings.service.models import ClusterRow
 from packings.workers.classify import lattice_type, static_class
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.params import DEFAULT
@@ -173,7 +174,7 @@ def rows(catalog):
 
     with sessions(catalog.engine)() as s:
         clusters = s.execute(select(ClusterRow).order_by(ClusterRow.id)).scalars().all()
-        transitions = s.execute(select(Transition)).scalars().all()
+        transitions = list(store.transitions(s))
         s.expunge_all()
     return clusters, transitions
 

@@ -117,7 +117,7 @@ def test_selection_keys_of_the_partition_function(catalog):
 
 
 def test_backfill_computes_the_partition_function_of_older_rows(engine):
-    """Rows stored before revision 0008 have no partition function: probabilities say so, and `packings
+    """Rows stored before revision 0010 have no partition function: probabilities say so, and `packings
     db backfill` computes it, the same as a run stores it."""
     from tests.helpers import fill_database
 

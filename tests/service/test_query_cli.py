@@ -10,9 +10,10 @@ import sys
 
 import numpy as np
 import pytest
-from sqlalchemy import func, select
+from sqlalchemy import select
 
-from packings.service.models import ClusterRow, Transition
+from packings.service import store
+from packings.service.models import ClusterRow
 from tests.helpers import filled_catalog, ok, one_line_error, run_many
 from tests.helpers import packings as run
 
@@ -214,12 +215,8 @@ def test_show(catalog, stored):
     assert info["exact"]["status"] == "proved" and 0 < info["exact"]["radius"] < 1e-12
     assert info["exact"]["gap"] == pytest.approx(c.min_gap, abs=1e-12)
     with sessions(catalog.engine)() as s:
-        leaving = s.execute(
-            select(func.count()).where(Transition.source_id == cid, Transition.direction != 0)
-        ).scalar_one()
-        reaching = s.execute(
-            select(func.count()).where(Transition.target_id == cid, Transition.direction != 0)
-        ).scalar_one()
+        leaving = sum(t.direction != 0 for t in store.transitions(s, source=cid))
+        reaching = sum(t.direction != 0 for t in store.transitions(s, target=cid))
     assert (info["paths_leaving"], info["paths_reaching"]) == (leaving, reaching)
     assert leaving > 0 and sum(info["leaving_by_outcome"].values()) == leaving
     assert f"paths leaving: {leaving} (" in out and f"paths reaching: {reaching} from" in out

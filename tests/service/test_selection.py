@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from types import SimpleNamespace
 
@@ -11,7 +10,8 @@ import pytest
 from sqlalchemy import select
 
 from packings.service import selection as sel
-from packings.service.models import ClusterRow, ExpansionRow, Transition
+from packings.service import store
+from packings.service.models import ClusterRow, ExpansionRow
 from packings.service.selection import SelectionError, Term, parse
 from tests.helpers import filled_catalog
 
@@ -222,7 +222,6 @@ def rows(catalog):
                 ClusterRow(
                     **values,
                     coords=x.astype("<f8").tobytes(),
-                    coords_json=json.dumps(x.tolist()),
                     contact_list="[[0, 1]]",
                     found_in_run=None,
                     found_by="seed",
@@ -241,9 +240,7 @@ def frontier(catalog, rows):
 
     with sessions(catalog.engine)() as s:
         ids = set(s.execute(select(ExpansionRow.cluster_id).where(ExpansionRow.run_id == catalog.runs[7])).scalars())
-        moving = s.execute(
-            select(Transition.source_id, Transition.target_id, Transition.outcome).where(Transition.direction != 0)
-        ).all()
+        moving = [(t.source_id, t.target_id, t.outcome) for t in store.transitions(s) if t.direction != 0]
     return SimpleNamespace(
         ids=ids,
         out=Counter(a for a, _, _ in moving),

@@ -13,8 +13,19 @@ from sqlalchemy import event, func, select
 
 from packings.service import store
 from packings.service.db import make_engine, sessions
-from packings.service.models import DONE, FAILED, LEASED, PENDING, ClusterRow, ExpansionRow, Run, Transition
+from packings.service.models import (
+    DONE,
+    FAILED,
+    LEASED,
+    PENDING,
+    AttemptsRow,
+    ClusterRow,
+    Edge,
+    ExpansionRow,
+    Run,
+)
 from packings.service.owners import RunBusy
+from packings.service.paths_codec import Attempt
 from packings.service.tasks import run_expansion
 from packings.workers.params import Params
 from tests.helpers import catalogue, embeddings, fill_database, store_chains, wait_for
@@ -26,7 +37,7 @@ def snapshot(engine) -> dict:
     """Every row of every table, for comparing database states exactly."""
     out = {}
     with sessions(engine)() as s:
-        for model in (Run, ClusterRow, ExpansionRow, Transition):
+        for model in (Run, ClusterRow, ExpansionRow, AttemptsRow, Edge):
             cols = [c for c in model.__table__.columns if c.name not in ("heartbeat_at",)]
             out[model.__tablename__] = sorted(tuple(r) for r in s.execute(select(*cols)).all())
     return out
@@ -57,9 +68,6 @@ def test_coordinates_read_back_bit_exactly(run8):
     with S() as s:
         c = s.execute(select(ClusterRow)).scalar_one()
         assert np.array_equal(c.to_core().coords, seed_cluster(8).coords)
-        import json
-
-        assert np.array_equal(np.array(json.loads(c.coords_json)), seed_cluster(8).coords)
 
 
 def test_claim_leases_with_fresh_tokens(run8):
@@ -98,9 +106,9 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     """A run of n = 9 (every cluster but one regular) or n = 10 (three hyperstatic clusters too) follows
     each path between two first-order rigid clusters from one end only: where a path arrived at a cluster
     before it was expanded, that cluster's attempt on the contacts formed is taken from it
-    (transitions.target_labels, store.load_tasks' arrivals).  Every transition stored is what following
+    (the attempts' labels, store.load_tasks' arrivals).  Every attempt stored is what following
     every path gives: the same outcome, a rigid endpoint the stored target, the same contacts formed, and
-    target_labels relabelling the endpoint onto the target as stored."""
+    labels relabelling the endpoint onto the target as stored."""
     import json
 
     from packings.workers import kernels
@@ -112,17 +120,7 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     with sessions(engine)() as s:
         d = store.run_diagnostics(s, run_id)
         stored_clusters = {r.id: r for r in s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars()}
-        rows = s.execute(
-            select(
-                Transition.source_id,
-                Transition.broken,
-                Transition.direction,
-                Transition.outcome,
-                Transition.target_id,
-                Transition.new_contacts,
-                Transition.target_labels,
-            ).where(Transition.run_id == run_id)
-        ).all()
+        rows = list(store.transitions(s, run=run_id))
         took = {
             cid: json.loads(o).get("paths_retraced", 0)
             for cid, o in s.execute(
@@ -135,19 +133,17 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     if hyperstatic:  # hyperstatic clusters took paths from the other end too
         assert sum(took[cid] for cid in many) > 0
     clusters = {cid: r.to_core() for cid, r in stored_clusters.items()}
-    stored = {
-        (src, b, dirn): (out, tgt, json.loads(new), None if lab is None else json.loads(lab))
-        for src, b, dirn, out, tgt, new, lab in rows
-    }
+    stored = {(t.source_id, t.broken, t.direction): (t.outcome, t.target_id, t.new_contacts, t.labels) for t in rows}
+    assert len(stored) == len(rows)
     labelled = Counter()
     for cid, c in clusters.items():
         for e in expand(c, params).endpoints:  # every path followed
-            out, target, new, labels = stored.pop((cid, store.contacts_json(e.broken), e.direction))
-            assert out == e.outcome and new == [list(p) for p in e.new_contacts]
+            out, target, new, labels = stored.pop((cid, tuple(map(tuple, e.broken)), e.direction))
+            assert out == e.outcome and new == tuple(map(tuple, e.new_contacts))
             if out == "rigid":
                 assert same_geometry(e.cluster, clusters[target], params.tol_d)
             if labels is not None:
-                y = clusters[target].coords[labels]
+                y = clusters[target].coords[list(labels)]
                 x = e.cluster.coords
                 assert kernels.aligned_max_error(x - x.mean(axis=0), y - y.mean(axis=0)) <= params.tol_d
                 labelled[(cid in many, target in many)] += 1
@@ -157,17 +153,21 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     assert labelled[(True, True)] == 0  # and paths between two hyperstatic ones are not
 
 
-def test_a_task_reads_the_paths_that_arrived_through_the_index_of_targets(sqlite_url):
-    """store.load_tasks reads a cluster's arrivals by ix_transitions_target: with a condition on run_id
-    SQLite searches the unique index (run_id, ...) instead, every transition of the run (a tenth of a
-    second a task at the end of n = 12, the whole n = 13 run's millions later)."""
+def test_a_task_reads_the_paths_that_arrived_through_the_key_of_edges(sqlite_url):
+    """store.load_tasks reads a cluster's arrivals by the key of edges (target first), then the attempts
+    rows of those sources by their unique index: no scan of either table (a tenth of a second a task at
+    the end of n = 12 with a scan, the whole n = 13 run's millions later)."""
     import packings.service.db
 
     engine = packings.service.db.open_database(sqlite_url, create=True)
     with engine.connect() as conn:
-        sql = store._ARRIVALS.params(cids=[1, 2, 3]).compile(engine, compile_kwargs={"literal_binds": True})
-        plan = conn.exec_driver_sql(f"EXPLAIN QUERY PLAN {sql}").all()
-    assert any("ix_transitions_target" in str(row) for row in plan), plan
+        sql = store._ARRIVALS_DATA.params(cids=[1, 2, 3], runs=[1]).compile(
+            engine, compile_kwargs={"literal_binds": True}
+        )
+        plan = [str(row) for row in conn.exec_driver_sql(f"EXPLAIN QUERY PLAN {sql}").all()]
+    assert any("SEARCH edges USING PRIMARY KEY (target_id=?)" in row for row in plan), plan
+    assert any("SEARCH attempts USING INDEX" in row and "(source_id=? AND run_id=?)" in row for row in plan), plan
+    assert not any("SCAN" in row and "TEMP" not in row for row in plan), plan
 
 
 def test_a_task_is_read_without_the_write_lock(sqlite_url, monkeypatch):
@@ -258,7 +258,7 @@ def test_the_write_back_computes_no_facts_while_it_holds_the_lock(run8, engine, 
 
 def test_a_tasks_expansions_are_written_back_together_or_not_at_all(run8, engine, monkeypatch):
     """One transaction for a task: when writing its second expansion fails, nothing of the first is
-    left either (not its new clusters, not its transitions, not its being done)."""
+    left either (not its new clusters, not its attempts, not its being done)."""
     S, info = run8
     first, second = _two_finished(S, info)
     before = snapshot(engine)
@@ -281,7 +281,7 @@ def test_a_tasks_expansions_are_written_back_together_or_not_at_all(run8, engine
     assert [s["expansion"] for s in summaries] == [first.task.expansion_id, second.task.expansion_id]
     with S() as s:
         assert {s.get(ExpansionRow, f.task.expansion_id).status for f in (first, second)} == {DONE}
-        sources = set(s.execute(select(Transition.source_id)).scalars())
+        sources = set(s.execute(select(AttemptsRow.source_id)).scalars())
     assert {first.task.cluster_id, second.task.cluster_id} <= sources
 
 
@@ -297,7 +297,7 @@ def test_a_stale_expansion_is_left_out_of_its_tasks_write_back(run8, engine):
         assert s.get(ExpansionRow, live.task.expansion_id).status == DONE
         e = s.get(ExpansionRow, stale.task.expansion_id)
         assert e.status == LEASED and e.lease_token == "another-task" and e.outcomes is None
-        sources = set(s.execute(select(Transition.source_id)).scalars())
+        sources = set(s.execute(select(AttemptsRow.source_id)).scalars())
     assert live.task.cluster_id in sources and stale.task.cluster_id not in sources
 
 
@@ -348,18 +348,13 @@ def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
         d = store.run_diagnostics(s, run_id)
         assert d["expansions"] == 13 and d["failed_tasks"] == 0 and d["paths_followed"] > 0
         # a path not followed, as the image of one followed under a symmetry of its cluster, is a transition too
-        with_path = s.execute(
-            select(func.count()).select_from(Transition).where(Transition.run_id == run_id, Transition.direction != 0)
-        ).scalar()
+        every = list(store.transitions(s, run=run_id))
+        with_path = sum(t.direction != 0 for t in every)
+        assert s.execute(select(func.sum(AttemptsRow.paths)).where(AttemptsRow.run_id == run_id)).scalar() == with_path
         assert d["paths_by_symmetry"] > 0 and d["paths_retraced"] > 0
         assert d["paths_followed"] + d["paths_by_symmetry"] + d["paths_retraced"] == with_path
         # every rigid transition points at a stored cluster of the run, and every cluster is reached
-        n_rigid = s.execute(
-            select(func.count())
-            .select_from(Transition)
-            .where(Transition.outcome == "rigid", Transition.target_id.is_(None))
-        ).scalar()
-        assert n_rigid == 0
+        assert not [t for t in every if t.outcome == "rigid" and t.target_id is None]
         assert s.execute(select(func.count()).select_from(ClusterRow).where(ClusterRow.n == 8)).scalar() == 13
     assert paper_counts["totals"]["8"] == 13
 
@@ -445,47 +440,61 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
             assert store.run_counts(s, run) == {18: 13}
         found = dict(s.execute(select(ClusterRow.found_in_run, func.count()).group_by(ClusterRow.found_in_run)).all())
         assert found == {first: 13}
-        assert (
-            s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == second)).scalar_one()
-            == s.execute(select(func.count()).select_from(Transition).where(Transition.run_id == first)).scalar_one()
-        )
+        tried = {
+            run: s.execute(select(func.sum(AttemptsRow.attempts)).where(AttemptsRow.run_id == run)).scalar_one()
+            for run in (first, second)
+        }
+        assert tried[first] == tried[second] > 0
 
 
-def test_transitions_are_inserted_column_by_column_on_every_backend(run8, engine, monkeypatch):
-    """store.insert_transitions (the driver's executemany on SQLite, a Core insert elsewhere) puts each
-    value of a row's tuple in its column, in the order of TRANSITION_COLUMNS; rows may come from a
-    generator, taken a chunk at a time (here chunks of 2), none lost or repeated."""
+def test_attempts_are_inserted_and_read_back_on_every_backend(run8, engine, monkeypatch):
+    """store.insert_attempts writes one attempts row per expansion (the driver's executemany on SQLite, a
+    Core insert elsewhere, a chunk at a time: here chunks of 2) and its edges; store.transitions reads each
+    attempt back as it was given, from its source, from its target and from its run, in order."""
     import packings.service.db
 
     S, info = run8
     with S() as s:
         seed = s.execute(select(ClusterRow.id)).scalar_one()
-    rows = [
-        (info.id, seed, "[[0, 1]]", 1, "rigid", seed, 7, "[[2, 5]]", "[1, 0, 2, 3, 4, 5, 6, 7]"),
-        (info.id, seed, "[[0, 1], [2, 3]]", -1, "circular", None, 0, "[]", None),
+    one = [
+        Attempt(((0, 1),), 1, "rigid", seed, 7, ((2, 5),), (1, 0, 2, 3, 4, 5, 6, 7)),
+        Attempt(((0, 1), (2, 3)), -1, "circular", seed, 3, ()),
+        *[Attempt(((k, 7),), 0, "not-1d", None, 0, ()) for k in range(5)],
     ]
-    more = [(info.id, seed, f"[[{k}, 9]]", 1, "not-1d", None, 0, "[]", None) for k in range(5)]
+    # two more runs: (source, run) is the key
+    other, third = (store.start_run(S, 8, Params(max_break=k), OWNER).id for k in (2, 3))
     monkeypatch.setattr(packings.service.db, "INSERT_CHUNK", 2)
     statements = []
 
     def count(conn, cursor, statement, *args):
-        if statement.lstrip().upper().startswith("INSERT INTO TRANSITIONS"):
-            statements.append(statement)
+        if statement.lstrip().upper().startswith(("INSERT INTO ATTEMPTS", "INSERT INTO EDGES")):
+            statements.append(statement.split()[2].lower())
 
-    with engine.begin() as conn:
-        store.insert_transitions(conn, rows)
-        store.insert_transitions(conn, [])
-        event.listen(engine, "before_cursor_execute", count)
-        try:
-            store.insert_transitions(conn, (r for r in more))
-        finally:
-            event.remove(engine, "before_cursor_execute", count)
-    assert len(statements) == 3  # 5 rows in chunks of 2
-    rows += more
-    cols = [getattr(Transition, c) for c in store.TRANSITION_COLUMNS]
+    event.listen(engine, "before_cursor_execute", count)
+    try:
+        with engine.begin() as conn:
+            store.insert_attempts(conn, ((run, seed, 8, one) for run in (info.id, other, third)))
+            store.insert_attempts(conn, [])
+    finally:
+        event.remove(engine, "before_cursor_execute", count)
+    assert statements.count("attempts") == 2 and statements.count("edges") == 2  # 3 rows in chunks of 2
     with S() as s:
-        back = sorted(tuple(r) for r in s.execute(select(*cols)).all())
-    assert back == sorted(rows)
+        for run in (info.id, other, third):
+            back = list(store.transitions(s, run=run))
+            assert [t.attempt for t in back] == list(range(len(one)))
+            assert [
+                Attempt(t.broken, t.direction, t.outcome, t.target_id, t.steps, t.new_contacts, t.labels) for t in back
+            ] == one
+        assert [t.attempt for t in store.transitions(s, target=seed)] == [0, 1] * 3
+        assert len(list(store.transitions(s, source=seed))) == 3 * len(one)
+        assert sorted(tuple(r) for r in s.execute(select(Edge.run_id, Edge.paths, Edge.labelled))) == [
+            (run, 2, 1) for run in sorted((info.id, other, third))
+        ]
+        counts = s.execute(select(AttemptsRow.attempts, AttemptsRow.paths, AttemptsRow.circular)).all()
+        assert counts == [(7, 2, 1)] * 3
+        assert store.arrivals_at(s, {(info.id, seed)}) == {
+            (info.id, seed): [(seed, ((0, 1),), ((2, 5),), 7, one[0].labels)]
+        }
 
 
 def test_a_cluster_written_back_is_read_back_as_the_same_object(run8, engine, monkeypatch):

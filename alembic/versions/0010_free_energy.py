@@ -1,7 +1,7 @@
-"""clusters: the sticky-sphere partition function's geometric factor and symmetry number
+"""clusters: the sticky-sphere partition function's geometric factor and symmetry number; attempts: rearranged
 
-Revision ID: 0008
-Revises: 0007
+Revision ID: 0010
+Revises: 0009
 Create Date: 2026-12-05 23:00:00
 
 Six nullable columns of ``clusters`` (packings.workers.free_energy, docs/method.md): ``sigma`` (the
@@ -10,6 +10,10 @@ symmetry number), ``chiral``, ``log_z`` (log of z in Z = κ^m z; NULL where that
 Z = κ^m ε^eps_power e^log_z_square_well of a square well of width ε, where computed).  Rows stored before
 this revision have ``sigma`` NULL until ``packings db upgrade`` (which runs the backfill) or
 ``packings db backfill`` computes them.
+
+``attempts.rearranged``: of an expansion's paths, those that ended at the source with its spheres permuted
+(outcome ``rearranged``, told from ``circular`` since this revision; 0 for the expansions stored before,
+whose ``circular`` counts both).
 """
 
 from typing import Sequence, Union
@@ -18,8 +22,8 @@ import sqlalchemy as sa
 
 from alembic import op
 
-revision: str = "0008"
-down_revision: Union[str, None] = "0007"
+revision: str = "0010"
+down_revision: Union[str, None] = "0009"
 branch_labels: Union[str, Sequence[str], None] = None
 depends_on: Union[str, Sequence[str], None] = None
 
@@ -37,9 +41,13 @@ def upgrade() -> None:
     with op.batch_alter_table("clusters") as batch:
         for name, type_ in COLUMNS:
             batch.add_column(sa.Column(name, type_, nullable=True))
+    with op.batch_alter_table("attempts") as batch:
+        batch.add_column(sa.Column("rearranged", sa.Integer(), nullable=False, server_default="0"))
 
 
 def downgrade() -> None:
+    with op.batch_alter_table("attempts") as batch:
+        batch.drop_column("rearranged")
     with op.batch_alter_table("clusters") as batch:
         for name, _ in reversed(COLUMNS):
             batch.drop_column(name)
