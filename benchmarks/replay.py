@@ -311,6 +311,7 @@ class ReplayPlugin(WorkerPlugin):
         import packings.service.tasks as tasks
 
         tasks.expand = Replayer(load(Path(self.path))).expand
+        time_write_lock()
         if self.profile:  # the worker's thread that runs the tasks: cProfile of the event loop's would miss them
             import cProfile
 
@@ -321,6 +322,41 @@ class ReplayPlugin(WorkerPlugin):
         if self.profiler is not None:
             worker.executor.submit(self.profiler.disable).result()
             self.profiler.dump_stats(str(Path(self.profile) / f"worker-{os.getpid()}.prof"))
+
+
+#: seconds this process held SQLite's write lock: from BEGIN IMMEDIATE to the end of the transaction
+WRITE_LOCK = [0.0]
+
+
+def time_write_lock() -> None:
+    """Count in :data:`WRITE_LOCK` the time this process's SQLite transactions that write hold the write lock
+    (each begins IMMEDIATE: :func:`packings.service.db._begin_immediate`); once per process."""
+    from sqlalchemy import Engine, event
+
+    import packings.service.db as db
+
+    if getattr(db._begin_immediate, "timed", False):
+        return
+    real = db._begin_immediate
+
+    def timed(conn) -> None:
+        real(conn)
+        conn.info["replay_locked_at"] = time.perf_counter()
+
+    timed.timed = True
+    db._begin_immediate = timed
+
+    def ended(conn) -> None:
+        t0 = conn.info.pop("replay_locked_at", None)
+        if t0 is not None:
+            WRITE_LOCK[0] += time.perf_counter() - t0
+
+    event.listen(Engine, "commit", ended)
+    event.listen(Engine, "rollback", ended)
+
+
+def write_lock_seconds() -> float:
+    return WRITE_LOCK[0]
 
 
 # --------------------------------------------------------------------------- the check
@@ -477,6 +513,8 @@ def replay(rec: Recording, path: Path, url: str, writers: int, profile: str | No
         Path(plugin.profile).mkdir(parents=True, exist_ok=True)
     with dask_client(None, writers, True, plugins=(plugin,), dashboard_address=":0") as dask:
         workers = list(dask.client.run(os.getpid).values())
+        time_write_lock()  # the coordinator's claims hold it too
+        locked = WRITE_LOCK[0] + sum(dask.client.run(write_lock_seconds).values())
         before = _cpu(workers), _cpu(_servers(url)), time.process_time()
         t0 = time.perf_counter()
         profiler = None
@@ -490,6 +528,7 @@ def replay(rec: Recording, path: Path, url: str, writers: int, profile: str | No
             profiler.disable()
             profiler.dump_stats(str(Path(plugin.profile) / "coordinator.prof"))
         wall = time.perf_counter() - t0
+        locked = WRITE_LOCK[0] + sum(dask.client.run(write_lock_seconds).values()) - locked
         cpu = {
             "coordinator": time.process_time() - before[2],
             "workers": _cpu(workers) - before[0],
@@ -517,6 +556,8 @@ def replay(rec: Recording, path: Path, url: str, writers: int, profile: str | No
         # CPU seconds per expansion: the coordinator's process (its Dask scheduler's thread too), the workers'
         # (the write-backs, and the replayed expand), the database server's processes (PostgreSQL on this host)
         **{f"cpu_ms_{k}": round(1000 * v / done, 3) if done else None for k, v in cpu.items()},
+        # SQLite: ms its write lock was held per expansion (by the write-backs and the claims): the serial part
+        "write_lock_ms": round(1000 * locked / done, 3) if done and engine.dialect.name == "sqlite" else None,
         "problems": problems,
     }
 
@@ -590,14 +631,17 @@ def run(args) -> int:
             f"n = {rec.n}: {len(rec.sources)} recorded expansions"
             + (f" ({rec.left_out} clusters no recorded path reaches left out)" if rec.left_out else "")
         )
-        print("CPU ms per expansion: of the coordinator (with its scheduler), the workers, the database server")
+        print("CPU ms per expansion: of the coordinator (with its scheduler), the workers, the database server;")
+        print("lock: ms SQLite's write lock was held per expansion (its write-backs and claims)")
         print(
-            f"{'backend':<11}{'K':>4}{'expansions':>11}{'run s':>8}{'exp/s':>8}{'coord':>7}{'workers':>8}{'db':>6}  check"
+            f"{'backend':<11}{'K':>4}{'expansions':>11}{'run s':>8}{'exp/s':>8}{'coord':>7}{'workers':>8}{'db':>6}"
+            f"{'lock':>6}  check"
         )
         for r in rows:
             print(
                 f"{r['backend']:<11}{r['writers']:>4}{r['expansions']:>11}{r['run_s']:>8.2f}{r['rate']:>8.1f}"
-                f"{r['cpu_ms_coordinator']:>7.2f}{r['cpu_ms_workers']:>8.2f}{r['cpu_ms_database']:>6.2f}  "
+                f"{r['cpu_ms_coordinator']:>7.2f}{r['cpu_ms_workers']:>8.2f}{r['cpu_ms_database']:>6.2f}"
+                f"{r['write_lock_ms'] or 0:>6.2f}  "
                 f"{'; '.join(r['problems']) or 'equal'}"
             )
     return 1 if any(r["problems"] for r in rows) else 0
