@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import classes, enumeration, free_energy, memory, network, paths, retrace, screenshot, soak
+from benchmarks import classes, enumeration, free_energy, memory, network, paths, replay, retrace, screenshot, soak
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
@@ -19,6 +19,7 @@ SUBCOMMANDS = {
     "memory": memory,
     "retrace": retrace,
     "soak": soak,
+    "replay": replay,
     "screenshot": screenshot,
     "free_energy": free_energy,
     "network": network,

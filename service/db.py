@@ -221,6 +221,10 @@ def is_postgresql(engine_or_session) -> bool:
     return bind.dialect.name == "postgresql"
 
 
+#: the advisory locks of a transaction, taken one after another in the order of the array given
+_LOCKS = text("SELECT count(pg_advisory_xact_lock(k)) FROM unnest(CAST(:keys AS bigint[])) AS k")
+
+
 def transaction_locks(conn, keys) -> None:
     """Serialise writers on each of ``keys`` (tuples) until the transaction ends: PostgreSQL's
     advisory transaction locks, taken in sorted order (no deadlock between two writers); nothing on
@@ -228,8 +232,11 @@ def transaction_locks(conn, keys) -> None:
     IMMEDIATE)."""
     if not is_postgresql(conn):
         return
-    for key in sorted(set(keys)):
-        conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": advisory_key(*key)})
+    # One statement for all of them (a write-back takes one per certificate of its endpoints: dozens), the
+    # locks taken in the order of the sorted array, which unnest keeps
+    ints = sorted({advisory_key(*key) for key in keys})
+    if ints:
+        conn.execute(_LOCKS, {"keys": ints})
 
 
 #: rows an insert_many statement takes at once (the rows may be made as they are inserted rather than

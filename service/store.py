@@ -28,7 +28,7 @@ import json
 import math
 import uuid
 from collections import Counter
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from typing import TYPE_CHECKING, Iterable, Iterator
 
@@ -163,7 +163,7 @@ def lattice_value(c: CoreCluster) -> str:
 def cluster_values(c: CoreCluster, rig: Rigidity) -> dict:
     """Column values of a new cluster row: every fact of it (all but id, embedding, the run that found
     it and how).  The write-back computes them before it takes the write lock, for the endpoints that
-    match no stored cluster then (:func:`unstored_values`); see :func:`backfill` for rows stored by an
+    match no stored cluster then (:func:`premade`); see :func:`backfill` for rows stored by an
     older version."""
     gap = c.min_gap()
     return {
@@ -603,23 +603,52 @@ def distinct_endpoints(ex: CoreExpansion) -> tuple[list[tuple[CoreCluster, Rigid
     return distinct, which
 
 
-def unstored_values(engine, expansions: list[tuple[float, list]]) -> dict[tuple[int, int], dict]:
-    """:func:`cluster_values` of each distinct endpoint that matches no stored cluster, keyed by
-    (expansion, endpoint) positions in ``expansions`` (each: ``tol_d`` and :func:`distinct_endpoints`'
-    list).  Computed from a read before the write-back's transaction, which then holds the write lock
-    for SQL and the geometric match only: a cluster stored by another in between leaves a value
-    unused, and the rare endpoint that lacks one has it computed in the transaction."""
-    keys = {(c.n, cert) for _, distinct in expansions for c, _, cert in distinct}
+@dataclass
+class Premade:
+    """What a write-back works out from a read before its transaction (:func:`premade`), so that the
+    transaction, which holds the write lock (SQLite) or its certificates' locks (PostgreSQL), does only
+    what that read cannot settle.  Keys are (expansion, distinct endpoint) or (expansion, attempt)
+    positions."""
+
+    #: :func:`cluster_values` of each distinct endpoint that matched no stored cluster
+    values: dict[tuple[int, int], dict] = field(default_factory=dict)
+    #: the id of the stored cluster each other distinct endpoint matched
+    matched: dict[tuple[int, int], int] = field(default_factory=dict)
+    #: the ids of the stored clusters of each (n, certificate) read
+    seen: dict[tuple[int, str], frozenset] = field(default_factory=dict)
+    #: by expansion: the labels of its retraceable attempts whose endpoint matched, by attempt, with that
+    #: cluster's id
+    labels: dict[int, dict[int, tuple[int, tuple[int, ...]]]] = field(default_factory=dict)
+
+
+def premade(engine, expansions: list[tuple[float, CoreExpansion, list, dict]]) -> Premade:
+    """:class:`Premade` of a task's expansions (each: ``tol_d``, the expansion, and
+    :func:`distinct_endpoints`' two values), from one read of the stored clusters of their
+    certificates.  The transaction reads them again under its locks: where a certificate's clusters
+    are still those read (the same ids: rows are never deleted, their geometry never changes, and their
+    order changes only with an insert), an endpoint's match and its attempts' labels are these; else it
+    matches again, and a value or label that lacks is computed there."""
+    keys = {(c.n, cert) for _, _, distinct, _ in expansions for c, _, cert in distinct}
     stored: dict[tuple[int, str], list[Stored]] = {}
     if keys:
         with engine.connect().execution_options(**{READONLY: True}) as conn, conn.begin():
             stored = stored_by_key(conn, keys)
-    out = {}
-    for k, (tol_d, distinct) in enumerate(expansions):
+    out = Premade(seen={key: frozenset(r.id for r in rows) for key, rows in stored.items()})
+    by_id = {r.id: r.cluster for rows in stored.values() for r in rows}
+    for k, (tol_d, ex, distinct, which) in enumerate(expansions):
         for j, (c, rig, cert) in enumerate(distinct):
             rows = stored[(c.n, cert)]
-            if not rows or find_match(c, [r.cluster for r in rows], tol_d) is None:
-                out[(k, j)] = cluster_values(c, rig)
+            m = find_match(c, [r.cluster for r in rows], tol_d) if rows else None
+            if m is None:
+                out.values[(k, j)] = cluster_values(c, rig)
+            else:
+                out.matched[(k, j)] = rows[m].id
+        for i, e in enumerate(ex.endpoints):
+            cid = out.matched.get((k, which[i])) if i in which else None
+            if cid is not None and e.reached is None and ex.retraceable(i):
+                t = alignment(e.cluster, by_id[cid], tol_d, same=True)
+                if t is not None:
+                    out.labels.setdefault(k, {})[i] = (cid, tuple(int(x) for x in t))
     return out
 
 
@@ -661,7 +690,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
         outcomes["paths_retraced"] = f.expansion.paths_retraced
         prepared.append((f, distinct, which, json.dumps(outcomes)))
     engine = Session_.kw["bind"]
-    values = unstored_values(engine, [(f.task.params.tol_d, distinct) for f, distinct, _, _ in prepared])
+    pre = premade(engine, [(f.task.params.tol_d, f.expansion, distinct, which) for f, distinct, which, _ in prepared])
     summaries: list[dict | None] = [None] * len(finished)
     # Core statements only, on a connection of the sessions' engine: cheaper than a session, and the
     # same transaction rules (SQLite: BEGIN IMMEDIATE).
@@ -702,17 +731,21 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ids, new_clusters = [], 0
             for j, (c, rig, cert) in enumerate(distinct):
                 rows = stored[(c.n, cert)]
-                cid, is_new = insert_or_match(
-                    s,
-                    c,
-                    rig,
-                    task.run_id,
-                    task.params.tol_d,
-                    rows,
-                    found_by=FOUND_PATH,
-                    source_id=task.cluster_id,
-                    values=values.get((k, j)),
-                )
+                cid = pre.matched.get((k, j))
+                if cid is not None and pre.seen[(c.n, cert)] == frozenset(r.id for r in rows):
+                    is_new = False  # the clusters read before: the same match (Premade)
+                else:
+                    cid, is_new = insert_or_match(
+                        s,
+                        c,
+                        rig,
+                        task.run_id,
+                        task.params.tol_d,
+                        rows,
+                        found_by=FOUND_PATH,
+                        source_id=task.cluster_id,
+                        values=pre.values.get((k, j)),
+                    )
                 ids.append(cid)
                 if is_new:
                     by_id[cid] = c  # the stored row's core cluster (insert_or_match)
@@ -725,7 +758,8 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                 {i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome in (CIRCULAR, REARRANGED)}
             )
             targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
-            labels = _target_labels(ex, targets, by_id, task.params.tol_d)
+            known = {i: lab for i, (cid, lab) in pre.labels.get(k, {}).items() if targets.get(i) == cid}
+            labels = _target_labels(ex, targets, by_id, task.params.tol_d, known)
             written.append((task.run_id, task.cluster_id, task.cluster.n, _attempts(ex, targets, labels)))
             summaries[k] = {
                 "expansion": task.expansion_id,
@@ -740,14 +774,17 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
 
 
 def _target_labels(
-    ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, CoreCluster], tol_d: float
+    ex: CoreExpansion, targets: dict[int, int], by_id: dict[int, CoreCluster], tol_d: float, known=None
 ) -> dict[int, tuple[int, ...]]:
     """The labels (:attr:`packings.service.paths_codec.Attempt.labels`) of the attempts of ``ex`` that a path
     of their target may retrace (:meth:`packings.workers.expand.Expansion.retraceable`): each endpoint
     relabelled onto its target as stored (``by_id``: the core clusters of the rows the write-back matched
-    or inserted); and of the attempts taken from such a path (:attr:`packings.workers.expand.Endpoint.reached`)."""
-    out = {}
+    or inserted); and of the attempts taken from such a path (:attr:`packings.workers.expand.Endpoint.reached`).
+    ``known``: those of some attempts already (:attr:`Premade.labels`, made against the same target)."""
+    out = dict(known or {})
     for i, e in enumerate(ex.endpoints):
+        if i in out:
+            continue
         if e.reached is not None:
             out[i] = tuple(int(k) for k in e.reached.labels)
         elif ex.retraceable(i):

@@ -514,3 +514,38 @@ def test_the_free_energy_benchmark_tables_monte_carlo_against_the_formula():
     for r in rows:
         assert abs(r["ratio"] - 1.0) <= 4.0 * r["ratio_error"] + 3.0 * r["eps"] and r["edge"] < 0.9
     assert abs(rows[1]["ratio"] - 1.0) < abs(rows[0]["ratio"] - 1.0)
+
+
+def test_the_replay_benchmark_replays_a_run_and_its_check_catches_a_dropped_expansion(run_of_9, tmp_path):
+    """n = 9 recorded from a complete run and replayed through the coordinator on one and on two workers:
+    the same catalogue, nothing left over.  Replayed with one cluster's recorded result dropped (its
+    expansion answered with no attempt), the check against the true recording says so."""
+    import pickle
+
+    from benchmarks.replay import check, load, save
+
+    url, _ = run_of_9
+    recording = tmp_path / "n9.pickle"
+    report = benchmark(
+        "replay", "--n", "9", "--source", url, "--recording", str(recording), "--db", f"sqlite:///{tmp_path / 'r.db'}",
+        "--writers", "1", "2",
+    )  # fmt: skip
+    assert (report["recorded"], report["left_out"]) == (52, 0)
+    assert [(r["writers"], r["expansions"], r["clusters"], r["problems"]) for r in report["rows"]] == [
+        (1, 52, 52, []),
+        (2, 52, 52, []),
+    ]
+    assert not (tmp_path / "r_k1.db").exists()  # removed without --keep
+
+    rec = load(recording)
+    dropped = next(k for k in sorted(rec.sources) if k != rec.seed)
+    rec.sources[dropped] = pickle.dumps([])
+    save(rec, tmp_path / "dropped.pickle")
+    replayed = f"sqlite:///{tmp_path / 'd.db'}"
+    report = benchmark(
+        "replay", "--n", "9", "--recording", str(tmp_path / "dropped.pickle"), "--db", replayed, "--writers", "2",
+        "--keep",
+    )  # fmt: skip
+    assert report["rows"][0]["expansions"] == 52  # every expansion was done, one of them wrongly
+    problems = check(load(recording), replayed)
+    assert problems and "another number of attempts" in problems[-1]

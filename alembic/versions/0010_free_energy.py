@@ -18,9 +18,11 @@ whose ``circular`` counts both).
 
 from typing import Sequence, Union
 
+import numpy as np
 import sqlalchemy as sa
 
-from alembic import op
+from alembic import context, op
+from packings.service.paths_codec import OUTCOMES, unpack
 
 revision: str = "0010"
 down_revision: Union[str, None] = "0009"
@@ -37,12 +39,41 @@ COLUMNS = (
 )
 
 
+_attempts = sa.table(
+    "attempts", sa.column("id", sa.Integer), sa.column("data", sa.LargeBinary), sa.column("rearranged", sa.Integer)
+)
+BATCH = 500
+
+
+def _count_rearranged(conn) -> None:
+    """attempts.rearranged of the rows whose packed attempts hold the outcome, in batches of rows."""
+    code = OUTCOMES.index("rearranged")
+    last = 0
+    while True:
+        rows = conn.execute(
+            sa.select(_attempts.c.id, _attempts.c.data)
+            .where(_attempts.c.id > last)
+            .order_by(_attempts.c.id)
+            .limit(BATCH)
+        ).all()
+        if not rows:
+            return
+        for id_, data in rows:
+            p = unpack(data)
+            k = int(np.count_nonzero((p.outcome == code) & (p.direction != 0)))
+            if k:
+                conn.execute(sa.update(_attempts).where(_attempts.c.id == id_).values(rearranged=k))
+        last = rows[-1].id
+
+
 def upgrade() -> None:
     with op.batch_alter_table("clusters") as batch:
         for name, type_ in COLUMNS:
             batch.add_column(sa.Column(name, type_, nullable=True))
     with op.batch_alter_table("attempts") as batch:
         batch.add_column(sa.Column("rearranged", sa.Integer(), nullable=False, server_default="0"))
+    if not context.is_offline_mode():  # rows packed with the outcome (a database taken down and up again)
+        _count_rearranged(op.get_bind())
 
 
 def downgrade() -> None:

@@ -605,3 +605,66 @@ def test_embedding_numbers_follow_geometry_whatever_order_they_are_stored_in(eng
     S = sessions(engine)
     ids = store_chains(S, order, seed=sum(order[:2]), one_transaction=one_transaction)
     assert embeddings(S, ids) == {k: k for k in range(5)}
+
+
+def _stored(engine, n: int) -> tuple[list, list]:
+    """The clusters of n (key, coordinates) and the transitions (source key, attempt, target key, labels), by key."""
+    with sessions(engine)() as s:
+        keys = {
+            r.id: (r.certificate, r.embedding) for r in s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars()
+        }
+        clusters = sorted((keys[r.id], r.coords) for r in s.execute(select(ClusterRow)).scalars())
+        attempts = sorted(
+            (
+                keys[a.source_id],
+                a.broken,
+                a.direction,
+                a.outcome,
+                a.steps,
+                a.new_contacts,
+                keys.get(a.target_id),
+                a.labels,
+            )
+            for a in store.transitions(s)
+        )
+    return clusters, attempts
+
+
+def test_the_write_back_matches_before_its_lock_and_stores_what_matching_under_it_stores(tmp_path, monkeypatch):
+    """An endpoint that matched a stored cluster in the read before the transaction keeps that match, and the
+    labels of its attempts made then, when its certificate's clusters are still those read: under the lock
+    only the endpoints that matched nothing are matched again (here, run by run, each to be inserted).  The
+    run of n = 9 stores the same clusters, attempts, targets and labels as with every match made under the
+    lock."""
+    from packings.service.db import open_database
+    from packings.workers import identity
+
+    in_transaction, under_lock = [False], Counter()
+
+    def counted(name, f):
+        def wrapper(*a, **kw):
+            under_lock[name] += in_transaction[0]
+            return f(*a, **kw)
+
+        return wrapper
+
+    monkeypatch.setattr(store, "find_match", counted("find_match", identity.find_match))
+    monkeypatch.setattr(store, "alignment", counted("alignment", identity.alignment))
+    real = store.premade
+    results = {}
+    for reuse in (True, False):
+        engine = open_database(f"sqlite:///{tmp_path / f'{reuse}.db'}", create=True)
+        event.listen(engine, "begin", lambda conn: in_transaction.__setitem__(0, True))
+        for end in ("commit", "rollback"):
+            event.listen(engine, end, lambda conn: in_transaction.__setitem__(0, False))
+        if not reuse:  # nothing settled by the read: every endpoint matched and labelled under the lock
+            monkeypatch.setattr(store, "premade", lambda *a: store.Premade(values=real(*a).values))
+        under_lock.clear()
+        fill_database(engine, 9)
+        results[reuse] = _stored(engine, 9), dict(under_lock)
+        engine.dispose()
+    (with_read, counts), (without, counts_without) = results[True], results[False]
+    assert with_read == without and len(with_read[0]) == 52
+    # one task at a time: every endpoint matched in the read keeps its match; the others are inserted
+    assert counts.get("find_match", 0) <= 52 < counts_without["find_match"]
+    assert counts.get("alignment", 0) < counts_without["alignment"]
