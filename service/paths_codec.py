@@ -190,6 +190,23 @@ class Packed:
     def attempt(self, k: int) -> Attempt:
         return self._attempts[k]
 
+    def one(self, k: int) -> Attempt:
+        """Attempt ``k`` alone, made from its columns without making the others (:meth:`attempt` makes them
+        all once): a task reads the few attempts of each expansion that arrived at its cluster."""
+        b0, b1, f0, f1 = (
+            int(x) for x in (self.broken_at[k], self.broken_at[k + 1], self.formed_at[k], self.formed_at[k + 1])
+        )
+        t, r = int(self.target[k]), int(self.labels_at[k])
+        return Attempt(
+            tuple(map(tuple, self.broken[b0:b1].tolist())),
+            int(self.direction[k]),
+            OUTCOMES[int(self.outcome[k])],
+            None if t < 0 else int(self.targets[t]),
+            int(self.steps[k]),
+            tuple(map(tuple, self.formed[f0:f1].tolist())),
+            None if r < 0 else tuple(self.labels[r].tolist()),
+        )
+
     def __iter__(self):
         return iter(self._attempts)
 

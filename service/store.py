@@ -579,7 +579,7 @@ def arrivals_at(s: Session | Connection, wanted: set[tuple[int, int]]) -> dict[t
             p = packed[aid] = unpack(data)
         out = came.setdefault((run_id, target), [])
         for k in p.to(target, labelled=True):
-            a = p.attempt(k)
+            a = p.one(int(k))
             out.append((source, a.broken, a.new_contacts, a.steps, a.labels))
     return came
 

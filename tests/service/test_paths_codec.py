@@ -42,6 +42,7 @@ def test_packed_attempts_read_back_as_they_were(case):
     p = unpack(pack(n, given_attempts))
     assert len(p) == len(given_attempts) and p.n == n
     assert list(p) == given_attempts
+    assert [unpack(pack(n, given_attempts)).one(k) for k in range(len(p))] == given_attempts  # one alone, as made
     for t in {a.target for a in given_attempts} - {None}:
         assert [given_attempts[k] for k in p.to(t)] == [a for a in given_attempts if a.target == t]
         assert [given_attempts[k] for k in p.to(t, labelled=True)] == [
