@@ -44,8 +44,8 @@ def network(s: Session, n: int):
     if not g:
         raise NotFound(f"no clusters with n = {n} in the database")
     edges: dict[tuple[int, int], dict] = defaultdict(lambda: {"paths": 0, "steps": None, "broken": set()})
-    for t in transitions(s):
-        if t.source_id not in g or t.direction == 0 or t.target_id is None:
+    for t in transitions(s, n=n):
+        if t.direction == 0 or t.target_id is None:
             continue
         e = edges[(t.source_id, t.target_id)]
         e["paths"] += 1

@@ -883,11 +883,16 @@ class Transition:
 
 
 def transitions(
-    s: Session | Connection, *, source: int | None = None, target: int | None = None, run: int | None = None
+    s: Session | Connection,
+    *,
+    source: int | None = None,
+    target: int | None = None,
+    run: int | None = None,
+    n: int | None = None,
 ) -> Iterator[Transition]:
     """The stored attempts, in the order they were written: those from cluster ``source``, those that
     reached cluster ``target`` (read through ``edges``: only the expansions that reached it are unpacked),
-    those of ``run``; all of them when none is given."""
+    those of ``run``, those from the clusters of ``n`` spheres; all of them when none is given."""
     q = select(_A.c.id, _A.c.run_id, _A.c.source_id, _A.c.data).order_by(_A.c.id)
     if target is not None:
         q = q.join(_EDGES, (_EDGES.c.source_id == _A.c.source_id) & (_EDGES.c.run_id == _A.c.run_id)).where(
@@ -897,6 +902,8 @@ def transitions(
         q = q.where(_A.c.source_id == source)
     if run is not None:
         q = q.where(_A.c.run_id == run)
+    if n is not None:
+        q = q.join(ClusterRow, ClusterRow.id == _A.c.source_id).where(ClusterRow.n == n)
     for row, run_id, source_id, data in s.execute(q):
         p = unpack(data)
         for k in range(len(p)) if target is None else p.to(target):
