@@ -9,7 +9,19 @@ from __future__ import annotations
 import argparse
 import sys
 
-from benchmarks import classes, enumeration, free_energy, memory, network, paths, replay, retrace, screenshot, soak
+from benchmarks import (
+    classes,
+    enumeration,
+    free_energy,
+    memory,
+    network,
+    paths,
+    progress,
+    replay,
+    retrace,
+    screenshot,
+    soak,
+)
 
 #: subcommand name -> module with add_arguments(parser) and run(args)
 SUBCOMMANDS = {
@@ -23,6 +35,7 @@ SUBCOMMANDS = {
     "screenshot": screenshot,
     "free_energy": free_energy,
     "network": network,
+    "progress": progress,
 }
 
 

@@ -485,6 +485,30 @@ def test_the_network_benchmark_reports_the_network_of_a_run(run_of_9):
     assert g.nodes[route[0]]["found_by"] == "seed" and all(g.has_edge(a, b) for a, b in zip(route, route[1:]))
 
 
+def test_the_progress_benchmark_projects_a_complete_run_onto_its_own_time(run_of_9, tmp_path):
+    """n = 9 (the paper's 52, all with 21 contacts): every stored cluster expanded, the projection to the
+    paper's counts is the run's own time in expand, its rows add up to the run's expansions, and the size
+    is the SQLite file's."""
+    from sqlalchemy import func, select
+
+    import packings
+    from packings.service.models import ExpansionRow
+
+    url, _ = run_of_9
+    r = benchmark("progress", "--n", "9", "--db", url, "--workers", "2")
+    with packings.connect(url) as cat, cat.session() as s:
+        total = s.execute(select(func.sum(ExpansionRow.seconds))).scalar()
+    assert r["status"] == "complete" and r["clusters"] == 52 and r["expansions"] == {"done": 52}
+    assert sum(row["expanded"] for row in r["rows"]) == sum(row["stored"] for row in r["rows"]) == 52
+    assert {row["contacts"] for row in r["rows"]} == {21}
+    p = r["projection"]
+    assert p["not_yet_expanded"] == {} and p["paper_total"] == 52
+    assert p["expand_seconds"] == pytest.approx(total) and p["hours_on_workers"] == pytest.approx(total / 2 / 3600)
+    assert r["database_bytes"] >= Path(url.removeprefix("sqlite:///")).stat().st_size > 0
+    r3 = benchmark("progress", "--n", "9", "--db", url, "--workers", "3")
+    assert r3["projection"]["hours_on_workers"] == pytest.approx(total / 3 / 3600)
+
+
 def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
     """n = 9's 52 clusters in a record, then a sphere of 20 of them moved: the record holds every stored
     cluster and every remainder decided, at a few dozen bytes each (a digest in a table half full at most
