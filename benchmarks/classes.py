@@ -138,6 +138,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "other paths, and the rest (deciding the subsets; its probes apart), and the "
         "non-regular share were the stressed paths and probes free",
     )
+    parser.add_argument(
+        "--classes",
+        nargs="+",
+        choices=CLASSES,
+        default=None,
+        metavar="CLASS",
+        help="time only these classes (default: every class present), e.g. `--classes regular singular` of "
+        "a large n whose most hyperstatic clusters take minutes each (shares are then of those classes)",
+    )
     parser.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
 
 
@@ -698,6 +707,11 @@ def run(args: argparse.Namespace) -> int:
                 except AttributeError as exc:  # a version older than the code that calls it
                     raise SystemExit(f"--against: {args.against} lacks a kernel the current code calls ({exc})")
         clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
+    if args.classes:
+        clusters = [c for c in clusters if c[1] in args.classes]
+        if not clusters:
+            print(f"no cluster of n = {args.n} in the classes {', '.join(args.classes)}", file=sys.stderr)
+            return 1
     mode = args.arrivals if args.db else "none"  # the in-memory enumeration stores no paths
     run_id, run_times, came = None, {}, None
     if mode != "none":

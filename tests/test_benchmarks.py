@@ -91,6 +91,21 @@ def test_the_classes_benchmark_times_expand_by_class_with_both_backends():
         assert r["mean_ms_svd"] > 0 and r["svd_ratio"] > 0 and r["svd_paths_differing"] == 0
 
 
+def test_the_classes_benchmark_times_only_the_classes_asked_for():
+    """--classes singular: n = 9's one singular cluster alone, its share the whole; a class n = 9 lacks is refused."""
+    report = benchmark("classes", "--n", "9", "--sample", "1", "--no-numpy", "--no-every", "--classes", "singular")
+    [row] = report["rows"]
+    assert row["class"] == "singular" and row["clusters"] == row["sampled"] == 1 and row["share_numba"] == 1.0
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "classes", "--n", "9", "--classes", "hypostatic"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 1 and "no cluster of n = 9 in the classes hypostatic" in r.stderr
+
+
 def test_the_classes_benchmark_expands_as_a_restricted_run_does():
     """--max-break and --min-contacts expand as `enumerate --max-break K --min-contacts M` would: n = 9's singular
     cluster, whose 21 contacts get pairs too in a full run, gets its 21 single breaks only."""
