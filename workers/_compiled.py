@@ -1084,6 +1084,9 @@ def follow_steps(
     ST_NEED_SVD), ``hit`` the mask of pairs that ended the path (ST_HIT) and
     stats = [steps taken here, Newton projections, normal-equation Newton steps,
     projections retried by least squares, steps handed to the SVD].
+
+    One function of about 130 lines on purpose: the whole loop is one compiled call per path, its state
+    in locals and one workspace, with no Python between steps (docs/performance.md).
     """
     n3 = x.size
     m = edges.shape[0]

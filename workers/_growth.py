@@ -86,7 +86,10 @@ def grow(rows, contacts, most, threshold, in_layer, across, S, O):
     parent's candidate sites in the order first met (its sites in increasing order; for each, the six
     of its layer, then those of the layer below, then above), each new fragment kept where first made.
     ``in_layer`` (6) and ``across`` (3 x 3 x 3: from a layer in position p to one in q) are the site
-    offsets di S + dj of the touching sites.  Returns (rows, contacts) of the new size."""
+    offsets di S + dj of the touching sites.  Returns (rows, contacts) of the new size.
+
+    One compiled loop of about 120 lines on purpose: its work arrays and hash table are allocated once
+    for all the parents of a size, and split into functions they would be passed through every call."""
     B = rows.shape[0]
     k = rows.shape[1] - most
     S2 = S * S
