@@ -8,7 +8,10 @@ cluster as it starts, and so imports it before it can start.
 from __future__ import annotations
 
 import gc
+import signal
+import threading
 
+from dask.utils import key_split
 from distributed import SchedulerPlugin, WorkerPlugin
 from sqlalchemy import Engine
 
@@ -27,6 +30,7 @@ def prepare_process() -> float:
 
     Pays the imports and the kernels' compilation (or numba cache load) once per worker, not per task.
     """
+    # here, not at the top: the command imports this module before its cluster starts, and loads no numerics
     import packings.service.tasks  # noqa: F401 - the tasks' module
     from packings.workers.expand import warm_up  # the tasks import it when they first run
 
@@ -57,7 +61,6 @@ def bound_key_cache() -> None:
     key).  Each task of a run has a key of its own, never split again once the task is done, so the
     cache only grows: by up to 19 MiB in each process over a run of 100,000 tasks.  Emptied, it costs
     the keys of the tasks in flight one split each again (a few microseconds)."""
-    from dask.utils import key_split
 
     if key_split.cache_info().currsize > KEY_CACHE_LIMIT:
         key_split.cache_clear()
@@ -115,9 +118,6 @@ class LocalWorkerPlugin(WorkerPlugin):
     name = "packings-local-worker"
 
     def setup(self, worker) -> None:
-        import signal
-        import threading
-
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, signal.SIG_IGN)
 

@@ -20,8 +20,10 @@ from __future__ import annotations
 import logging
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
+import threading
 import time
 
 from packings.service.errors import SchedulerError, UsageError
@@ -49,13 +51,10 @@ def slurm_cluster_class():
     a word): the one there before is put back, so that Ctrl-C stops a run as it does otherwise, its leases
     put back.  Only the main thread can do that, so the command line and :func:`packings.enumerate` import
     it here, in their thread, before anything starts."""
-    import signal
-    import threading
-
     main = threading.current_thread() is threading.main_thread()
     before = signal.getsignal(signal.SIGINT) if main else None
     try:
-        from dask_jobqueue import SLURMCluster
+        from dask_jobqueue import SLURMCluster  # optional (packings[slurm]), and sets SIGINT: imported here
     except ImportError:
         raise UsageError("--slurm needs dask-jobqueue, which is not installed: pip install 'packings[slurm]'") from None
     finally:
@@ -84,7 +83,7 @@ def check_options(slurm: dict) -> dict:
     if out.get("memory") is None:
         out["memory"] = f"{MEMORY_PER_CORE * out['cores']}GiB"
     else:
-        from dask.utils import parse_bytes
+        from dask.utils import parse_bytes  # the command line's start-up loads no Dask
 
         try:
             if parse_bytes(out["memory"]) <= 0:

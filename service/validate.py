@@ -7,6 +7,8 @@ take their bounds from :data:`RANGES` (:func:`int_range`), so both refuse the sa
 
 from __future__ import annotations
 
+import socket
+
 from packings.service.errors import UsageError
 
 #: beyond this the catalogue cannot be enumerated on any machine (the count grows like (n-5)!)
@@ -60,8 +62,6 @@ def check_dashboard_address(address: str, *, option: bool = False) -> None:
     """Refuse a dashboard address that a local cluster could not serve on: it is ``HOST:PORT`` (or
     ``:PORT``, every interface; ``[v6 address]:PORT``), PORT a number from 0 (any free port) to 65535 and
     HOST one this machine can resolve (named as the command line's option with ``option``)."""
-    import socket
-
     name = "--dashboard-address" if option else "dashboard_address"
     host, sep, port = str(address).rpartition(":")
     if not sep or not port.isdigit() or int(port) > 65535:
