@@ -5,7 +5,7 @@ progress reads as any other: its expansions done so far): for each number of con
 (``benchmarks.classes.cluster_class``) the clusters stored, those expanded and their mean and total time
 in ``expand`` (``expansions.seconds``); the run's expansions by status and its coordinator wall time
 (``runs.seconds``), with the rate over the whole run and over its last ``--window`` minutes of
-write-backs (fewer if the run has written back for less); the database's size (the SQLite file with its write-ahead log, or PostgreSQL's
+write-backs (fewer if the run has written back for less), and by class over that window too (``lately``); the database's size (the SQLite file with its write-ahead log, or PostgreSQL's
 ``pg_database_size``) and its bytes per stored cluster.
 
 Where the paper counted n (``packings.service.paper``), the projection: every cluster of each m
@@ -69,16 +69,7 @@ def report(url: str, n: int, run_id: int | None = None, workers: int = 2, window
         ):
             key = (m, cluster_class(n, m, flexes))
             stored[key] = stored.get(key, 0) + k
-        done: dict[tuple[int, str], list] = {}
-        for m, flexes, k, seconds in s.execute(
-            select(ClusterRow.contacts, ClusterRow.flexes, func.count(), func.sum(ExpansionRow.seconds))
-            .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
-            .where(ExpansionRow.run_id == run.id, ExpansionRow.status == DONE)
-            .group_by(ClusterRow.contacts, ClusterRow.flexes)
-        ):
-            d = done.setdefault((m, cluster_class(n, m, flexes)), [0, 0.0])
-            d[0] += k
-            d[1] += seconds or 0.0
+        done = _expanded(s, n, run.id)
         status = dict(
             s.execute(
                 select(ExpansionRow.status, func.count())
@@ -91,17 +82,17 @@ def report(url: str, n: int, run_id: int | None = None, workers: int = 2, window
                 ExpansionRow.run_id == run.id
             )
         ).one()
-        recent, span = 0, 0.0
+        recent, span, lately = 0, 0.0, {}
         if last is not None:
             since = max(first, last - dt.timedelta(minutes=window))
             span = (last - since).total_seconds()
-            recent = s.execute(
-                select(func.count()).where(ExpansionRow.run_id == run.id, ExpansionRow.finished_at >= since)
-            ).scalar()
+            lately = _expanded(s, n, run.id, since)
+            recent = sum(k for k, _ in lately.values())
         size = database_bytes(cat.engine)
     rows = []
     for m, cls in sorted(set(stored) | set(done), key=lambda k: (k[0], CLASSES.index(k[1]))):
         k, seconds = done.get((m, cls), (0, 0.0))
+        k_late, s_late = lately.get((m, cls), (0, 0.0))
         rows.append(
             {
                 "contacts": m,
@@ -110,6 +101,8 @@ def report(url: str, n: int, run_id: int | None = None, workers: int = 2, window
                 "expanded": k,
                 "seconds": seconds,
                 "mean_s": seconds / k if k else None,
+                "recent_expanded": k_late,
+                "recent_mean_s": s_late / k_late if k_late else None,
             }
         )
     clusters = sum(stored.values())
@@ -130,6 +123,29 @@ def report(url: str, n: int, run_id: int | None = None, workers: int = 2, window
     paper = by_contacts(n)
     if paper:
         out["projection"] = projection(paper, rows, workers, out["recent_rate"], status.get(DONE, 0))
+    return out
+
+
+def _expanded(s, n: int, run_id: int, since: dt.datetime | None = None) -> dict[tuple[int, str], list]:
+    """{(contacts, class): [expansions done, seconds in expand]} of run ``run_id``, those written back since
+    ``since`` if given."""
+    from sqlalchemy import func, select
+
+    from packings.service.models import DONE, ClusterRow, ExpansionRow
+
+    q = (
+        select(ClusterRow.contacts, ClusterRow.flexes, func.count(), func.sum(ExpansionRow.seconds))
+        .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
+        .where(ExpansionRow.run_id == run_id, ExpansionRow.status == DONE)
+        .group_by(ClusterRow.contacts, ClusterRow.flexes)
+    )
+    if since is not None:
+        q = q.where(ExpansionRow.finished_at >= since)
+    out: dict[tuple[int, str], list] = {}
+    for m, flexes, k, seconds in s.execute(q):
+        d = out.setdefault((m, cluster_class(n, m, flexes)), [0, 0.0])
+        d[0] += k
+        d[1] += seconds or 0.0
     return out
 
 
@@ -180,13 +196,14 @@ def run(args) -> int:
         print()
     if r["database_bytes"]:
         print(f"database: {r['database_bytes'] / 2**20:,.1f} MiB, {r['bytes_per_cluster']:,.0f} B a stored cluster")
-    print(f"{'m':>3} {'class':<12}{'stored':>10}{'expanded':>10}{'mean s':>9}{'total s':>10}")
+    print(f"{'m':>3} {'class':<12}{'stored':>10}{'expanded':>10}{'mean s':>9}{'total s':>10}{'lately':>8}{'mean s':>9}")
     for row in r["rows"]:
-        mean = f"{row['mean_s']:.3f}" if row["mean_s"] is not None else "-"
+        mean, late = (f"{row[k]:.3f}" if row[k] is not None else "-" for k in ("mean_s", "recent_mean_s"))
         print(
             f"{row['contacts']:>3} {row['class']:<12}{row['stored']:>10,}{row['expanded']:>10,}{mean:>9}"
-            f"{row['seconds']:>10.0f}"
+            f"{row['seconds']:>10.0f}{row['recent_expanded']:>8,}{late:>9}"
         )
+    print(f"(lately: the expansions written back in the last {r['window_minutes']:.1f} min, and their mean)")
     p = r.get("projection")
     if p:
         print(

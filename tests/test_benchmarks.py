@@ -520,8 +520,11 @@ def test_the_progress_benchmark_projects_a_complete_run_onto_its_own_time(run_of
     assert p["not_yet_expanded"] == {} and p["paper_total"] == 52
     assert p["expand_seconds"] == pytest.approx(total) and p["hours_on_workers"] == pytest.approx(total / 2 / 3600)
     assert r["database_bytes"] >= Path(url.removeprefix("sqlite:///")).stat().st_size > 0
-    r3 = benchmark("progress", "--n", "9", "--db", url, "--workers", "3")
+    r3 = benchmark("progress", "--n", "9", "--db", url, "--workers", "3", "--window", "1000")
     assert r3["projection"]["hours_on_workers"] == pytest.approx(total / 3 / 3600)
+    # a window longer than the run: the recent figures are the whole run's
+    assert sum(row["recent_expanded"] for row in r3["rows"]) == 52
+    assert all(row["recent_mean_s"] == pytest.approx(row["mean_s"]) for row in r3["rows"])
 
 
 def test_the_memory_benchmark_measures_a_glued_pass_record(run_of_9):
