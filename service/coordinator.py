@@ -110,7 +110,7 @@ class RunResult:
     resumed: bool
     errors: list[str] = field(default_factory=list)
     total_seconds: float = 0.0  #: the run's time over all its coordinators (``seconds``: this one's)
-    #: with ``glued`` (:func:`packings.service.api.enumerate`): the reports of the glued catalysis passes made, in order
+    #: with ``glued`` (:func:`packings.service.run.enumerate`): the reports of the glued catalysis passes made, in order
     catalysis: list = field(default_factory=list)
 
     @property
