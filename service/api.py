@@ -13,7 +13,8 @@ selection language is :mod:`packings.service.selection`'s, the facts of a cluste
 :mod:`packings.service.errors`' (one line each), whichever way the catalogue is used.
 
 Loading this module is light (no SQLAlchemy, numpy or Dask until a function
-runs): ``import packings`` must stay cheap for every Dask worker.
+runs): the command line loads it (:func:`resolve_url`) before ``packings enumerate``
+starts its workers' fork server.
 """
 
 from __future__ import annotations
@@ -22,9 +23,14 @@ import json
 from typing import TYPE_CHECKING, Any, Iterator
 
 from packings.service.errors import NotFound, UsageError
+from packings.service.export import ase_info, facts
 
 if TYPE_CHECKING:
     import numpy as np
+
+# SQLAlchemy, numpy, ASE (optional) and the modules that load them (the database, the selection
+# language, the store, the reports, the numerics) are imported by the functions that use them, so that
+# loading this module stays light (module doc).
 
 
 def resolve_url(url: str | None) -> str:
@@ -59,8 +65,6 @@ class Row:
     def from_model(cls, c) -> Row:
         """The row of a :class:`packings.service.models.ClusterRow`."""
         import numpy as np
-
-        from packings.service.export import facts
 
         coords = np.frombuffer(c.coords, dtype="<f8").reshape(c.n, 3).astype(np.float64)
         contacts = np.array(json.loads(c.contact_list), dtype=np.int64).reshape(-1, 2)
@@ -106,7 +110,6 @@ class Row:
             from ase import Atoms
         except ImportError:
             raise ImportError("Row.to_atoms() needs ASE, which is not installed: pip install ase") from None
-        from packings.service.export import ase_info
 
         info = ase_info(self.facts)
         info["contact_pairs"] = self.contacts.copy()

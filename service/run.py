@@ -14,12 +14,27 @@ import sys
 from typing import TYPE_CHECKING, Callable
 
 from packings.service.api import resolve_url
-from packings.service.dask_cluster import DASHBOARD_ADDRESS
+from packings.service.dask_cluster import (
+    DASHBOARD_ADDRESS,
+    RECONNECT_ENV,
+    RECONNECT_SECONDS,
+    dask_client,
+    start_fork_server,
+)
 from packings.service.errors import UsageError
+from packings.service.owners import busy
+from packings.service.slurm import check_options, require_sbatch
 from packings.service.validate import check_run
+from packings.workers.kernel_cache import compile_apart, kernels_cached
+from packings.workers.params import Params
 
 if TYPE_CHECKING:
     from packings.service.coordinator import RunResult
+
+# tqdm, SQLAlchemy and the modules that load it or numpy (the database, the worker plugin, the
+# coordinator, the catalysis, the seeds) are imported by the functions that use them: the command line
+# loads this module (pass_bar) before `packings enumerate` starts the fork server, and every 0.1 s of
+# imports before it is 0.1 s more before the workers can start.
 
 
 def _progress_bar(show: bool) -> Callable:
@@ -52,8 +67,6 @@ def _refuse_busy_run(engine, n: int, params) -> None:
     text query on the runs table: neither the models nor the store are loaded before the cluster
     starts (the store's import alone takes half a second)."""
     from sqlalchemy import DateTime, Integer, String, column, text
-
-    from packings.service.owners import busy
 
     q = text("SELECT id, coordinator, heartbeat_at FROM runs WHERE n = :n AND params = :params").columns(
         column("id", Integer), column("coordinator", String), column("heartbeat_at", DateTime)
@@ -138,9 +151,6 @@ def enumerate(
 
     (Its lost jobs are not replaced: that is what ``slurm=`` adds.)
     """
-    from packings.service.dask_cluster import RECONNECT_ENV, RECONNECT_SECONDS, dask_client, start_fork_server
-    from packings.workers.params import Params
-
     check_run(
         n,
         workers=workers,
@@ -151,14 +161,10 @@ def enumerate(
         dashboard_address=dashboard_address,
     )
     if slurm is not None:
-        from packings.service.slurm import check_options
-
         slurm = check_options(slurm)
     local = scheduler is None and slurm is None
     compiling = False
     if local or slurm is not None:
-        from packings.workers.kernel_cache import kernels_cached
-
         compiling = kernels_cached() is False  # then the fork server (or this process, for Slurm) compiles them
     if local:
         start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
@@ -176,8 +182,6 @@ def enumerate(
             raise UsageError(str(e)) from None
     url = resolve_url(url)
     if slurm is not None:
-        from packings.service.slurm import require_sbatch
-
         _refuse_sqlite_for_slurm(url)
         require_sbatch()
     from packings.service.db import open_database, preflight
@@ -193,8 +197,6 @@ def enumerate(
             flush=True,
         )
         if slurm is not None:  # here, once, into the cache the jobs load them from, rather than in every job
-            from packings.workers.kernel_cache import compile_apart
-
             compile_apart()
     from packings.service.plugin import DatabasePlugin
 
