@@ -28,7 +28,7 @@ _PUBLIC = {
     "Catalogue": "packings.service.api",
     "Row": "packings.service.api",
     "connect": "packings.service.api",
-    "enumerate": "packings.service.api",
+    "enumerate": "packings.service.run",
     "PackingsError": "packings.service.errors",
 }
 

@@ -67,7 +67,8 @@ if TYPE_CHECKING:
 
 # packings.workers.catalysis (the endpoint rule, and with it the path-following code and numba's compiled
 # kernels) is imported by the functions that decide remainders: a coordinator whose workers decide them
-# never loads it.
+# never loads it.  Dask is imported by the functions that submit or run a pass's tasks: a pass decided in
+# this process (`packings catalyse --close-packed`, :func:`catalyse` without a client) needs none of it.
 
 BATCH = 200  #: parents per transaction
 #: a parent as a pass reads it (:class:`_Rows`, :func:`rows_of`): id, coordinates, contact list

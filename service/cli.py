@@ -17,9 +17,10 @@ import threading
 import click
 
 from packings.service import plots as _plots
-from packings.service.api import pass_bar, resolve_url
+from packings.service.api import resolve_url
 from packings.service.dask_cluster import DASHBOARD_ADDRESS
 from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
+from packings.service.run import pass_bar
 from packings.service.validate import check_cluster_choice, check_dashboard_address, check_n, int_range
 from packings.workers.params import Params
 
@@ -200,7 +201,7 @@ def enumerate_cmd(
     that ran to its end is not made again; one over the clusters stored since is).
     With --slurm the workers run as Slurm batch jobs (docs/cli.md).
     """
-    from packings.service import api
+    from packings.service import run
 
     check_dashboard_address(dashboard_address, option=True)
     given = {"jobs": jobs, "cores": cores, "memory": memory, "queue": queue, "walltime": walltime}
@@ -209,7 +210,7 @@ def enumerate_cmd(
         raise click.UsageError(f"--{', --'.join(given)} only with --slurm")
     check_cluster_choice(n_workers, scheduler, slurm=slurm, options=True)
     try:
-        result = api.enumerate(
+        result = run.enumerate(
             n,
             db_url,
             workers=n_workers,

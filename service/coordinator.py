@@ -110,7 +110,7 @@ class RunResult:
     resumed: bool
     errors: list[str] = field(default_factory=list)
     total_seconds: float = 0.0  #: the run's time over all its coordinators (``seconds``: this one's)
-    #: with ``glued`` (:func:`packings.service.api.enumerate`): the reports of the glued catalysis passes made, in order
+    #: with ``glued`` (:func:`packings.service.run.enumerate`): the reports of the glued catalysis passes made, in order
     catalysis: list = field(default_factory=list)
 
     @property
@@ -385,85 +385,116 @@ def run_enumeration(
     :class:`packings.service.errors.SchedulerError` (None: it waits for workers to join); ``revive`` is called
     every few seconds to replace lost workers (a local cluster's).
     """
-    Session_ = sessions(engine)
-    Reader = sessions(engine, readonly=True)
-    owner = f"{process_name()}:{uuid.uuid4().hex[:8]}"
-    info = store.start_run(Session_, n, params, owner)
-    log.info("run %d (n = %d): %s", info.id, n, "started" if info.created else "resumed")
-    if info.recovered:
-        log.warning(
-            "run %d: %d expansion(s) leased by a coordinator that is gone put back to pending", info.id, info.recovered
+    return _Run(
+        engine, url, n, params, client, on_progress, max_attempts, per_worker, batch, workerless_timeout, revive
+    ).drive()
+
+
+class _Run:
+    """One coordinator's drive of the run of (n, params) (:func:`run_enumeration`): the run started or
+    resumed, the tasks in flight and the expansions sent alone, the scheduler reached again when it is
+    lost, each result consumed, and the run finished or abandoned (resumably)."""
+
+    def __init__(
+        self,
+        engine: Engine,
+        url: str,
+        n: int,
+        params: Params,
+        client: Client,
+        on_progress: Callable[[Progress], None] | None,
+        max_attempts: int,
+        per_worker: int,
+        batch: int,
+        workerless_timeout: float | None,
+        revive: Callable[[], int] | None,
+    ):
+        self.n, self.client, self.max_attempts = n, client, max_attempts
+        self.per_worker, self.batch, self.workerless_timeout = per_worker, batch, workerless_timeout
+        self.revive = revive  #: called by the watchdog to replace lost workers
+        self.Session_ = sessions(engine)
+        self.Reader = sessions(engine, readonly=True)
+        self.owner = f"{process_name()}:{uuid.uuid4().hex[:8]}"
+        self.info = info = store.start_run(self.Session_, n, params, self.owner)
+        log.info("run %d (n = %d): %s", info.id, n, "started" if info.created else "resumed")
+        if info.recovered:
+            log.warning(
+                "run %d: %d expansion(s) leased by a coordinator that is gone put back to pending",
+                info.id,
+                info.recovered,
+            )
+        self.isolate: set[int] = set()  #: expansions whose task was lost: sent one per task
+        self.plugin = DatabasePlugin(url)
+        client.register_plugin(self.plugin)
+        self.start = time.perf_counter()
+        self.ac = as_completed()
+        self.flight: set = set()  #: the tasks in flight (the watchdog cancels them)
+        self.parts: dict[str, list] = {}  #: the expansions of each task in flight, by its key (read by ``departures``)
+        self.departures = _Departures(client, info.id, self.parts.get)
+        self.threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
+        self.shown = _Every(
+            PROGRESS_SECONDS, lambda: on_progress(_progress(self.Reader, info.id)) if on_progress else None
         )
-    isolate: set[int] = set()  #: expansions whose task was lost: sent one per task
-    plugin = DatabasePlugin(url)
-    client.register_plugin(plugin)
-    start = time.perf_counter()
-    ac = as_completed()
-    flight: set = set()  #: the tasks in flight (the watchdog cancels them)
-    parts: dict[str, list] = {}  #: the expansions of each task in flight, by its key (read by ``departures``)
-    departures = _Departures(client, info.id, parts.get)
 
-    threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
-    shown = _Every(PROGRESS_SECONDS, lambda: on_progress(_progress(Reader, info.id)) if on_progress else None)
-
-    def reconnect() -> None:
+    def reconnect(self) -> None:
         """The Client lost its scheduler (an existing cluster's, gone or restarting): wait while it tries
         to reach it again, for its own window (:data:`packings.service.dask_cluster.RECONNECT_SECONDS`), then
         register the database plugin again (a restarted scheduler knows none, and gives it to the
         workers that join it); if it cannot, stop, resumably."""
         since = time.monotonic()
-        log.warning("run %d: lost the Dask scheduler; trying to reach it again for %.0f s", info.id, window())
+        log.warning("run %d: lost the Dask scheduler; trying to reach it again for %.0f s", self.info.id, self.window())
         while True:
-            gone_since(since)
-            if client.status == "running":
+            self.gone_since(since)
+            if self.client.status == "running":
                 try:
-                    client.register_plugin(plugin)
-                    departures.subscribe()
+                    self.client.register_plugin(self.plugin)
+                    self.departures.subscribe()
                     break
                 except OSError:  # lost again as it was asked (CommClosedError is one)
                     pass
             time.sleep(0.2)
-        log.warning("run %d: reached the Dask scheduler again after %.1f s", info.id, time.monotonic() - since)
+        log.warning("run %d: reached the Dask scheduler again after %.1f s", self.info.id, time.monotonic() - since)
 
-    def window() -> float:
+    def window(self) -> float:
         """How long the Client tries to reach its scheduler again once it lost it."""
-        return float(getattr(client, "_timeout", 0) or 0)
+        return float(getattr(self.client, "_timeout", 0) or 0)
 
-    def gone_since(since: float) -> None:
+    def gone_since(self, since: float) -> None:
         """Stop, resumably, if the scheduler has been out of reach since ``since`` for longer than the
         Client tries to reach it again (or the Client gave up)."""
         waited = time.monotonic() - since
-        if client.status in ("closing", "closed") or waited > window() + RECONNECT_MARGIN:
+        if self.client.status in ("closing", "closed") or waited > self.window() + RECONNECT_MARGIN:
             raise SchedulerError(
                 f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
                 "run the same command to resume"
             )
 
-    def capacity_now() -> int:
+    def capacity_now(self) -> int:
         """Tasks to keep in flight.  The connection can break as the scheduler is asked, before the Client
         has noticed that it lost it (its status still "running"): then reach it again (the plugin given
         again, as to a restarted scheduler) and ask again."""
         since = time.monotonic()
-        if client.status != "running":
-            reconnect()
+        if self.client.status != "running":
+            self.reconnect()
         while True:
             try:
-                return per_worker * threads()
+                return self.per_worker * self.threads()
             except OSError:  # CommClosedError is one
-                gone_since(since)
+                self.gone_since(since)
                 time.sleep(0.2)
-                reconnect()
+                self.reconnect()
 
-    def fill(force: bool = False) -> None:
+    def fill(self, force: bool = False) -> None:
         """Keep up to ``per_worker`` tasks per worker thread in flight: claim once at most half of them
         are left (one claim transaction per few results rather than per result), up to ``batch``
         expansions for each task wanted, and share what was claimed out among those tasks (among more,
         smaller ones when that was all that was pending: :func:`_task_count`)."""
-        capacity = capacity_now()
+        capacity = self.capacity_now()
+        flight, isolate, batch = self.flight, self.isolate, self.batch
         if not force and len(flight) > capacity // 2:
             return
         tasks = capacity - len(flight)
-        claimed = store.claim(Session_, info.id, owner, tasks * batch)
+        claimed = store.claim(self.Session_, self.info.id, self.owner, tasks * batch)
         alone = [[x] for x in claimed if x[0] in isolate]  # each lost once with a task: now on its own
         shared = [x for x in claimed if x[0] not in isolate]
         for part in alone + _shares(shared, _task_count(len(shared), max(1, tasks - len(alone)), capacity, batch)):
@@ -471,33 +502,38 @@ def run_enumeration(
             # one alone goes first: the less it waits on a worker, the less a fault of another task hits it.
             # The key's prefix (Dask's key_split keeps "expand_n12", drops "-n12") names the run's n in
             # Dask's own panels (progress, task stream)
-            fut = client.submit(
+            fut = self.client.submit(
                 expand_task,
                 part,
-                plugin.name,
-                key=f"expand_n{n}-{eid}-{len(part)}-{token}",
+                self.plugin.name,
+                key=f"expand_n{self.n}-{eid}-{len(part)}-{token}",
                 pure=False,
                 priority=int(eid in isolate),
             )
             fut.expansions = part  # type: ignore[attr-defined]
-            parts[fut.key] = part
-            ac.add(fut)
+            self.parts[fut.key] = part
+            self.ac.add(fut)
             flight.add(fut)
 
-    def lost(fut, exc: BaseException | None) -> None:
+    def lost(self, fut, exc: BaseException | None) -> None:
         """``fut``'s task was lost to the infrastructure (``exc``; None: cancelled): put its expansions
         back, uncounted, and send each alone from now on; one that was alone already and killed its
         workers again (KilledWorker) counts."""
         part = fut.expansions
         why = "task cancelled" if exc is None else error_line(exc)
-        if len(part) == 1 and part[0][0] in isolate and isinstance(exc, KilledWorker):
+        if len(part) == 1 and part[0][0] in self.isolate and isinstance(exc, KilledWorker):
             eid, token = part[0]
             status = store.release(
-                Session_, eid, token, f"lost its workers while running alone: {why}", max_attempts, isolated=True
+                self.Session_,
+                eid,
+                token,
+                f"lost its workers while running alone: {why}",
+                self.max_attempts,
+                isolated=True,
             )
             log.error(
                 "run %d: expansion %d lost its workers while running alone (%s): %s",
-                info.id,
+                self.info.id,
                 eid,
                 why,
                 "failed" if status == FAILED else "to be retried",
@@ -505,101 +541,126 @@ def run_enumeration(
             return
         # a task whose worker was reported lost was counted then (_Departures): put back, not counted again
         back = store.put_back(
-            Session_, part, f"infrastructure fault, retried: {why}", retry=fut.key not in departures.counted
+            self.Session_, part, f"infrastructure fault, retried: {why}", retry=fut.key not in self.departures.counted
         )
-        isolate.update(eid for eid, _ in part)
+        self.isolate.update(eid for eid, _ in part)
         log.warning(
             "run %d: a task of %d expansion(s) was lost (%s); %d put back, each to be retried alone",
-            info.id,
+            self.info.id,
             len(part),
             why,
             back,
         )
 
-    def so_far() -> float:
+    def so_far(self) -> float:
         """The run's time: its earlier coordinators' and this one's."""
-        return info.seconds + (time.perf_counter() - start)
+        return self.info.seconds + (time.perf_counter() - self.start)
 
-    beat = _Heartbeat(Session_, info.id, owner, so_far)
-    watchdog = _Watchdog(client, info.id, workerless_timeout, lambda: client.cancel(list(flight.copy())), revive)
-    try:
-        fill(force=True)
-        shown(force=True)
-        while flight:
-            for fut in ac:
-                flight.discard(fut)
-                parts.pop(fut.key, None)
-                departures.count(Session_)
-                failed = {}
-                if fut.status == "cancelled" and cancel_reason(fut) == CONNECTION_LOST:
-                    # the Client lost the scheduler, which says nothing about the task: back, uncounted
-                    store.put_back(
-                        Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler was lost"
-                    )
-                elif fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
-                    lost(fut, None)
-                elif fut.status == "error":
-                    exc = fut.exception()
-                    if isinstance(exc, INFRASTRUCTURE):
-                        lost(fut, exc)
-                    elif isinstance(exc, ExpansionsFailed):
-                        failed = exc.errors
-                    else:
-                        failed = dict.fromkeys((eid for eid, _ in fut.expansions), error_line(exc))
-                full = next((line for line in map(cannot_write, failed.values()) if line), None)
-                if full is not None:  # no expansion's fault, and no use trying others: stop, resumably
-                    _try(lambda: store.put_back(Session_, fut.expansions, f"database not writable: {full}"))
-                    raise not_writable(full)
-                # an expansion of the task that was written back is no longer leased: release leaves it
-                for eid, token in fut.expansions:
-                    if eid in failed:
-                        status = store.release(Session_, eid, token, failed[eid], max_attempts)
-                        log.warning(
-                            "run %d: expansion %d failed (%s): %s",
-                            info.id,
-                            eid,
-                            summary(failed[eid]),
-                            "given up" if status == FAILED else "to be retried",
-                        )
-                fut.release()
-                if watchdog.stalled:
-                    raise SchedulerError(
-                        f"no Dask worker for {workerless_timeout:.0f} s (the local cluster could "
-                        "not start them again); run the same command to resume"
-                    )
-                fill()
-                shown()
-            fill(force=True)
-        departures.count(Session_)
-        shown(force=True)
-    except BaseException:
-        beat.stop()
-        watchdog.stop()
-        departures.close()
-        # if the database cannot take this either, the next coordinator puts the leases back
-        _try(lambda: store.abandon(Session_, info.id, owner, so_far()))
-        e = sys.exc_info()[1]
-        full = None if isinstance(e, StorageError) else cannot_write(str(e))
-        if full is not None:  # the coordinator's own write failed so
-            raise not_writable(full) from None
-        raise
-    beat.stop()
-    watchdog.stop()
-    departures.close()
-    seconds = time.perf_counter() - start
-    status = store.finish_run(Session_, info.id, owner, so_far())
-    log.info("run %d (n = %d): %s after %.1f s", info.id, n, status, seconds)
-    with Reader() as s:
-        by_contacts = store.run_counts(s, info.id)
-        diagnostics = store.run_diagnostics(s, info.id)
-        errors = [
-            f"expansion {i}: {summary(e or '')}"
-            for i, e in s.execute(
-                select(ExpansionRow.id, ExpansionRow.error).where(
-                    ExpansionRow.run_id == info.id, ExpansionRow.status == FAILED
+    def failures(self, fut) -> dict[int, str]:
+        """The expansions of ``fut``'s task that failed, each with its error (none when it was lost to the
+        infrastructure: then they were put back here)."""
+        if fut.status == "cancelled" and cancel_reason(fut) == CONNECTION_LOST:
+            # the Client lost the scheduler, which says nothing about the task: back, uncounted
+            store.put_back(self.Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler was lost")
+        elif fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
+            self.lost(fut, None)
+        elif fut.status == "error":
+            exc = fut.exception()
+            if isinstance(exc, INFRASTRUCTURE):
+                self.lost(fut, exc)
+            elif isinstance(exc, ExpansionsFailed):
+                return exc.errors
+            else:
+                return dict.fromkeys((eid for eid, _ in fut.expansions), error_line(exc))
+        return {}
+
+    def consume(self, fut) -> None:
+        """One task's result: its failed expansions released (retried or failed), or the run stopped,
+        resumably, when the database cannot be written or no worker is left."""
+        self.flight.discard(fut)
+        self.parts.pop(fut.key, None)
+        self.departures.count(self.Session_)
+        failed = self.failures(fut)
+        full = next((line for line in map(cannot_write, failed.values()) if line), None)
+        if full is not None:  # no expansion's fault, and no use trying others: stop, resumably
+            _try(lambda: store.put_back(self.Session_, fut.expansions, f"database not writable: {full}"))
+            raise not_writable(full)
+        # an expansion of the task that was written back is no longer leased: release leaves it
+        for eid, token in fut.expansions:
+            if eid in failed:
+                status = store.release(self.Session_, eid, token, failed[eid], self.max_attempts)
+                log.warning(
+                    "run %d: expansion %d failed (%s): %s",
+                    self.info.id,
+                    eid,
+                    summary(failed[eid]),
+                    "given up" if status == FAILED else "to be retried",
                 )
+        fut.release()
+        if self.watchdog.stalled:
+            raise SchedulerError(
+                f"no Dask worker for {self.workerless_timeout:.0f} s (the local cluster could "
+                "not start them again); run the same command to resume"
             )
-        ]
-    return RunResult(
-        info.id, n, status, by_contacts, diagnostics, seconds, not info.created, errors, info.seconds + seconds
-    )
+
+    def drive(self) -> RunResult:
+        """Submit, consume and claim more until nothing is in flight; on any exception (an interrupt
+        too) the run is abandoned, its leases put back, and the exception raised (a database that cannot
+        be written as :func:`not_writable`'s one line)."""
+        self.beat = _Heartbeat(self.Session_, self.info.id, self.owner, self.so_far)
+        self.watchdog = _Watchdog(
+            self.client,
+            self.info.id,
+            self.workerless_timeout,
+            lambda: self.client.cancel(list(self.flight.copy())),
+            self.revive,
+        )
+        try:
+            self.fill(force=True)
+            self.shown(force=True)
+            while self.flight:
+                for fut in self.ac:
+                    self.consume(fut)
+                    self.fill()
+                    self.shown()
+                self.fill(force=True)
+            self.departures.count(self.Session_)
+            self.shown(force=True)
+        except BaseException:
+            self.stop()
+            # if the database cannot take this either, the next coordinator puts the leases back
+            _try(lambda: store.abandon(self.Session_, self.info.id, self.owner, self.so_far()))
+            e = sys.exc_info()[1]
+            full = None if isinstance(e, StorageError) else cannot_write(str(e))
+            if full is not None:  # the coordinator's own write failed so
+                raise not_writable(full) from None
+            raise
+        self.stop()
+        return self.finish()
+
+    def stop(self) -> None:
+        """The heartbeat, the watchdog and the subscription to the scheduler's events stopped."""
+        self.beat.stop()
+        self.watchdog.stop()
+        self.departures.close()
+
+    def finish(self) -> RunResult:
+        """The run marked complete (or incomplete, if some expansion failed) and its result."""
+        info, Session_ = self.info, self.Session_
+        seconds = time.perf_counter() - self.start
+        status = store.finish_run(Session_, info.id, self.owner, self.so_far())
+        log.info("run %d (n = %d): %s after %.1f s", info.id, self.n, status, seconds)
+        with self.Reader() as s:
+            by_contacts = store.run_counts(s, info.id)
+            diagnostics = store.run_diagnostics(s, info.id)
+            errors = [
+                f"expansion {i}: {summary(e or '')}"
+                for i, e in s.execute(
+                    select(ExpansionRow.id, ExpansionRow.error).where(
+                        ExpansionRow.run_id == info.id, ExpansionRow.status == FAILED
+                    )
+                )
+            ]
+        return RunResult(
+            info.id, self.n, status, by_contacts, diagnostics, seconds, not info.created, errors, info.seconds + seconds
+        )

@@ -9,15 +9,22 @@ the command line imports it before it starts the fork server.
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 import sys
+import tempfile
 import threading
 import time
 import warnings
 from pathlib import Path
 
 from packings.service.errors import SchedulerError
+from packings.service.slurm import JobKeeper, start_cluster
+
+# multiprocessing, Dask, YAML, the plugins (Dask, SQLAlchemy) and the dashboard (Bokeh; importing it adds
+# its page to the schedulers started after) are imported by the functions that use them: the command line
+# loads this module (every command, not only those that start a cluster) before it starts the fork server.
 
 #: the modules that the fork server of a local cluster's workers loads before it forks them
 FORK_SERVER_PRELOAD = ("distributed", "packings.service.preload")
@@ -107,8 +114,6 @@ def mark_unguarded() -> None:
     """Name the file that this process's new processes create if they run its script's call of
     ``packings.enumerate`` again (:func:`refuse_while_importing_main`): one per process, named in its
     environment, which they inherit (a fork server's from when it starts)."""
-    import tempfile
-
     mark = os.path.join(tempfile.gettempdir(), f"packings-unguarded-{os.getpid()}")
     if os.environ.get(UNGUARDED_MARK_ENV) != mark:  # not yet, or this process's parent's
         os.environ[UNGUARDED_MARK_ENV] = mark
@@ -133,8 +138,6 @@ def _ran_unguarded() -> bool:
 def _load_distributed_defaults() -> None:
     """Dask's configuration with distributed's defaults, as ``import distributed`` sets them, but without
     the import (0.3 s, which the fork server's start would wait for): from its ``distributed.yaml``."""
-    import importlib.util
-
     import dask
     import yaml
 
@@ -230,7 +233,6 @@ class dask_client:
             self._client = Client(self.scheduler)
         elif self.slurm is not None:
             import packings.service.dashboard
-            from packings.service.slurm import JobKeeper, start_cluster
 
             warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
             # as a local cluster's workers, no statistical profiler unless asked (the variable, set, reaches the

@@ -84,7 +84,7 @@ def check_run(
     max_attempts=None,
     dashboard_address: str | None = None,
 ) -> None:
-    """The checks of a run's parameters (:func:`packings.service.api.enumerate`); ``scheduler`` may be an
+    """The checks of a run's parameters (:func:`packings.service.run.enumerate`); ``scheduler`` may be an
     address or a Dask cluster object, ``slurm`` says whether Slurm's jobs were asked for."""
     check_n(n)
     check_cluster_choice(workers, scheduler, slurm=slurm)

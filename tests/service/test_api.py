@@ -238,7 +238,7 @@ def test_a_run_held_by_a_live_coordinator_is_refused_before_anything_starts(engi
     import os
     import socket
 
-    import packings.service.dask_cluster
+    import packings.service.run
     from packings.service import store
     from packings.service.db import sessions
     from packings.workers.params import Params
@@ -249,7 +249,7 @@ def test_a_run_held_by_a_live_coordinator_is_refused_before_anything_starts(engi
     def no_dask(*args, **kw):
         raise AssertionError("a Dask cluster was started")
 
-    monkeypatch.setattr(packings.service.dask_cluster, "dask_client", no_dask)
+    monkeypatch.setattr(packings.service.run, "dask_client", no_dask)
     with pytest.raises(PackingsError, match="being driven by coordinator"):
         packings.enumerate(8, url, workers=1, progress=False)
     r = subprocess.run(

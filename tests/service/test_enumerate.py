@@ -334,7 +334,7 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
 
     import packings.service.cli
     import packings.service.coordinator
-    import packings.service.dask_cluster
+    import packings.service.run
     from packings.service.coordinator import RunResult
 
     seen = {}
@@ -345,7 +345,7 @@ def test_the_max_attempts_option_reaches_the_coordinator(sqlite_url, monkeypatch
 
     monkeypatch.setattr(packings.service.coordinator, "run_enumeration", fake_run)
     monkeypatch.setattr(
-        packings.service.dask_cluster,
+        packings.service.run,
         "dask_client",
         lambda *a, **kw: nullcontext(SimpleNamespace(client=None, revive_workers=lambda: 0)),
     )
