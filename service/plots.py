@@ -164,7 +164,7 @@ def plot_counts(
     fewest contacts kept} for the n whose totals count only the clusters with
     that many contacts or more (runs restricted by ``--min-contacts``): drawn
     hollow, marked "≥ M contacts", and left out of the fit.  ``partial``: the n
-    whose totals are not complete (:func:`packings.service.store.incomplete_ns`): drawn
+    whose totals are not complete (:func:`packings.service.queries.incomplete_ns`): drawn
     hollow in grey, marked "partial", and left out of the fit.  ``paper``: {n: the
     paper's count} to compare (:func:`packings.service.paper.paper_totals`), drawn as
     crosses at the n plotted.  Returns the figure."""
@@ -929,7 +929,7 @@ def _reading(db_url: str | None):
 
 def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
     """{n: {contacts: clusters}} of the stored clusters (only ``ns`` if given)."""
-    from packings.service.store import counts_by_n
+    from packings.service.queries import counts_by_n
 
     if ns is None:
         return counts_by_n(s)
@@ -941,7 +941,7 @@ def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
 
 def _incomplete(s) -> tuple[dict[int, int], set[int]]:
     """{n: M} of the n held only by runs restricted by --min-contacts, and the n whose counts are partial."""
-    from packings.service.store import incomplete_ns
+    from packings.service.queries import incomplete_ns
 
     return incomplete_ns(s)
 

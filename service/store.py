@@ -1,7 +1,8 @@
 """Transactions on the database: runs, the frontier, and write-back of results.
 
-Every function here is one transaction (or a read).  The rules that make the
-service safe under concurrency and failure:
+Every function here is one transaction, or a read of the state a run is in (its frontier, faults and
+counts) or of its tasks' inputs; the catalogue's other reads are :mod:`packings.service.queries`.  The
+rules that make the service safe under concurrency and failure:
 
 * Claims: a batch of pending expansions becomes ``leased`` with a fresh token
   (PostgreSQL: ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite: the transaction
@@ -30,7 +31,7 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from importlib import metadata
-from typing import TYPE_CHECKING, Iterable, Iterator
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 from sqlalchemy import Connection, bindparam, case, func, insert, select, update
@@ -45,6 +46,7 @@ from packings.service.models import (
     FOUND_SEED,
     INCOMPLETE,
     LEASED,
+    NOT_CLOSE_PACKED,
     PENDING,
     RUNNING,
     AttemptsRow,
@@ -57,7 +59,8 @@ from packings.service.models import (
     utcnow,
 )
 from packings.service.owners import busy, coordinator_alive
-from packings.service.paths_codec import Attempt, Packed, pack, summary, unpack
+from packings.service.paths_codec import Attempt, pack, summary
+from packings.service.queries import arrivals_at
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.free_energy import free_energy
@@ -69,9 +72,6 @@ from packings.workers.seeds import seed_cluster
 
 if TYPE_CHECKING:  # the coordinator, which imports this module, never loads the path-following code
     from packings.workers.expand import Expansion as CoreExpansion
-
-#: clusters.lattice of a cluster that is not a close-packed fragment (NULL means not yet classified)
-NOT_CLOSE_PACKED = "none"
 
 
 def code_version() -> str:
@@ -135,19 +135,6 @@ _INSERT_EXPANSION = insert(_E)
 #: an attempts row's values, in this order, and an edge's (see :func:`insert_attempts`)
 ATTEMPTS_COLUMNS = ("run_id", "source_id", "attempts", "paths", "circular", "rearranged", "data")
 EDGE_COLUMNS = ("target_id", "source_id", "run_id", "paths", "labelled")
-#: the expansions with paths that arrived at these clusters and can be retraced from them (edges.labelled),
-#: in the order they were written (the arrivals' order: packings.workers.expand.arrivals keeps the first
-#: of each set of contacts)
-_ARRIVALS_DATA = (
-    select(_EDGES.c.target_id, _A.c.run_id, _A.c.source_id, _A.c.id, _A.c.data)
-    .join_from(_EDGES, _A, (_A.c.source_id == _EDGES.c.source_id) & (_A.c.run_id == _EDGES.c.run_id))
-    .where(
-        _EDGES.c.target_id.in_(bindparam("cids", expanding=True)),
-        _EDGES.c.run_id.in_(bindparam("runs", expanding=True)),
-        _EDGES.c.labelled > 0,
-    )
-    .order_by(_A.c.id)
-)
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -560,30 +547,6 @@ def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
     }
 
 
-def arrivals_at(s: Session | Connection, wanted: set[tuple[int, int]]) -> dict[tuple[int, int], list[tuple]]:
-    """The paths of run r that arrived at cluster c with the endpoint's labels, for each (r, c) in ``wanted``:
-    rows (source id, broken, new contacts, steps, labels) as :func:`packings.workers.expand.arrivals` takes
-    them, in the order they were written.  Only the packed attempts of the expansions that reached c
-    (edges.labelled) are read."""
-    came: dict[tuple[int, int], list[tuple]] = {}
-    if not wanted:
-        return came
-    packed: dict[int, Packed] = {}
-    for target, run_id, source, aid, data in s.execute(
-        _ARRIVALS_DATA, {"cids": sorted({c for _, c in wanted}), "runs": sorted({r for r, _ in wanted})}
-    ):
-        if (run_id, target) not in wanted:
-            continue
-        p = packed.get(aid)
-        if p is None:
-            p = packed[aid] = unpack(data)
-        out = came.setdefault((run_id, target), [])
-        for k in p.to(target, labelled=True):
-            a = p.one(int(k))
-            out.append((source, a.broken, a.new_contacts, a.steps, a.labels))
-    return came
-
-
 @functools.lru_cache(maxsize=64)
 def _params(params_text: str) -> Params:
     """A run's parameters from their JSON (a worker reads the same run's again and again)."""
@@ -861,66 +824,9 @@ def to_backfill(s: Session, recompute: bool = False) -> int:
     return s.execute(q if recompute else q.where(_MISSING_FACTS)).scalar_one()
 
 
-# --------------------------------------------------------------------------- reading
+# --------------------------------------------------------------------------- a run's results
 
-
-@dataclass(frozen=True)
-class Transition:
-    """One attempt as it is read back: what a row of the former ``transitions`` table held, with the
-    expansion's ``attempts`` row (``row``, in order of writing) and the attempt's place in it (``attempt``)."""
-
-    row: int
-    attempt: int
-    run_id: int
-    source_id: int
-    broken: tuple[tuple[int, int], ...]
-    direction: int
-    outcome: str
-    target_id: int | None
-    steps: int
-    new_contacts: tuple[tuple[int, int], ...]
-    labels: tuple[int, ...] | None
-
-
-def transitions(
-    s: Session | Connection,
-    *,
-    source: int | None = None,
-    target: int | None = None,
-    run: int | None = None,
-    n: int | None = None,
-) -> Iterator[Transition]:
-    """The stored attempts, in the order they were written: those from cluster ``source``, those that
-    reached cluster ``target`` (read through ``edges``: only the expansions that reached it are unpacked),
-    those of ``run``, those from the clusters of ``n`` spheres; all of them when none is given."""
-    q = select(_A.c.id, _A.c.run_id, _A.c.source_id, _A.c.data).order_by(_A.c.id)
-    if target is not None:
-        q = q.join(_EDGES, (_EDGES.c.source_id == _A.c.source_id) & (_EDGES.c.run_id == _A.c.run_id)).where(
-            _EDGES.c.target_id == target
-        )
-    if source is not None:
-        q = q.where(_A.c.source_id == source)
-    if run is not None:
-        q = q.where(_A.c.run_id == run)
-    if n is not None:
-        q = q.join(ClusterRow, ClusterRow.id == _A.c.source_id).where(ClusterRow.n == n)
-    for row, run_id, source_id, data in s.execute(q):
-        p = unpack(data)
-        for k in range(len(p)) if target is None else p.to(target):
-            a = p.attempt(int(k))
-            yield Transition(
-                row,
-                int(k),
-                run_id,
-                source_id,
-                a.broken,
-                a.direction,
-                a.outcome,
-                a.target,
-                a.steps,
-                a.new_contacts,
-                a.labels,
-            )
+# What a run has found so far: the coordinator's report when it ends, the dashboard's while it runs.
 
 
 def run_counts(s: Session, run_id: int) -> dict[int, int]:
@@ -959,41 +865,3 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
         **dict(sorted(total.items())),
         "failed_tasks": f.get(FAILED, 0),
     }
-
-
-def incomplete_ns(s: Session) -> tuple[dict[int, int], set[int]]:
-    """The n whose counts are not the method's full count of n, never to be mixed with full counts (the fit,
-    the totals), from one read of the runs:
-
-    - restricted: {n: the fewest contacts kept} for each n whose clusters come only from runs restricted by
-      ``--min-contacts`` (no run of n keeps every cluster): their counts are of the clusters with that many
-      contacts or more;
-    - partial: the other n with stored clusters of which no run that keeps every cluster (no
-      ``--min-contacts``, no ``--max-break`` cap) is complete (a run going on or interrupted, a catalysis
-      pass's, no run at all)."""
-    full: set[int] = set()
-    complete: set[int] = set()
-    least: dict[int, int] = {}
-    for n, status, params in s.execute(select(Run.n, Run.status, Run.params)):
-        p = json.loads(params)
-        m = p.get("min_contacts")
-        if m is None:
-            full.add(n)
-            if status == COMPLETE and p.get("max_break") is None:
-                complete.add(n)
-        else:
-            least[n] = min(m, least.get(n, m))
-    restricted = {n: m for n, m in sorted(least.items()) if n not in full}
-    held = set(s.execute(select(ClusterRow.n).distinct()).scalars())
-    return restricted, held - complete - set(restricted)
-
-
-def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:
-    """All stored clusters: {n: {contacts: count}}."""
-    q = select(ClusterRow.n, ClusterRow.contacts, func.count()).group_by(ClusterRow.n, ClusterRow.contacts)
-    if n is not None:
-        q = q.where(ClusterRow.n == n)
-    out: dict[int, dict[int, int]] = {}
-    for nn, m, c in s.execute(q.order_by(ClusterRow.n, ClusterRow.contacts)):
-        out.setdefault(int(nn), {})[int(m)] = int(c)
-    return out
