@@ -177,11 +177,6 @@ def _retries(url: str) -> int:
         engine.dispose()
 
 
-@pytest.fixture(scope="module")
-def reference10():
-    return list(catalogue(10).clusters)
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1])
 def test_workers_killed_at_random_the_run_completes_by_itself(db_url, reference10, seed, monkeypatch):
