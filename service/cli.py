@@ -16,10 +16,11 @@ import threading
 
 import click
 
-from packings.service import plots as _plots
 from packings.service.api import pass_bar, resolve_url
 from packings.service.dask_cluster import DASHBOARD_ADDRESS
 from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
+from packings.service.options import db_option, width_option
+from packings.service.plot_commands import plot
 from packings.service.validate import check_cluster_choice, check_dashboard_address, check_n, int_range
 from packings.workers.params import Params
 
@@ -27,13 +28,6 @@ from packings.workers.params import Params
 # enumerate` starts the fork server of its local cluster's workers first thing (start_fork_server), and
 # every 0.1 s before it is 0.1 s more before the workers can start.  The commands import what they use.
 
-db_option = click.option(
-    "--db",
-    "db_url",
-    default=None,
-    metavar="URL",
-    help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
-)
 #: where the work runs: a local cluster of K workers, or an existing Dask cluster
 workers_option = click.option(
     "--workers",
@@ -548,7 +542,7 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
     default=None,
     help="Add each cluster's and each number of contacts' equilibrium probability at this sticky parameter κ.",
 )
-@_plots.width_option
+@width_option
 def stats_cmd(db_url: str | None, n: int | None, as_json: bool, kappa: float | None, width: float | None) -> None:
     """What the catalogue contains, per n, in the paper's style.
 
@@ -908,7 +902,7 @@ def _export_network(n: int | None, output: str | None, db_url: str | None) -> No
     )
 
 
-cli.add_command(_plots.plot)  # its own module; imports matplotlib only when it draws
+cli.add_command(plot)  # packings.service.plot_commands; matplotlib is imported only when it draws
 
 
 def _database_error(e: Exception) -> str | None:
