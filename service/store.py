@@ -644,42 +644,14 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
     write lock, the query of the stored clusters, the inserts of attempts and expansions) are paid
     once per task.
     """
-    prepared = []
-    for f in finished:
-        distinct, which = distinct_endpoints(f.expansion)
-        outcomes = dict(sorted(f.expansion.outcomes().items()))
-        outcomes["widened_paths"] = f.expansion.widened_paths
-        outcomes["paths_by_symmetry"] = f.expansion.paths_by_symmetry
-        outcomes["paths_retraced"] = f.expansion.paths_retraced
-        prepared.append((f, distinct, which, json.dumps(outcomes)))
+    prepared = [(f, *distinct_endpoints(f.expansion), _outcomes_json(f.expansion)) for f in finished]
     engine = Session_.kw["bind"]
     pre = premade(engine, [(f.task.params.tol_d, f.expansion, distinct, which) for f, distinct, which, _ in prepared])
     summaries: list[dict | None] = [None] * len(finished)
     # Core statements only, on a connection of the sessions' engine: cheaper than a session, and the
     # same transaction rules (SQLite: BEGIN IMMEDIATE).
     with engine.begin() as s:
-        # First: each done, if its lease is still its token's (PostgreSQL: this also locks the row).  Nothing
-        # of it is seen by others before the commit, and all of it is rolled back if anything below fails.
-        live = []
-        for k, (f, distinct, which, outcomes) in enumerate(prepared):
-            done = s.execute(
-                _DONE,
-                {
-                    "eid": f.task.expansion_id,
-                    "token": f.token,
-                    "status": DONE,
-                    "finished_at": utcnow(),
-                    "lease_owner": None,
-                    "lease_token": None,
-                    "outcomes": outcomes,
-                    "paths": f.expansion.paths_followed,
-                    "seconds": f.seconds,
-                    "worker": worker,
-                    "error": None,
-                },
-            )
-            if done.rowcount == 1:
-                live.append((k, f, distinct, which))
+        live = _mark_done(s, prepared, worker)
         if not live:
             return summaries
         keys = {(f.task.cluster.n, cert) for _, f, distinct, _ in live for _, _, cert in distinct}
@@ -694,21 +666,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ids, new_clusters = [], 0
             for j, (c, rig, cert) in enumerate(distinct):
                 rows = stored[(c.n, cert)]
-                cid = pre.matched.get((k, j))
-                if cid is not None and pre.seen[(c.n, cert)] == frozenset(r.id for r in rows):
-                    is_new = False  # the clusters read before: the same match (Premade)
-                else:
-                    cid, is_new = insert_or_match(
-                        s,
-                        c,
-                        rig,
-                        task.run_id,
-                        task.params.tol_d,
-                        rows,
-                        found_by=FOUND_PATH,
-                        source_id=task.cluster_id,
-                        values=pre.values.get((k, j)),
-                    )
+                cid, is_new = _store_endpoint(s, task, c, rig, cert, rows, pre, (k, j))
                 ids.append(cid)
                 if is_new:
                     by_id[cid] = c  # the stored row's core cluster (insert_or_match)
@@ -716,11 +674,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                     new_clusters += 1
                 elif next(r.found_in_run for r in rows if r.id == cid) != task.run_id:
                     others.setdefault(task.run_id, []).append(cid)
-            targets = {i: ids[j] for i, j in which.items()}
-            targets.update(
-                {i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome in (CIRCULAR, REARRANGED)}
-            )
-            targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
+            targets = _targets(ex, task.cluster_id, ids, which)
             known = {i: lab for i, (cid, lab) in pre.labels.get(k, {}).items() if targets.get(i) == cid}
             labels = _target_labels(ex, targets, by_id, task.params.tol_d, known)
             written.append((task.run_id, task.cluster_id, task.cluster.n, _attempts(ex, targets, labels)))
@@ -734,6 +688,82 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
         insert_attempts(s, written)
     return summaries
+
+
+def _outcomes_json(ex: CoreExpansion) -> str:
+    """expansions.outcomes of an expansion: its attempts by outcome, and its widened, symmetric and
+    retraced paths."""
+    outcomes = dict(sorted(ex.outcomes().items()))
+    outcomes["widened_paths"] = ex.widened_paths
+    outcomes["paths_by_symmetry"] = ex.paths_by_symmetry
+    outcomes["paths_retraced"] = ex.paths_retraced
+    return json.dumps(outcomes)
+
+
+def _mark_done(s: Connection, prepared: list[tuple], worker: str) -> list[tuple]:
+    """The write-back's first statements: each expansion of ``prepared`` (finished, distinct endpoints, which,
+    outcomes) done, if its lease is still its token's (PostgreSQL: this also locks the row).  Nothing of it
+    is seen by others before the commit, and all of it is rolled back if anything after fails.  Returns
+    (position, finished, distinct, which) of those marked."""
+    live = []
+    for k, (f, distinct, which, outcomes) in enumerate(prepared):
+        done = s.execute(
+            _DONE,
+            {
+                "eid": f.task.expansion_id,
+                "token": f.token,
+                "status": DONE,
+                "finished_at": utcnow(),
+                "lease_owner": None,
+                "lease_token": None,
+                "outcomes": outcomes,
+                "paths": f.expansion.paths_followed,
+                "seconds": f.seconds,
+                "worker": worker,
+                "error": None,
+            },
+        )
+        if done.rowcount == 1:
+            live.append((k, f, distinct, which))
+    return live
+
+
+def _store_endpoint(
+    s: Connection,
+    task: Task,
+    c: CoreCluster,
+    rig: Rigidity,
+    cert: str,
+    rows: list[Stored],
+    pre: Premade,
+    at: tuple[int, int],
+) -> tuple[int, bool]:
+    """The id of the stored cluster a distinct endpoint ``c`` of ``task`` (certificate ``cert``, position
+    ``at`` in :class:`Premade`) is, and whether it was inserted now: the match read before if the
+    certificate's clusters (``rows``, read under its lock) are still those, else :func:`insert_or_match`."""
+    cid = pre.matched.get(at)
+    if cid is not None and pre.seen[(c.n, cert)] == frozenset(r.id for r in rows):
+        return cid, False  # the clusters read before: the same match
+    return insert_or_match(
+        s,
+        c,
+        rig,
+        task.run_id,
+        task.params.tol_d,
+        rows,
+        found_by=FOUND_PATH,
+        source_id=task.cluster_id,
+        values=pre.values.get(at),
+    )
+
+
+def _targets(ex: CoreExpansion, source_id: int, ids, which: dict[int, int]) -> dict[int, int]:
+    """The cluster each attempt of ``ex`` reached, by attempt: its rigid endpoint's stored cluster (``ids``,
+    by distinct endpoint), the source itself for a circular or rearranged one, a retraced path's target."""
+    targets = {i: ids[j] for i, j in which.items()}
+    targets.update({i: source_id for i, e in enumerate(ex.endpoints) if e.outcome in (CIRCULAR, REARRANGED)})
+    targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
+    return targets
 
 
 def _target_labels(
