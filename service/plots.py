@@ -27,7 +27,11 @@ import os
 from pathlib import Path
 from typing import Sequence
 
+from packings.service.export import replace_file
 from packings.service.fit import fit_factorial, predicted
+
+# matplotlib, numpy, scipy and the numerics are imported in the functions that use them: the plot commands
+# load this module for every `packings` command (the module doc).
 
 SIZE, DPI = (6.4, 4.8), 150  #: a figure's default size in inches, and its dots per inch
 FORMATS = ("png", "pdf", "svg")  #: what a figure can be written as, by the file name's suffix
@@ -77,8 +81,6 @@ def save(fig, path: str | os.PathLike) -> Path:
     """Write ``fig`` in the format of ``path``'s suffix (:func:`figure_format`), at the figure's own size
     and dots per inch, to a temporary file beside ``path``, then rename it over ``path``; on any failure
     nothing is left."""
-    from packings.service.export import replace_file
-
     fmt = figure_format(path)
     return replace_file(path, lambda f: fig.savefig(f, format=fmt, dpi=fig.dpi), binary=True)
 
@@ -153,8 +155,6 @@ def plot_counts(
     hollow in grey, marked "partial", and left out of the fit.  ``paper``: {n: the
     paper's count} to compare (:func:`packings.service.paper.paper_totals`), drawn as
     crosses at the n plotted.  Returns the figure."""
-    import numpy as np
-
     totals = {int(n): int(t) for n, t in totals.items() if t and t > 0}
     if not totals:
         raise ValueError("no clusters to plot")
@@ -164,6 +164,27 @@ def plot_counts(
     full = [n for n in ns if n not in restricted and n not in partial]
     fig, ax_ = _canvas(ax, size, dpi, path)
     ax_.set_yscale("log")
+    _draw_counts(ax_, totals, full, restricted, partial, paper)
+    _draw_fit(ax_, totals, full)
+    ax_.set_xlabel("n (spheres)")
+    ax_.set_ylabel("number of rigid clusters")
+    ax_.set_title("Rigid clusters of n spheres")
+    ax_.set_xlim(min(ns) - 0.6, max(ns) + 0.6)
+    _integer_ticks(ax_.xaxis, min(ns), max(ns))
+    lo, hi = min(totals.values()), max(totals.values())
+    ax_.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
+    _log_ticks(ax_.yaxis, lo / 2, hi * 4)
+    ax_.grid(True, which="major", alpha=0.3)
+    ax_.legend(loc="upper left", fontsize=8)
+    return _done(fig, path, ax is None)
+
+
+def _draw_counts(
+    ax_, totals: dict[int, int], full: list[int], restricted: dict[int, int], partial: set[int], paper
+) -> None:
+    """:func:`plot_counts`' markers: the full counts, the restricted and the partial ones hollow, the paper's
+    crosses; each count written above its marker."""
+    ns = sorted(totals)
     if full:
         ax_.plot(full, [totals[n] for n in full], "o", ms=7, color="C0", zorder=3, label="rigid clusters")
     if restricted:
@@ -211,6 +232,13 @@ def plot_counts(
         ax_.annotate(
             text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=8, color="0.25"
         )
+
+
+def _draw_fit(ax_, totals: dict[int, int], full: list[int]) -> None:
+    """:func:`plot_counts`' fitted curve b·(n − 5)! of the full counts, if there is one."""
+    import numpy as np
+
+    ns = sorted(totals)
     fit = fit_factorial({n: totals[n] for n in full})
     if fit is not None:
         xs = np.arange(max(min(ns), 5), max(ns) + 1)
@@ -225,17 +253,6 @@ def plot_counts(
             zorder=2,
             label=f"fit {fit['b']:.2f}·(n − 5)!  ({over})",
         )
-    ax_.set_xlabel("n (spheres)")
-    ax_.set_ylabel("number of rigid clusters")
-    ax_.set_title("Rigid clusters of n spheres")
-    ax_.set_xlim(min(ns) - 0.6, max(ns) + 0.6)
-    _integer_ticks(ax_.xaxis, min(ns), max(ns))
-    lo, hi = min(totals.values()), max(totals.values())
-    ax_.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
-    _log_ticks(ax_.yaxis, lo / 2, hi * 4)
-    ax_.grid(True, which="major", alpha=0.3)
-    ax_.legend(loc="upper left", fontsize=8)
-    return _done(fig, path, ax is None)
 
 
 def plot_gap_cdf(
@@ -472,7 +489,6 @@ def _color_scale(values):
 def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost, style, labels, gap, extent) -> None:
     """One cluster on 3D axes ``ax``, centred coordinates ``x``: see :func:`plot_cluster`."""
     import numpy as np
-    from matplotlib import patheffects
 
     radius = RADIUS if style == "spheres" else STICK_RADIUS
     # The view: towards the viewer (eye), right and up on the screen; the light from the upper left, in front.
@@ -528,7 +544,20 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
         else:
             i, j = what
             ax.plot(*zip(x[i], x[j]), color=STICK_COLOR, lw=3.0, solid_capstyle="round", zorder=z)
-    top = len(items) + 1
+    _draw_over(ax, x, pairs, len(items) + 1, radius, eye, up, ghost=ghost, style=style, labels=labels, gap=gap)
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(-extent, extent)
+    ax.set_zlim(-extent, extent)
+    ax.set_box_aspect((1, 1, 1), zoom=1.6)
+    ax.set_axis_off()
+
+
+def _draw_over(ax, x, pairs, top: int, radius: float, eye, up, *, ghost, style, labels, gap) -> None:
+    """What :func:`_draw_cluster` draws over the spheres and sticks, from depth ``top`` up: the sticks again,
+    faint (``spheres`` style), the closest gap, the spheres' numbers."""
+    from matplotlib import patheffects
+
+    n = len(x)
     # every stick again, faint, over everything: the contacts hidden by the spheres in front show through
     if style == "spheres":
         for i, j in pairs:
@@ -562,11 +591,6 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
                 zorder=top + 3,
                 path_effects=outline,
             )
-    ax.set_xlim(-extent, extent)
-    ax.set_ylim(-extent, extent)
-    ax.set_zlim(-extent, extent)
-    ax.set_box_aspect((1, 1, 1), zoom=1.6)
-    ax.set_axis_off()
 
 
 def _colorbar(fig, cmap, norm, ticks, label, **where) -> None:
@@ -623,6 +647,8 @@ def plot_cluster(
     behind spheres show through.  Spheres and sticks are drawn back to front by
     the depth of their centres (midpoints), which is right for equal spheres
     that do not overlap.  ``ax`` must be 3D axes (``projection="3d"``).
+
+    (Over 80 lines by its options and this description only: the drawing is :func:`_draw_cluster`'s.)
     """
     import numpy as np
 
