@@ -248,7 +248,7 @@ def arrivals_of(url: str, run_id: int, mode: str, ids) -> dict[int, tuple[tuple[
 
     import packings
     from packings.service.models import ExpansionRow
-    from packings.service.store import arrivals_at
+    from packings.service.queries import arrivals_at
 
     ids = sorted(set(ids))
     out: dict[int, list] = {cid: [] for cid in ids}

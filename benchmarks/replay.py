@@ -113,7 +113,7 @@ def record(source: str, n: int, path: Path) -> Recording:
 
     from packings.service.db import open_database
     from packings.service.models import COMPLETE, ClusterRow, ExpansionRow, Run
-    from packings.service.store import transitions
+    from packings.service.queries import transitions
     from packings.workers.params import Params
 
     engine = open_database(source)

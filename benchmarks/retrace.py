@@ -33,7 +33,7 @@ def count(url: str, n: int) -> dict:
 
     import packings
     from packings.service.models import COMPLETE, AttemptsRow, ClusterRow, ExpansionRow, Run, core_cluster
-    from packings.service.store import transitions
+    from packings.service.queries import transitions
     from packings.workers.identity import symmetries
     from packings.workers.outcomes import RIGID
     from packings.workers.params import Params

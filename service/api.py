@@ -214,7 +214,7 @@ class Catalogue:
     def links(self, id: int) -> dict:
         """What the database holds about cluster ``id`` besides its row: the paths leaving it (by
         outcome), the paths reaching it and from how many clusters, and the runs whose frontier holds it."""
-        from packings.service.selection import links
+        from packings.service.queries import links
 
         self.get(id)
         with self.session() as s:
@@ -227,7 +227,7 @@ class Catalogue:
         ``source``, ``broken`` (the contact pairs broken), ``direction`` (+1 or -1 along the path's
         tangent, 0 if no path was followed), ``outcome``, ``target`` (the cluster reached, None if none
         is stored), ``steps`` and ``new_contacts`` (the pairs formed at the endpoint)."""
-        from packings.service.store import transitions
+        from packings.service.queries import transitions
 
         self.get(id)
         with self.session() as s:
@@ -249,8 +249,8 @@ class Catalogue:
     def stats(self, n: int | None = None) -> list[dict]:
         """What the catalogue holds, one dict per n (all n, or only ``n``): what ``packings stats --json``
         prints."""
+        from packings.service.queries import counts_by_n
         from packings.service.stats import stats
-        from packings.service.store import counts_by_n
 
         with self.session() as s:
             return stats(s, n, counts_by_n(s))
@@ -280,8 +280,8 @@ class Catalogue:
     def fit(self) -> dict | None:
         """The fit of the totals to b·(n−5)!, the n held only by runs restricted by --min-contacts and those
         no full run has completed left out (None if no n is left)."""
+        from packings.service.queries import counts_by_n, incomplete_ns
         from packings.service.stats import fit_all
-        from packings.service.store import counts_by_n, incomplete_ns
 
         with self.session() as s:
             return fit_all(counts_by_n(s), *incomplete_ns(s))

@@ -328,6 +328,14 @@ def format_audit(r: AuditReport) -> str:
     )
     ns = len(r.tolerances)
     out.append(f"audit of {ns} value{'s' if ns != 1 else ''} of n ({tol})" if ns else "audit: no clusters")
+    out += _near_section(r) + _prestress_section(r) + _close_section(r) + _exact_section(r)
+    out.append("\n" + verdict(r))
+    return "\n".join(out)
+
+
+def _near_section(r: AuditReport) -> list[str]:
+    """The near pairs: a count line, and a table of what adding each pair gives."""
+    out = []
     near_ids = r.near_clusters
     out.append(
         f"\nnear pairs (gap < tol_a0): {len(near_ids)} cluster{'s' if len(near_ids) != 1 else ''}, "
@@ -353,6 +361,12 @@ def format_audit(r: AuditReport) -> str:
                 ],
             )
         )
+    return out
+
+
+def _prestress_section(r: AuditReport) -> list[str]:
+    """The small pre-stress margins: a count line and a table."""
+    out = []
     out.append(
         f"\npre-stress margins (< {PRESTRESS_FACTOR:g} tol_psd): {len(r.prestress)} "
         f"cluster{'s' if len(r.prestress) != 1 else ''}"
@@ -375,6 +389,12 @@ def format_audit(r: AuditReport) -> str:
                 ],
             )
         )
+    return out
+
+
+def _close_section(r: AuditReport) -> list[str]:
+    """The close geometries of one contact graph: a count line and a table."""
+    out = []
     out.append(
         f"\nclose geometries of one contact graph (< {CLOSE_FACTOR:g} tol_d): {len(r.close)} "
         f"pair{'s' if len(r.close) != 1 else ''}"
@@ -396,6 +416,12 @@ def format_audit(r: AuditReport) -> str:
                 ],
             )
         )
+    return out
+
+
+def _exact_section(r: AuditReport) -> list[str]:
+    """The exact clusters: a line per n of what is proved, the unproved roots and the pairs not told apart."""
+    out = []
     out.append(
         "\nexact clusters (Kantorovich; clusters with no flex): "
         + "; ".join(
@@ -435,8 +461,7 @@ def format_audit(r: AuditReport) -> str:
                 ],
             )
         )
-    out.append("\n" + verdict(r))
-    return "\n".join(out)
+    return out
 
 
 def verdict(r: AuditReport) -> str:

@@ -9,17 +9,22 @@ from __future__ import annotations
 
 import gc
 import json
+import logging
 import os
 import signal
 import sys
 import threading
+from dataclasses import asdict
 
 import click
 
-from packings.service import plots as _plots
-from packings.service.api import resolve_url
+from packings.service import export as _export
+from packings.service.api import connect, resolve_url, selection_query
 from packings.service.dask_cluster import DASHBOARD_ADDRESS
 from packings.service.errors import Interrupted, PackingsError, SigTerm, Terminated, UsageError
+from packings.service.options import db_option, width_option
+from packings.service.paper import against_paper, verdict
+from packings.service.plot_commands import plot
 from packings.service.run import pass_bar
 from packings.service.validate import check_cluster_choice, check_dashboard_address, check_n, int_range
 from packings.workers.params import Params
@@ -28,13 +33,6 @@ from packings.workers.params import Params
 # enumerate` starts the fork server of its local cluster's workers first thing (start_fork_server), and
 # every 0.1 s before it is 0.1 s more before the workers can start.  The commands import what they use.
 
-db_option = click.option(
-    "--db",
-    "db_url",
-    default=None,
-    metavar="URL",
-    help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
-)
 #: where the work runs: a local cluster of K workers, or an existing Dask cluster
 workers_option = click.option(
     "--workers",
@@ -82,7 +80,6 @@ def configure_logging(verbose: int) -> None:
     """What an operator needs to see on standard error: the ``packings`` loggers' warnings (faults
     recovered: workers lost, leases put back, expansions retried), with ``-v`` also what a run does,
     ``-vv`` everything (the level also comes from ``$PACKINGS_LOG``)."""
-    import logging
 
     class BarHandler(logging.StreamHandler):
         """Each record on a line of its own above the progress bars being drawn (tqdm.write), not
@@ -227,7 +224,6 @@ def enumerate_cmd(
         raise _stopped(e) from None
     url = resolve_url(db_url)
     from packings.service.db import display_url, parse_url
-    from packings.service.paper import against_paper, verdict
 
     against = against_paper(n, result.by_contacts, min_contacts)
     gc.freeze()  # what is left is freed by the exit: skip the collector's last pass over it (0.2-0.3 s)
@@ -549,7 +545,7 @@ def status_cmd(db_url: str | None, as_json: bool) -> None:
     default=None,
     help="Add each cluster's and each number of contacts' equilibrium probability at this sticky parameter κ.",
 )
-@_plots.width_option
+@width_option
 def stats_cmd(db_url: str | None, n: int | None, as_json: bool, kappa: float | None, width: float | None) -> None:
     """What the catalogue contains, per n, in the paper's style.
 
@@ -615,7 +611,6 @@ def audit_cmd(db_url: str | None, n: int | None, as_json: bool) -> None:
 
 # --------------------------------------------------------------------------- queries: select, show, export
 
-from packings.service import export as _export  # noqa: E402 - the query commands' formats
 
 _SELECTION_HELP = (
     "SELECTION is comma-separated terms, all of which must hold: key (a boolean key is true), "
@@ -651,15 +646,11 @@ _TABLE_COLUMNS = [
 
 def _check_selection(selection: str | None, **kw) -> None:
     """A bad selection or sort key is reported before the database is opened."""
-    from packings.service.api import selection_query
-
     selection_query(selection, **kw)
 
 
 def _catalogue(db_url: str | None):
     """The catalogue at ``--db`` (:func:`packings.service.api.connect`), to use in a ``with``."""
-    from packings.service.api import connect
-
     return connect(db_url)
 
 
@@ -818,8 +809,6 @@ def show_cmd(cluster_id: int, db_url: str | None, as_json: bool) -> None:
 
 def _exact(row) -> dict | None:
     """:meth:`packings.service.api.Row.exact` as a dict (None for a cluster with a flex)."""
-    from dataclasses import asdict
-
     e = row.exact()
     return None if e is None else asdict(e)
 
@@ -909,7 +898,7 @@ def _export_network(n: int | None, output: str | None, db_url: str | None) -> No
     )
 
 
-cli.add_command(_plots.plot)  # its own module; imports matplotlib only when it draws
+cli.add_command(plot)  # packings.service.plot_commands; matplotlib is imported only when it draws
 
 
 def _database_error(e: Exception) -> str | None:

@@ -36,6 +36,12 @@ import threading
 import time
 from collections import deque
 
+from packings.service.owners import coordinator_alive
+from packings.service.paper import paper_totals
+
+# SQLAlchemy, the store and the tasks are imported where the page is read, Dask's dashboard and Bokeh where
+# it is served: `packings enumerate` imports this module just before it starts its local cluster.
+
 log = logging.getLogger(__name__)
 
 POLL_SECONDS = 1.0  #: how often the database is read while the page is looked at
@@ -143,12 +149,10 @@ def live_workers(scheduler) -> set[str] | None:
 
 def read_run(s) -> dict:
     """The snapshot of the run being driven (one session's reads)."""
-    from sqlalchemy import func, select
+    from sqlalchemy import func, select  # see the note on the imports above
 
     from packings.service import store
     from packings.service.models import FAILED, PASS_GLUED, CatalysisPass, ExpansionRow, Run
-    from packings.service.owners import coordinator_alive
-    from packings.service.paper import paper_totals
     from packings.service.tasks import summary
 
     runs = s.execute(select(Run).order_by(Run.started_at.desc(), Run.id.desc())).scalars().all()

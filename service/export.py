@@ -29,6 +29,8 @@ import tempfile
 from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator
 
+from packings.service.errors import UsageError
+
 #: the scalar facts of a cluster, in the order the formats list them
 FACTS = (
     "id",
@@ -169,8 +171,6 @@ def format_for(path: str | None) -> str:
         return "extxyz"
     suffix = Path(path).suffix.lower().lstrip(".")
     if suffix not in FORMATS:
-        from packings.service.errors import UsageError
-
         raise UsageError(
             f"cannot tell the format of {path} from its suffix: name it .{', .'.join(FORMATS)}, or give --format"
         )

@@ -65,6 +65,9 @@ RUNNING = "running"
 COMPLETE = "complete"
 INCOMPLETE = "incomplete"  #: finished with failed expansions
 
+#: clusters.lattice of a cluster that is not a close-packed fragment (NULL means not yet classified)
+NOT_CLOSE_PACKED = "none"
+
 
 class Base(DeclarativeBase):
     pass

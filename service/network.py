@@ -26,7 +26,7 @@ from sqlalchemy.orm import Session
 
 from packings.service.errors import NotFound, UsageError
 from packings.service.models import ClusterRow
-from packings.service.store import transitions
+from packings.service.queries import transitions
 from packings.workers.outcomes import CIRCULAR, REARRANGED
 
 FORMATS = ("graphml", "json")  #: by the file name's suffix

@@ -1,16 +1,11 @@
-"""Figures of the stored catalogue, for a screen or a paper: ``packings plot ...``.
+"""Figures of the stored catalogue, for a screen or a paper: the figure functions of ``packings plot ...``
+(:mod:`packings.service.plot_commands` reads the data from the database and calls them).
 
-Two layers:
-
-* pure figure functions, which take plain data and return a matplotlib figure:
-  :func:`plot_counts`, :func:`plot_gap_cdf`, :func:`plot_by_contacts`,
-  :func:`plot_probabilities`, :func:`plot_cluster` and :func:`plot_clusters` (several side by side).  Each
-  draws on a new figure of ``size`` inches at ``dpi``, or on the caller's
-  matplotlib axes ``ax=`` (a notebook's); given a ``path``, it also writes the
-  figure there, in the format its suffix names (:data:`FORMATS`);
-* the ``plot`` click group (subcommands ``counts``, ``gaps``, ``contacts``,
-  ``probabilities N``, ``cluster ID ...`` and ``all``), which reads the data from the database and
-  calls them.
+Each takes plain data and returns a matplotlib figure: :func:`plot_counts`, :func:`plot_gap_cdf`,
+:func:`plot_by_contacts`, :func:`plot_probabilities`, :func:`plot_cluster` and :func:`plot_clusters`
+(several side by side).  Each draws on a new figure of ``size`` inches at ``dpi``, or on the caller's
+matplotlib axes ``ax=`` (a notebook's); given a ``path``, it also writes the figure there, in the format
+its suffix names (:data:`FORMATS`).
 
 A figure is :data:`SIZE` inches at :data:`DPI` dots per inch unless told
 otherwise, whatever is in it (no tight bounding box that would change the size):
@@ -18,24 +13,25 @@ a PNG is 960 x 720 pixels.  Files are written to a temporary name beside the
 target and renamed, so a failure never leaves a half-written file and an
 existing file is replaced whole.
 
-matplotlib is imported only inside the functions (``packings --help`` does not
-load it), and new figures are drawn on matplotlib's Agg canvas directly
-(``matplotlib.figure.Figure`` with ``FigureCanvasAgg``), never through pyplot:
+matplotlib and numpy are imported only inside the functions: the plot commands, which every
+``packings`` command loads (``packings --help`` too), read this module's constants, and importing
+matplotlib takes longer than the whole of ``packings --help``.  New figures are drawn on matplotlib's
+Agg canvas directly (``matplotlib.figure.Figure`` with ``FigureCanvasAgg``), never through pyplot:
 no display is needed and no global backend or figure state is touched, so the
 functions are safe to call from a notebook or a thread.
 """
 
 from __future__ import annotations
 
-import contextlib
 import os
 from pathlib import Path
 from typing import Sequence
 
-import click
-
+from packings.service.export import replace_file
 from packings.service.fit import fit_factorial, predicted
-from packings.service.paper import paper_tables, paper_totals
+
+# matplotlib, numpy, scipy and the numerics are imported in the functions that use them: the plot commands
+# load this module for every `packings` command (the module doc).
 
 SIZE, DPI = (6.4, 4.8), 150  #: a figure's default size in inches, and its dots per inch
 FORMATS = ("png", "pdf", "svg")  #: what a figure can be written as, by the file name's suffix
@@ -52,13 +48,6 @@ CMAP = "viridis"  #: colour map of the cluster pictures (its darkest 15 % left o
 GHOST = 0.3  #: opacity of the contacts drawn through the spheres in a cluster picture
 STICK_COLOR = "0.1"
 GAP_COLOR = "#d62728"  #: the closest pair of spheres not in contact: a dashed line in this colour
-DEFAULT_NAMES = {
-    "counts": "counts.png",
-    "gaps": "gaps.png",
-    "contacts": "contacts.png",
-    "probabilities": "probabilities.png",
-}
-KAPPAS = (0.1, 1e4)  #: the sticky parameters ``plot probabilities`` spans by default
 
 
 # --------------------------------------------------------------------------- writing
@@ -92,8 +81,6 @@ def save(fig, path: str | os.PathLike) -> Path:
     """Write ``fig`` in the format of ``path``'s suffix (:func:`figure_format`), at the figure's own size
     and dots per inch, to a temporary file beside ``path``, then rename it over ``path``; on any failure
     nothing is left."""
-    from packings.service.export import replace_file
-
     fmt = figure_format(path)
     return replace_file(path, lambda f: fig.savefig(f, format=fmt, dpi=fig.dpi), binary=True)
 
@@ -164,12 +151,10 @@ def plot_counts(
     fewest contacts kept} for the n whose totals count only the clusters with
     that many contacts or more (runs restricted by ``--min-contacts``): drawn
     hollow, marked "≥ M contacts", and left out of the fit.  ``partial``: the n
-    whose totals are not complete (:func:`packings.service.store.incomplete_ns`): drawn
+    whose totals are not complete (:func:`packings.service.queries.incomplete_ns`): drawn
     hollow in grey, marked "partial", and left out of the fit.  ``paper``: {n: the
     paper's count} to compare (:func:`packings.service.paper.paper_totals`), drawn as
     crosses at the n plotted.  Returns the figure."""
-    import numpy as np
-
     totals = {int(n): int(t) for n, t in totals.items() if t and t > 0}
     if not totals:
         raise ValueError("no clusters to plot")
@@ -179,6 +164,27 @@ def plot_counts(
     full = [n for n in ns if n not in restricted and n not in partial]
     fig, ax_ = _canvas(ax, size, dpi, path)
     ax_.set_yscale("log")
+    _draw_counts(ax_, totals, full, restricted, partial, paper)
+    _draw_fit(ax_, totals, full)
+    ax_.set_xlabel("n (spheres)")
+    ax_.set_ylabel("number of rigid clusters")
+    ax_.set_title("Rigid clusters of n spheres")
+    ax_.set_xlim(min(ns) - 0.6, max(ns) + 0.6)
+    _integer_ticks(ax_.xaxis, min(ns), max(ns))
+    lo, hi = min(totals.values()), max(totals.values())
+    ax_.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
+    _log_ticks(ax_.yaxis, lo / 2, hi * 4)
+    ax_.grid(True, which="major", alpha=0.3)
+    ax_.legend(loc="upper left", fontsize=8)
+    return _done(fig, path, ax is None)
+
+
+def _draw_counts(
+    ax_, totals: dict[int, int], full: list[int], restricted: dict[int, int], partial: set[int], paper
+) -> None:
+    """:func:`plot_counts`' markers: the full counts, the restricted and the partial ones hollow, the paper's
+    crosses; each count written above its marker."""
+    ns = sorted(totals)
     if full:
         ax_.plot(full, [totals[n] for n in full], "o", ms=7, color="C0", zorder=3, label="rigid clusters")
     if restricted:
@@ -226,6 +232,13 @@ def plot_counts(
         ax_.annotate(
             text, (n, totals[n]), textcoords="offset points", xytext=(0, 8), ha="center", fontsize=8, color="0.25"
         )
+
+
+def _draw_fit(ax_, totals: dict[int, int], full: list[int]) -> None:
+    """:func:`plot_counts`' fitted curve b·(n − 5)! of the full counts, if there is one."""
+    import numpy as np
+
+    ns = sorted(totals)
     fit = fit_factorial({n: totals[n] for n in full})
     if fit is not None:
         xs = np.arange(max(min(ns), 5), max(ns) + 1)
@@ -240,17 +253,6 @@ def plot_counts(
             zorder=2,
             label=f"fit {fit['b']:.2f}·(n − 5)!  ({over})",
         )
-    ax_.set_xlabel("n (spheres)")
-    ax_.set_ylabel("number of rigid clusters")
-    ax_.set_title("Rigid clusters of n spheres")
-    ax_.set_xlim(min(ns) - 0.6, max(ns) + 0.6)
-    _integer_ticks(ax_.xaxis, min(ns), max(ns))
-    lo, hi = min(totals.values()), max(totals.values())
-    ax_.set_ylim(lo / 2, hi * 4)  # room for the counts above the markers
-    _log_ticks(ax_.yaxis, lo / 2, hi * 4)
-    ax_.grid(True, which="major", alpha=0.3)
-    ax_.legend(loc="upper left", fontsize=8)
-    return _done(fig, path, ax is None)
 
 
 def plot_gap_cdf(
@@ -487,7 +489,6 @@ def _color_scale(values):
 def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost, style, labels, gap, extent) -> None:
     """One cluster on 3D axes ``ax``, centred coordinates ``x``: see :func:`plot_cluster`."""
     import numpy as np
-    from matplotlib import patheffects
 
     radius = RADIUS if style == "spheres" else STICK_RADIUS
     # The view: towards the viewer (eye), right and up on the screen; the light from the upper left, in front.
@@ -543,7 +544,20 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
         else:
             i, j = what
             ax.plot(*zip(x[i], x[j]), color=STICK_COLOR, lw=3.0, solid_capstyle="round", zorder=z)
-    top = len(items) + 1
+    _draw_over(ax, x, pairs, len(items) + 1, radius, eye, up, ghost=ghost, style=style, labels=labels, gap=gap)
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(-extent, extent)
+    ax.set_zlim(-extent, extent)
+    ax.set_box_aspect((1, 1, 1), zoom=1.6)
+    ax.set_axis_off()
+
+
+def _draw_over(ax, x, pairs, top: int, radius: float, eye, up, *, ghost, style, labels, gap) -> None:
+    """What :func:`_draw_cluster` draws over the spheres and sticks, from depth ``top`` up: the sticks again,
+    faint (``spheres`` style), the closest gap, the spheres' numbers."""
+    from matplotlib import patheffects
+
+    n = len(x)
     # every stick again, faint, over everything: the contacts hidden by the spheres in front show through
     if style == "spheres":
         for i, j in pairs:
@@ -577,11 +591,6 @@ def _draw_cluster(ax, x, pairs, values, cmap, norm, elev, azim, *, alpha, ghost,
                 zorder=top + 3,
                 path_effects=outline,
             )
-    ax.set_xlim(-extent, extent)
-    ax.set_ylim(-extent, extent)
-    ax.set_zlim(-extent, extent)
-    ax.set_box_aspect((1, 1, 1), zoom=1.6)
-    ax.set_axis_off()
 
 
 def _colorbar(fig, cmap, norm, ticks, label, **where) -> None:
@@ -638,6 +647,8 @@ def plot_cluster(
     behind spheres show through.  Spheres and sticks are drawn back to front by
     the depth of their centres (midpoints), which is right for equal spheres
     that do not overlap.  ``ax`` must be 3D axes (``projection="3d"``).
+
+    (Over 80 lines by its options and this description only: the drawing is :func:`_draw_cluster`'s.)
     """
     import numpy as np
 
@@ -804,437 +815,3 @@ def plot_clusters(
     if path is not None:
         save(fig, path)
     return fig
-
-
-# --------------------------------------------------------------------------- the command line
-
-db_option = click.option(
-    "--db",
-    "db_url",
-    default=None,
-    metavar="URL",
-    help="Database URL (default: $PACKINGS_DB, else sqlite:///packings.db).",
-)
-n_option = click.option(
-    "--n", "ns", multiple=True, metavar="N[,N...]", help="Only these n (repeat the option, or give a comma list)."
-)
-#: the square well of the probabilities (``packings stats --kappa``, ``packings plot probabilities``)
-width_option = click.option(
-    "--width",
-    type=click.FloatRange(min=0.0, max=1.0, min_open=True, max_open=True),
-    default=None,
-    help="A square well of this width (sphere diameters) instead of the sticky limit: singular clusters "
-    "(n ≥ 9) need it.",
-)
-
-
-def _file_option(default_name: str):
-    return click.option(
-        "-o",
-        "--output",
-        default=None,
-        metavar="PATH",
-        help=f"The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing "
-        f"directory to write {default_name} in; default ./{default_name}.",
-    )
-
-
-def _parse_size(ctx, param, value: str | None) -> tuple[float, float] | None:
-    if value is None:
-        return None
-    try:
-        w, h = (float(v) for v in value.lower().replace("×", "x").split("x"))
-    except ValueError:
-        raise click.BadParameter(f"{value!r} is not WIDTHxHEIGHT in inches (e.g. 3.4x2.6)") from None
-    if not (0 < w <= 100 and 0 < h <= 100):
-        raise click.BadParameter(f"{value!r}: width and height must be more than 0 and at most 100 inches")
-    return w, h
-
-
-def _figure_options(f):
-    """--size and --dpi, passed to the command as ``size`` and ``dpi``."""
-    f = click.option(
-        "--dpi",
-        type=click.IntRange(10, 2400),
-        default=None,
-        help=f"Dots per inch of a PNG (and of the pictures inside a PDF or SVG)  [default: {DPI}]",
-    )(f)
-    return click.option(
-        "--size",
-        default=None,
-        metavar="WxH",
-        callback=_parse_size,
-        help=f"Figure size in inches, e.g. 3.4x2.6  [default: {SIZE[0]}x{SIZE[1]}; a row of clusters: "
-        f"3.6 per cluster + 1 by 4.2]",
-    )(f)
-
-
-def parse_ns(values) -> set[int] | None:
-    """The n given with ``--n`` (repeated and/or comma lists); None if none."""
-    out: set[int] = set()
-    for value in values:
-        for part in str(value).split(","):
-            part = part.strip()
-            try:
-                out.add(int(part))
-            except ValueError:
-                raise click.BadParameter(
-                    f"{part!r} is not an integer (give e.g. --n 9 or --n 8,9,10)", param_hint="'--n'"
-                ) from None
-    return out or None
-
-
-def _output_file(output: str | None, default_name: str) -> Path:
-    path = Path(output) if output else Path(default_name)
-    if output and path.is_dir():
-        path = path / default_name
-    try:
-        figure_format(path)
-    except ValueError as e:
-        raise click.ClickException(str(e)) from None
-    parent = path.parent
-    if not parent.is_dir():
-        raise click.ClickException(f"cannot write {path}: directory {parent} does not exist")
-    return path
-
-
-def _output_dir(output: str | None) -> Path:
-    path = Path(output) if output else Path(".")
-    if not path.exists():
-        raise click.ClickException(f"cannot write to {path}: directory does not exist")
-    if not path.is_dir():
-        raise click.ClickException(f"cannot write to {path}: not a directory")
-    return path
-
-
-@contextlib.contextmanager
-def _reading(db_url: str | None):
-    """A read-only session on an existing database (``packings show``'s), with
-    database errors as one-line click errors (the message ``packings``' main
-    prints for them), so the group reports them alike on its own."""
-    from sqlalchemy.exc import SQLAlchemyError
-
-    from packings.service.api import connect
-    from packings.service.db import first_line
-    from packings.service.errors import PackingsError
-
-    try:
-        with connect(db_url) as cat, cat.session() as s:
-            yield s
-    except PackingsError as e:
-        raise click.ClickException(str(e)) from None
-    except SQLAlchemyError as e:
-        raise click.ClickException(f"database: {first_line(e)}") from None
-
-
-def load_counts(s, ns: set[int] | None) -> dict[int, dict[int, int]]:
-    """{n: {contacts: clusters}} of the stored clusters (only ``ns`` if given)."""
-    from packings.service.store import counts_by_n
-
-    if ns is None:
-        return counts_by_n(s)
-    out: dict[int, dict[int, int]] = {}
-    for n in sorted(ns):
-        out.update(counts_by_n(s, n))
-    return out
-
-
-def _incomplete(s) -> tuple[dict[int, int], set[int]]:
-    """{n: M} of the n held only by runs restricted by --min-contacts, and the n whose counts are partial."""
-    from packings.service.store import incomplete_ns
-
-    return incomplete_ns(s)
-
-
-def load_gaps(s, ns: set[int] | None) -> dict[int, list[float]]:
-    """{n: [min_gap, ...]} of the stored clusters that have one (only ``ns`` if given)."""
-    from sqlalchemy import select
-
-    from packings.service.models import ClusterRow
-
-    q = select(ClusterRow.n, ClusterRow.min_gap).where(ClusterRow.min_gap.is_not(None))
-    if ns is not None:
-        q = q.where(ClusterRow.n.in_(sorted(ns)))
-    out: dict[int, list[float]] = {}
-    for n, gap in s.execute(q.order_by(ClusterRow.n, ClusterRow.min_gap)):
-        out.setdefault(int(n), []).append(float(gap))
-    return out
-
-
-def _nothing(ns: set[int] | None, what: str = "clusters") -> str:
-    where = f" with n = {', '.join(map(str, sorted(ns)))}" if ns else ""
-    return f"no {what}{where} in the database" + ("" if ns else ": run `packings enumerate N` first")
-
-
-def _write(draw, *args, path: Path, **options) -> None:
-    try:
-        draw(*args, path, **options)
-    except OSError as e:
-        raise click.ClickException(f"cannot write {path}: {e.strerror or e}") from None
-    click.echo(str(path))
-
-
-@click.group("plot", context_settings={"help_option_names": ["-h", "--help"]})
-def plot() -> None:
-    """Draw figures of the stored clusters as PNG, PDF or SVG files (by the file name).
-
-    A figure is 6.4 x 4.8 inches at 150 dots per inch (a PNG of 960 x 720 pixels)
-    unless --size and --dpi say otherwise.  Each command prints the path of every
-    file it wrote.
-    """
-
-
-@plot.command("counts", short_help="Clusters against n, log scale, with the fit b·(n − 5)!.")
-@db_option
-@n_option
-@_file_option(DEFAULT_NAMES["counts"])
-@_figure_options
-def counts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size, dpi) -> None:
-    """The number of stored clusters against n (log scale), with the fit b·(n − 5)!."""
-    ns_ = parse_ns(ns)
-    path = _output_file(output, DEFAULT_NAMES["counts"])
-    with _reading(db_url) as s:
-        counts, (restricted, partial) = load_counts(s, ns_), _incomplete(s)
-    if not counts:
-        raise click.ClickException(_nothing(ns_))
-    _write(
-        plot_counts,
-        {n: sum(d.values()) for n, d in counts.items()},
-        path=path,
-        restricted=restricted,
-        partial=partial,
-        size=size,
-        dpi=dpi,
-        paper=paper_totals(counts, restricted),
-    )
-
-
-@plot.command("gaps", short_help="Cumulative distribution of the minimum gaps, one line per n.")
-@db_option
-@n_option
-@_file_option(DEFAULT_NAMES["gaps"])
-@_figure_options
-def gaps_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size, dpi) -> None:
-    """The cumulative distribution of the clusters' minimum gaps, one line per n."""
-    ns_ = parse_ns(ns)
-    path = _output_file(output, DEFAULT_NAMES["gaps"])
-    with _reading(db_url) as s:
-        gaps = load_gaps(s, ns_)
-    if not gaps:
-        raise click.ClickException(_nothing(ns_, "clusters with a minimum gap"))
-    _write(plot_gap_cdf, gaps, path=path, size=size, dpi=dpi)
-
-
-@plot.command("contacts", short_help="Clusters by contacts − (3n − 6), one series per n.")
-@db_option
-@n_option
-@_file_option(DEFAULT_NAMES["contacts"])
-@_figure_options
-def contacts_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, size, dpi) -> None:
-    """The number of stored clusters by contacts − (3n − 6), one series per n."""
-    ns_ = parse_ns(ns)
-    path = _output_file(output, DEFAULT_NAMES["contacts"])
-    with _reading(db_url) as s:
-        counts, (restricted, partial) = load_counts(s, ns_), _incomplete(s)
-    if not counts:
-        raise click.ClickException(_nothing(ns_))
-    _write(
-        plot_by_contacts,
-        counts,
-        path=path,
-        restricted=restricted,
-        partial=partial,
-        size=size,
-        dpi=dpi,
-        paper=paper_tables(counts, restricted),
-    )
-
-
-@plot.command("probabilities", short_help="Equilibrium probability against κ, by number of contacts.")
-@click.argument("n", type=int)
-@db_option
-@width_option
-@click.option(
-    "--kappa",
-    "kappa_range",
-    type=click.FloatRange(min=0.0, min_open=True),
-    nargs=2,
-    default=KAPPAS,
-    show_default=True,
-    metavar="LO HI",
-    help="The range of the sticky parameter κ (log scale).",
-)
-@_file_option(DEFAULT_NAMES["probabilities"])
-@_figure_options
-def probabilities_cmd(
-    n: int, db_url: str | None, width: float | None, kappa_range, output: str | None, size, dpi
-) -> None:
-    """The equilibrium probability of the stored clusters of N against the sticky parameter κ, by number of
-    contacts, from their partition functions (`packings stats --kappa` gives the numbers at one κ)."""
-    import numpy as np
-
-    from packings.service.probabilities import curves
-
-    lo, hi = kappa_range
-    if not lo < hi:
-        raise click.BadParameter(f"{lo:g} {hi:g}: LO must be below HI", param_hint="'--kappa'")
-    path = _output_file(output, DEFAULT_NAMES["probabilities"])
-    kappas = np.geomspace(lo, hi, 200)
-    with _reading(db_url) as s:
-        got = curves(s, n, kappas, width)
-    _write(
-        plot_probabilities,
-        kappas,
-        got["by_contacts"],
-        path=path,
-        n=n,
-        width=width,
-        singular=got["singular"],
-        size=size,
-        dpi=dpi,
-    )
-
-
-@plot.command("cluster", short_help="Clusters in 3D, side by side: spheres, contacts, the closest gap.")
-@click.argument("cluster_ids", metavar="ID...", type=int, nargs=-1, required=True)
-@db_option
-@click.option(
-    "--color-by",
-    type=click.Choice(list(COLOR_BY)),
-    default="degree",
-    show_default=True,
-    help="Colour the spheres by their number of contacts (degree), height z, or distance from the centroid.",
-)
-@click.option(
-    "--style",
-    type=click.Choice(STYLES),
-    default="spheres",
-    show_default=True,
-    help="spheres: to scale; sticks: small spheres, so that every contact shows.",
-)
-@click.option("--labels", is_flag=True, help="Number the spheres (as in the cluster's coordinates and contacts).")
-@click.option(
-    "-o",
-    "--output",
-    default=None,
-    metavar="PATH",
-    help="The file to write (replaced whole), .png, .pdf or .svg by its name, or an existing directory; "
-    "default ./cluster-ID[-ID...].png.",
-)
-@_figure_options
-def cluster_cmd(
-    cluster_ids: tuple[int, ...],
-    db_url: str | None,
-    color_by: str,
-    style: str,
-    labels: bool,
-    output: str | None,
-    size,
-    dpi,
-) -> None:
-    """Clusters ID... in 3D, side by side: spheres coloured by a per-sphere property, contacts as sticks,
-    and the closest pair of spheres not in contact dashed, with its gap.  Clusters with one contact
-    graph (the geometries of one graph, say) are turned to lie alike on a common contact triangle
-    and seen from the same view."""
-    from packings.service.models import ClusterRow
-
-    path = _output_file(output, "cluster-" + "-".join(map(str, cluster_ids)) + ".png")
-    rows = []
-    with _reading(db_url) as s:
-        for cid in cluster_ids:
-            c = s.get(ClusterRow, cid)
-            if c is None:
-                raise click.ClickException(f"no cluster with id {cid}")
-            rows.append((cid, c.to_core(), c.n, c.contacts, c.embedding))
-    clusters = [(core.coords, core.contacts) for _, core, *_ in rows]
-    values, label = zip(*(sphere_values(x, pairs, color_by) for x, pairs in clusters))
-    titles = [f"cluster {cid}: n = {n}, {m} contacts (3n−6{m - (3 * n - 6):+d})" for cid, _, n, m, _ in rows]
-    try:
-        if len(rows) == 1:
-            plot_cluster(
-                *clusters[0],
-                path,
-                values=values[0],
-                label=label[0],
-                title=titles[0],
-                style=style,
-                labels=labels,
-                size=size,
-                dpi=dpi,
-            )
-        else:
-            same = aligned(clusters) is not None
-            if same:
-                titles = [f"cluster {cid} (embedding {e})" for cid, _, _, _, e in rows]
-            n, m = rows[0][2], rows[0][3]
-            plot_clusters(
-                clusters,
-                path,
-                values=values,
-                label=label[0],
-                titles=titles,
-                title=f"one contact graph: n = {n}, {m} contacts, aligned on a contact triangle" if same else None,
-                style=style,
-                labels=labels,
-                size=size,
-                dpi=dpi,
-            )
-    except OSError as e:
-        raise click.ClickException(f"cannot write {path}: {e.strerror or e}") from None
-    click.echo(str(path))
-
-
-@plot.command("all", short_help="counts, gaps and contacts figures into a directory.")
-@db_option
-@n_option
-@click.option(
-    "-o",
-    "--output",
-    default=None,
-    metavar="DIR",
-    help="An existing directory to write counts.png, gaps.png and contacts.png in (each replaced "
-    "whole); default the current directory.",
-)
-@click.option(
-    "--format",
-    "fmt",
-    type=click.Choice(FORMATS),
-    default="png",
-    show_default=True,
-    help="Write counts.FORMAT, gaps.FORMAT and contacts.FORMAT.",
-)
-@_figure_options
-def all_cmd(db_url: str | None, ns: tuple[str, ...], output: str | None, fmt: str, size, dpi) -> None:
-    """counts.png, gaps.png and contacts.png (or .pdf, .svg), from one read of the database."""
-    names = {k: Path(v).with_suffix("." + fmt).name for k, v in DEFAULT_NAMES.items()}
-    ns_ = parse_ns(ns)
-    directory = _output_dir(output)
-    with _reading(db_url) as s:
-        counts, gaps, (restricted, partial) = load_counts(s, ns_), load_gaps(s, ns_), _incomplete(s)
-    if not counts:
-        raise click.ClickException(_nothing(ns_))
-    options = {"size": size, "dpi": dpi}
-    _write(
-        plot_counts,
-        {n: sum(d.values()) for n, d in counts.items()},
-        path=directory / names["counts"],
-        restricted=restricted,
-        partial=partial,
-        paper=paper_totals(counts, restricted),
-        **options,
-    )
-    if gaps:
-        _write(plot_gap_cdf, gaps, path=directory / names["gaps"], **options)
-    else:  # only clusters in which every pair touches (n <= 4)
-        click.echo(
-            f"packings: warning: {_nothing(ns_, 'clusters with a minimum gap')}; {names['gaps']} not written", err=True
-        )
-    _write(
-        plot_by_contacts,
-        counts,
-        path=directory / names["contacts"],
-        restricted=restricted,
-        partial=partial,
-        paper=paper_tables(counts, restricted),
-        **options,
-    )

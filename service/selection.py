@@ -23,12 +23,11 @@ from __future__ import annotations
 import math
 import operator
 import re
-from collections import Counter
 from dataclasses import dataclass
 from typing import Any, Callable, NamedTuple
 
 from sqlalchemy import ColumnElement, Select, and_, case, false, func, not_, select, true
-from sqlalchemy.orm import Session, aliased, with_expression
+from sqlalchemy.orm import aliased, with_expression
 
 from packings.service.errors import UsageError
 from packings.service.models import (
@@ -40,7 +39,6 @@ from packings.service.models import (
     ClusterRow,
     Edge,
     ExpansionRow,
-    Run,
 )
 from packings.workers.classify import LATTICES
 from packings.workers.free_energy import HYPERSTATIC, HYPOSTATIC, SINGULAR
@@ -354,33 +352,3 @@ def describe_keys() -> str:
         label = name + (f" ({alias[name]})" if name in alias else "")
         lines.append(f"{label:<{width + 4}} {k.type.__name__:<6}{k.help}")
     return "\n".join(lines)
-
-
-def links(s: Session, cluster_id: int) -> dict:
-    """What the database holds about a cluster besides its row: the paths
-    leaving it (by outcome), the paths reaching it, and the runs whose frontier
-    holds it."""
-    from packings.service.store import transitions
-
-    leaving = dict(sorted(Counter(t.outcome for t in transitions(s, source=cluster_id) if t.direction != 0).items()))
-    reaching, sources = s.execute(
-        select(func.coalesce(func.sum(Edge.paths), 0), func.count(Edge.source_id.distinct())).where(
-            Edge.target_id == cluster_id
-        )
-    ).one()
-    runs = [
-        {"run": r, "n": n, "run_status": rs, "expansion": es, "paths": p}
-        for r, n, rs, es, p in s.execute(
-            select(ExpansionRow.run_id, Run.n, Run.status, ExpansionRow.status, ExpansionRow.paths)
-            .join(Run, Run.id == ExpansionRow.run_id)
-            .where(ExpansionRow.cluster_id == cluster_id)
-            .order_by(ExpansionRow.run_id)
-        )
-    ]
-    return {
-        "paths_leaving": sum(leaving.values()),
-        "leaving_by_outcome": leaving,
-        "paths_reaching": int(reaching),
-        "reached_from": sources,
-        "runs": runs,
-    }

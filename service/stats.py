@@ -15,9 +15,9 @@ from sqlalchemy.orm import Session, aliased
 
 from packings.service.export import counted, table
 from packings.service.fit import fit_factorial
-from packings.service.models import AttemptsRow, ClusterRow, Edge, ExpansionRow
+from packings.service.models import NOT_CLOSE_PACKED, AttemptsRow, ClusterRow, Edge, ExpansionRow
 from packings.service.paper import against_paper, verdict
-from packings.service.store import NOT_CLOSE_PACKED, counts_by_n, incomplete_ns
+from packings.service.queries import counts_by_n, incomplete_ns
 
 #: how many of the smallest gaps are listed
 SMALLEST = 10
@@ -240,7 +240,7 @@ def format_stats(d: dict) -> str:
 
 def fit_all(every: dict[int, dict[int, int]], restricted=(), partial=()) -> dict | None:
     """The fit of the totals of ``counts_by_n`` to b·(n−5)!, leaving out the ``restricted`` n (counts of
-    runs restricted by --min-contacts: :func:`packings.service.store.incomplete_ns`) and the ``partial`` ones
+    runs restricted by --min-contacts: :func:`packings.service.queries.incomplete_ns`) and the ``partial`` ones
     (no full run complete)."""
     return fit_factorial({k: sum(v.values()) for k, v in every.items() if k not in restricted and k not in partial})
 

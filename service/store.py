@@ -1,7 +1,8 @@
 """Transactions on the database: runs, the frontier, and write-back of results.
 
-Every function here is one transaction (or a read).  The rules that make the
-service safe under concurrency and failure:
+Every function here is one transaction, or a read of the state a run is in (its frontier, faults and
+counts) or of its tasks' inputs; the catalogue's other reads are :mod:`packings.service.queries`.  The
+rules that make the service safe under concurrency and failure:
 
 * Claims: a batch of pending expansions becomes ``leased`` with a fresh token
   (PostgreSQL: ``SELECT ... FOR UPDATE SKIP LOCKED``; SQLite: the transaction
@@ -30,7 +31,7 @@ import uuid
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from importlib import metadata
-from typing import TYPE_CHECKING, Iterable, Iterator
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 from sqlalchemy import Connection, bindparam, case, func, insert, select, update
@@ -45,6 +46,7 @@ from packings.service.models import (
     FOUND_SEED,
     INCOMPLETE,
     LEASED,
+    NOT_CLOSE_PACKED,
     PENDING,
     RUNNING,
     AttemptsRow,
@@ -57,7 +59,8 @@ from packings.service.models import (
     utcnow,
 )
 from packings.service.owners import busy, coordinator_alive
-from packings.service.paths_codec import Attempt, Packed, pack, summary, unpack
+from packings.service.paths_codec import Attempt, pack, summary
+from packings.service.queries import arrivals_at
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.free_energy import free_energy
@@ -69,9 +72,6 @@ from packings.workers.seeds import seed_cluster
 
 if TYPE_CHECKING:  # the coordinator, which imports this module, never loads the path-following code
     from packings.workers.expand import Expansion as CoreExpansion
-
-#: clusters.lattice of a cluster that is not a close-packed fragment (NULL means not yet classified)
-NOT_CLOSE_PACKED = "none"
 
 
 def code_version() -> str:
@@ -135,19 +135,6 @@ _INSERT_EXPANSION = insert(_E)
 #: an attempts row's values, in this order, and an edge's (see :func:`insert_attempts`)
 ATTEMPTS_COLUMNS = ("run_id", "source_id", "attempts", "paths", "circular", "rearranged", "data")
 EDGE_COLUMNS = ("target_id", "source_id", "run_id", "paths", "labelled")
-#: the expansions with paths that arrived at these clusters and can be retraced from them (edges.labelled),
-#: in the order they were written (the arrivals' order: packings.workers.expand.arrivals keeps the first
-#: of each set of contacts)
-_ARRIVALS_DATA = (
-    select(_EDGES.c.target_id, _A.c.run_id, _A.c.source_id, _A.c.id, _A.c.data)
-    .join_from(_EDGES, _A, (_A.c.source_id == _EDGES.c.source_id) & (_A.c.run_id == _EDGES.c.run_id))
-    .where(
-        _EDGES.c.target_id.in_(bindparam("cids", expanding=True)),
-        _EDGES.c.run_id.in_(bindparam("runs", expanding=True)),
-        _EDGES.c.labelled > 0,
-    )
-    .order_by(_A.c.id)
-)
 #: an expansion done, if still leased with the token (SET: the columns given when it runs)
 _DONE = update(_E).where(_E.c.id == bindparam("eid"), _E.c.status == LEASED, _E.c.lease_token == bindparam("token"))
 
@@ -560,30 +547,6 @@ def load_tasks(Session_: sessionmaker, leases) -> dict[int, Task]:
     }
 
 
-def arrivals_at(s: Session | Connection, wanted: set[tuple[int, int]]) -> dict[tuple[int, int], list[tuple]]:
-    """The paths of run r that arrived at cluster c with the endpoint's labels, for each (r, c) in ``wanted``:
-    rows (source id, broken, new contacts, steps, labels) as :func:`packings.workers.expand.arrivals` takes
-    them, in the order they were written.  Only the packed attempts of the expansions that reached c
-    (edges.labelled) are read."""
-    came: dict[tuple[int, int], list[tuple]] = {}
-    if not wanted:
-        return came
-    packed: dict[int, Packed] = {}
-    for target, run_id, source, aid, data in s.execute(
-        _ARRIVALS_DATA, {"cids": sorted({c for _, c in wanted}), "runs": sorted({r for r, _ in wanted})}
-    ):
-        if (run_id, target) not in wanted:
-            continue
-        p = packed.get(aid)
-        if p is None:
-            p = packed[aid] = unpack(data)
-        out = came.setdefault((run_id, target), [])
-        for k in p.to(target, labelled=True):
-            a = p.one(int(k))
-            out.append((source, a.broken, a.new_contacts, a.steps, a.labels))
-    return came
-
-
 @functools.lru_cache(maxsize=64)
 def _params(params_text: str) -> Params:
     """A run's parameters from their JSON (a worker reads the same run's again and again)."""
@@ -681,42 +644,14 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
     write lock, the query of the stored clusters, the inserts of attempts and expansions) are paid
     once per task.
     """
-    prepared = []
-    for f in finished:
-        distinct, which = distinct_endpoints(f.expansion)
-        outcomes = dict(sorted(f.expansion.outcomes().items()))
-        outcomes["widened_paths"] = f.expansion.widened_paths
-        outcomes["paths_by_symmetry"] = f.expansion.paths_by_symmetry
-        outcomes["paths_retraced"] = f.expansion.paths_retraced
-        prepared.append((f, distinct, which, json.dumps(outcomes)))
+    prepared = [(f, *distinct_endpoints(f.expansion), _outcomes_json(f.expansion)) for f in finished]
     engine = Session_.kw["bind"]
     pre = premade(engine, [(f.task.params.tol_d, f.expansion, distinct, which) for f, distinct, which, _ in prepared])
     summaries: list[dict | None] = [None] * len(finished)
     # Core statements only, on a connection of the sessions' engine: cheaper than a session, and the
     # same transaction rules (SQLite: BEGIN IMMEDIATE).
     with engine.begin() as s:
-        # First: each done, if its lease is still its token's (PostgreSQL: this also locks the row).  Nothing
-        # of it is seen by others before the commit, and all of it is rolled back if anything below fails.
-        live = []
-        for k, (f, distinct, which, outcomes) in enumerate(prepared):
-            done = s.execute(
-                _DONE,
-                {
-                    "eid": f.task.expansion_id,
-                    "token": f.token,
-                    "status": DONE,
-                    "finished_at": utcnow(),
-                    "lease_owner": None,
-                    "lease_token": None,
-                    "outcomes": outcomes,
-                    "paths": f.expansion.paths_followed,
-                    "seconds": f.seconds,
-                    "worker": worker,
-                    "error": None,
-                },
-            )
-            if done.rowcount == 1:
-                live.append((k, f, distinct, which))
+        live = _mark_done(s, prepared, worker)
         if not live:
             return summaries
         keys = {(f.task.cluster.n, cert) for _, f, distinct, _ in live for _, _, cert in distinct}
@@ -731,21 +666,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ids, new_clusters = [], 0
             for j, (c, rig, cert) in enumerate(distinct):
                 rows = stored[(c.n, cert)]
-                cid = pre.matched.get((k, j))
-                if cid is not None and pre.seen[(c.n, cert)] == frozenset(r.id for r in rows):
-                    is_new = False  # the clusters read before: the same match (Premade)
-                else:
-                    cid, is_new = insert_or_match(
-                        s,
-                        c,
-                        rig,
-                        task.run_id,
-                        task.params.tol_d,
-                        rows,
-                        found_by=FOUND_PATH,
-                        source_id=task.cluster_id,
-                        values=pre.values.get((k, j)),
-                    )
+                cid, is_new = _store_endpoint(s, task, c, rig, cert, rows, pre, (k, j))
                 ids.append(cid)
                 if is_new:
                     by_id[cid] = c  # the stored row's core cluster (insert_or_match)
@@ -753,11 +674,7 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
                     new_clusters += 1
                 elif next(r.found_in_run for r in rows if r.id == cid) != task.run_id:
                     others.setdefault(task.run_id, []).append(cid)
-            targets = {i: ids[j] for i, j in which.items()}
-            targets.update(
-                {i: task.cluster_id for i, e in enumerate(ex.endpoints) if e.outcome in (CIRCULAR, REARRANGED)}
-            )
-            targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
+            targets = _targets(ex, task.cluster_id, ids, which)
             known = {i: lab for i, (cid, lab) in pre.labels.get(k, {}).items() if targets.get(i) == cid}
             labels = _target_labels(ex, targets, by_id, task.params.tol_d, known)
             written.append((task.run_id, task.cluster_id, task.cluster.n, _attempts(ex, targets, labels)))
@@ -771,6 +688,82 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
             ensure_expansions(s, run_id, others.get(run_id, ()), new=inserted.get(run_id, ()))
         insert_attempts(s, written)
     return summaries
+
+
+def _outcomes_json(ex: CoreExpansion) -> str:
+    """expansions.outcomes of an expansion: its attempts by outcome, and its widened, symmetric and
+    retraced paths."""
+    outcomes = dict(sorted(ex.outcomes().items()))
+    outcomes["widened_paths"] = ex.widened_paths
+    outcomes["paths_by_symmetry"] = ex.paths_by_symmetry
+    outcomes["paths_retraced"] = ex.paths_retraced
+    return json.dumps(outcomes)
+
+
+def _mark_done(s: Connection, prepared: list[tuple], worker: str) -> list[tuple]:
+    """The write-back's first statements: each expansion of ``prepared`` (finished, distinct endpoints, which,
+    outcomes) done, if its lease is still its token's (PostgreSQL: this also locks the row).  Nothing of it
+    is seen by others before the commit, and all of it is rolled back if anything after fails.  Returns
+    (position, finished, distinct, which) of those marked."""
+    live = []
+    for k, (f, distinct, which, outcomes) in enumerate(prepared):
+        done = s.execute(
+            _DONE,
+            {
+                "eid": f.task.expansion_id,
+                "token": f.token,
+                "status": DONE,
+                "finished_at": utcnow(),
+                "lease_owner": None,
+                "lease_token": None,
+                "outcomes": outcomes,
+                "paths": f.expansion.paths_followed,
+                "seconds": f.seconds,
+                "worker": worker,
+                "error": None,
+            },
+        )
+        if done.rowcount == 1:
+            live.append((k, f, distinct, which))
+    return live
+
+
+def _store_endpoint(
+    s: Connection,
+    task: Task,
+    c: CoreCluster,
+    rig: Rigidity,
+    cert: str,
+    rows: list[Stored],
+    pre: Premade,
+    at: tuple[int, int],
+) -> tuple[int, bool]:
+    """The id of the stored cluster a distinct endpoint ``c`` of ``task`` (certificate ``cert``, position
+    ``at`` in :class:`Premade`) is, and whether it was inserted now: the match read before if the
+    certificate's clusters (``rows``, read under its lock) are still those, else :func:`insert_or_match`."""
+    cid = pre.matched.get(at)
+    if cid is not None and pre.seen[(c.n, cert)] == frozenset(r.id for r in rows):
+        return cid, False  # the clusters read before: the same match
+    return insert_or_match(
+        s,
+        c,
+        rig,
+        task.run_id,
+        task.params.tol_d,
+        rows,
+        found_by=FOUND_PATH,
+        source_id=task.cluster_id,
+        values=pre.values.get(at),
+    )
+
+
+def _targets(ex: CoreExpansion, source_id: int, ids, which: dict[int, int]) -> dict[int, int]:
+    """The cluster each attempt of ``ex`` reached, by attempt: its rigid endpoint's stored cluster (``ids``,
+    by distinct endpoint), the source itself for a circular or rearranged one, a retraced path's target."""
+    targets = {i: ids[j] for i, j in which.items()}
+    targets.update({i: source_id for i, e in enumerate(ex.endpoints) if e.outcome in (CIRCULAR, REARRANGED)})
+    targets.update({i: e.reached.target for i, e in enumerate(ex.endpoints) if e.reached is not None})
+    return targets
 
 
 def _target_labels(
@@ -861,66 +854,9 @@ def to_backfill(s: Session, recompute: bool = False) -> int:
     return s.execute(q if recompute else q.where(_MISSING_FACTS)).scalar_one()
 
 
-# --------------------------------------------------------------------------- reading
+# --------------------------------------------------------------------------- a run's results
 
-
-@dataclass(frozen=True)
-class Transition:
-    """One attempt as it is read back: what a row of the former ``transitions`` table held, with the
-    expansion's ``attempts`` row (``row``, in order of writing) and the attempt's place in it (``attempt``)."""
-
-    row: int
-    attempt: int
-    run_id: int
-    source_id: int
-    broken: tuple[tuple[int, int], ...]
-    direction: int
-    outcome: str
-    target_id: int | None
-    steps: int
-    new_contacts: tuple[tuple[int, int], ...]
-    labels: tuple[int, ...] | None
-
-
-def transitions(
-    s: Session | Connection,
-    *,
-    source: int | None = None,
-    target: int | None = None,
-    run: int | None = None,
-    n: int | None = None,
-) -> Iterator[Transition]:
-    """The stored attempts, in the order they were written: those from cluster ``source``, those that
-    reached cluster ``target`` (read through ``edges``: only the expansions that reached it are unpacked),
-    those of ``run``, those from the clusters of ``n`` spheres; all of them when none is given."""
-    q = select(_A.c.id, _A.c.run_id, _A.c.source_id, _A.c.data).order_by(_A.c.id)
-    if target is not None:
-        q = q.join(_EDGES, (_EDGES.c.source_id == _A.c.source_id) & (_EDGES.c.run_id == _A.c.run_id)).where(
-            _EDGES.c.target_id == target
-        )
-    if source is not None:
-        q = q.where(_A.c.source_id == source)
-    if run is not None:
-        q = q.where(_A.c.run_id == run)
-    if n is not None:
-        q = q.join(ClusterRow, ClusterRow.id == _A.c.source_id).where(ClusterRow.n == n)
-    for row, run_id, source_id, data in s.execute(q):
-        p = unpack(data)
-        for k in range(len(p)) if target is None else p.to(target):
-            a = p.attempt(int(k))
-            yield Transition(
-                row,
-                int(k),
-                run_id,
-                source_id,
-                a.broken,
-                a.direction,
-                a.outcome,
-                a.target,
-                a.steps,
-                a.new_contacts,
-                a.labels,
-            )
+# What a run has found so far: the coordinator's report when it ends, the dashboard's while it runs.
 
 
 def run_counts(s: Session, run_id: int) -> dict[int, int]:
@@ -959,41 +895,3 @@ def run_diagnostics(s: Session, run_id: int) -> dict:
         **dict(sorted(total.items())),
         "failed_tasks": f.get(FAILED, 0),
     }
-
-
-def incomplete_ns(s: Session) -> tuple[dict[int, int], set[int]]:
-    """The n whose counts are not the method's full count of n, never to be mixed with full counts (the fit,
-    the totals), from one read of the runs:
-
-    - restricted: {n: the fewest contacts kept} for each n whose clusters come only from runs restricted by
-      ``--min-contacts`` (no run of n keeps every cluster): their counts are of the clusters with that many
-      contacts or more;
-    - partial: the other n with stored clusters of which no run that keeps every cluster (no
-      ``--min-contacts``, no ``--max-break`` cap) is complete (a run going on or interrupted, a catalysis
-      pass's, no run at all)."""
-    full: set[int] = set()
-    complete: set[int] = set()
-    least: dict[int, int] = {}
-    for n, status, params in s.execute(select(Run.n, Run.status, Run.params)):
-        p = json.loads(params)
-        m = p.get("min_contacts")
-        if m is None:
-            full.add(n)
-            if status == COMPLETE and p.get("max_break") is None:
-                complete.add(n)
-        else:
-            least[n] = min(m, least.get(n, m))
-    restricted = {n: m for n, m in sorted(least.items()) if n not in full}
-    held = set(s.execute(select(ClusterRow.n).distinct()).scalars())
-    return restricted, held - complete - set(restricted)
-
-
-def counts_by_n(s: Session, n: int | None = None) -> dict[int, dict[int, int]]:
-    """All stored clusters: {n: {contacts: count}}."""
-    q = select(ClusterRow.n, ClusterRow.contacts, func.count()).group_by(ClusterRow.n, ClusterRow.contacts)
-    if n is not None:
-        q = q.where(ClusterRow.n == n)
-    out: dict[int, dict[int, int]] = {}
-    for nn, m, c in s.execute(q.order_by(ClusterRow.n, ClusterRow.contacts)):
-        out.setdefault(int(nn), {})[int(m)] = int(c)
-    return out

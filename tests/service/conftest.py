@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.helpers import fill_database, pg_database
+from tests.helpers import catalogue, fill_database, pg_database
 
 
 @pytest.fixture
@@ -51,3 +51,9 @@ def filled(engine):
     fill_database(engine, 7)
     fill_database(engine, 8)
     return engine
+
+
+@pytest.fixture(scope="module")
+def reference10():
+    """The serial in-memory enumeration of n = 10 (packings.workers.explore): one order of discovery."""
+    return list(catalogue(10).clusters)

@@ -254,7 +254,7 @@ def _how_found(engine) -> dict[int, tuple[str, int | None]]:
 
 def _old_transitions(source) -> list[dict]:
     """The attempts of ``source`` (at head) as rows of the ``transitions`` table of revisions before 0008."""
-    from packings.service.store import transitions
+    from packings.service.queries import transitions
 
     with source.connect() as src:
         return [
@@ -420,7 +420,7 @@ def _paths_read(engine) -> dict:
     from sqlalchemy import select
 
     import packings
-    from packings.service import store
+    from packings.service import queries
     from packings.service.models import ClusterRow
     from packings.service.selection import KEYS
 
@@ -428,7 +428,7 @@ def _paths_read(engine) -> dict:
         ids = [r.id for r in cat.select()]
         with cat.session() as s:
             runs = [r["run"] for r in cat.runs()]
-            arrivals = store.arrivals_at(s, {(r, c) for r in runs for c in ids})
+            arrivals = queries.arrivals_at(s, {(r, c) for r in runs for c in ids})
             values = [KEYS[k].expr() for k in ("paths_out", "paths_in", "circular", "reached")]
             keys = [tuple(r) for r in s.execute(select(ClusterRow.id, *values).order_by(ClusterRow.id))]
         return {

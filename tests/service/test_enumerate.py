@@ -90,12 +90,6 @@ def test_lines_written_during_a_run_are_not_written_over_the_bar(sqlite_url):
     assert not re.search(r"exp/s[^\r\n]*\]\S", r.stderr), r.stderr  # nothing written right after a bar
 
 
-@pytest.fixture(scope="module")
-def reference10():
-    """The serial in-memory enumeration of n = 10 (packings.workers.explore): one order of discovery."""
-    return list(catalogue(10).clusters)
-
-
 @pytest.mark.slow
 def test_enumerate_10(db_url, paper_counts, reference10):
     r = packings("enumerate", "10", "--db", db_url, "--json", "--quiet")

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from sqlalchemy import select, text
 
-from packings.service import store
+from packings.service import queries
 from packings.service.models import ClusterRow
 from packings.workers.classify import lattice_type, static_class
 from packings.workers.cluster import Cluster as CoreCluster
@@ -174,7 +174,7 @@ def rows(catalog):
 
     with sessions(catalog.engine)() as s:
         clusters = s.execute(select(ClusterRow).order_by(ClusterRow.id)).scalars().all()
-        transitions = list(store.transitions(s))
+        transitions = list(queries.transitions(s))
         s.expunge_all()
     return clusters, transitions
 

@@ -22,7 +22,7 @@ import pytest
 from sqlalchemy import func, select
 
 from benchmarks.soak import worker_processes
-from packings.service import store
+from packings.service import queries
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, FAILED, LEASED, ClusterRow, ExpansionRow, Run
 from packings.workers.params import Params
@@ -148,7 +148,7 @@ def _assert_transitions_whole(url: str, n: int) -> None:
             .join(ClusterRow, ClusterRow.id == ExpansionRow.cluster_id)
             .where(ExpansionRow.status == DONE, ClusterRow.n == n)
         ).all()
-        every = list(store.transitions(s))
+        every = list(queries.transitions(s))
         stored = Counter((t.source_id, t.outcome) for t in every)
         per_attempt = sum(k > 1 for k in Counter((t.source_id, t.broken, t.direction) for t in every).values())
         params = Params.from_dict(json.loads(s.execute(select(Run.params)).scalar_one()))
@@ -175,11 +175,6 @@ def _retries(url: str) -> int:
             return s.execute(select(func.coalesce(func.sum(ExpansionRow.retries), 0))).scalar()
     finally:
         engine.dispose()
-
-
-@pytest.fixture(scope="module")
-def reference10():
-    return list(catalogue(10).clusters)
 
 
 @pytest.mark.slow
@@ -278,7 +273,7 @@ def test_a_write_back_that_dies_half_way_leaves_nothing_and_is_retried(engine, m
     assert retried and all(e.status == DONE for e in rows)
     with sessions(engine)() as s:
         keys = s.execute(select(ClusterRow.n, ClusterRow.certificate, ClusterRow.embedding)).all()
-        every = list(store.transitions(s))
+        every = list(queries.transitions(s))
         transitions = len(every)
         per_attempt = sum(k > 1 for k in Counter((t.source_id, t.broken, t.direction) for t in every).values())
     assert len(keys) == len(set(keys)) == 52 and per_attempt == 0 and transitions > 0

@@ -11,7 +11,7 @@ from sqlalchemy import select
 from packings.service.api import Catalogue
 from packings.service.db import sessions
 from packings.service.models import ClusterRow
-from packings.service.store import transitions
+from packings.service.queries import transitions
 from tests.helpers import filled_catalog, ok, one_line_error, packings
 
 catalog = filled_catalog(6, 8)

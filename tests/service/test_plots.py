@@ -16,11 +16,11 @@ from PIL import Image
 from sqlalchemy import select
 
 from packings.service.models import ClusterRow
+from packings.service.plot_commands import plot
 from packings.service.plots import (
     aligned,
     best_view,
     closest_pair,
-    plot,
     plot_by_contacts,
     plot_cluster,
     plot_clusters,
@@ -319,7 +319,7 @@ def _busy(fig):
 
 
 def test_importing_the_commands_does_not_load_matplotlib():
-    code = "import sys, packings.service.plots; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
+    code = "import sys, packings.service.plot_commands; assert 'matplotlib' not in sys.modules, 'matplotlib imported'"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
 

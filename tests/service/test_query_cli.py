@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from sqlalchemy import select
 
-from packings.service import store
+from packings.service import queries
 from packings.service.models import ClusterRow
 from tests.helpers import filled_catalog, ok, one_line_error, run_many
 from tests.helpers import packings as run
@@ -215,8 +215,8 @@ def test_show(catalog, stored):
     assert info["exact"]["status"] == "proved" and 0 < info["exact"]["radius"] < 1e-12
     assert info["exact"]["gap"] == pytest.approx(c.min_gap, abs=1e-12)
     with sessions(catalog.engine)() as s:
-        leaving = sum(t.direction != 0 for t in store.transitions(s, source=cid))
-        reaching = sum(t.direction != 0 for t in store.transitions(s, target=cid))
+        leaving = sum(t.direction != 0 for t in queries.transitions(s, source=cid))
+        reaching = sum(t.direction != 0 for t in queries.transitions(s, target=cid))
     assert (info["paths_leaving"], info["paths_reaching"]) == (leaving, reaching)
     assert leaving > 0 and sum(info["leaving_by_outcome"].values()) == leaving
     assert f"paths leaving: {leaving} (" in out and f"paths reaching: {reaching} from" in out

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from sqlalchemy import select
 
+from packings.service import queries
 from packings.service import selection as sel
-from packings.service import store
 from packings.service.models import ClusterRow, ExpansionRow
 from packings.service.selection import SelectionError, Term, parse
 from tests.helpers import filled_catalog
@@ -240,7 +240,7 @@ def frontier(catalog, rows):
 
     with sessions(catalog.engine)() as s:
         ids = set(s.execute(select(ExpansionRow.cluster_id).where(ExpansionRow.run_id == catalog.runs[7])).scalars())
-        moving = [(t.source_id, t.target_id, t.outcome) for t in store.transitions(s) if t.direction != 0]
+        moving = [(t.source_id, t.target_id, t.outcome) for t in queries.transitions(s) if t.direction != 0]
     return SimpleNamespace(
         ids=ids,
         out=Counter(a for a, _, _ in moving),

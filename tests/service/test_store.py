@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from sqlalchemy import event, func, select
 
-from packings.service import store
+from packings.service import queries, store
 from packings.service.db import make_engine, sessions
 from packings.service.models import (
     DONE,
@@ -120,7 +120,7 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     with sessions(engine)() as s:
         d = store.run_diagnostics(s, run_id)
         stored_clusters = {r.id: r for r in s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars()}
-        rows = list(store.transitions(s, run=run_id))
+        rows = list(queries.transitions(s, run=run_id))
         took = {
             cid: json.loads(o).get("paths_retraced", 0)
             for cid, o in s.execute(
@@ -161,7 +161,7 @@ def test_a_task_reads_the_paths_that_arrived_through_the_key_of_edges(sqlite_url
 
     engine = packings.service.db.open_database(sqlite_url, create=True)
     with engine.connect() as conn:
-        sql = store._ARRIVALS_DATA.params(cids=[1, 2, 3], runs=[1]).compile(
+        sql = queries._ARRIVALS_DATA.params(cids=[1, 2, 3], runs=[1]).compile(
             engine, compile_kwargs={"literal_binds": True}
         )
         plan = [str(row) for row in conn.exec_driver_sql(f"EXPLAIN QUERY PLAN {sql}").all()]
@@ -348,7 +348,7 @@ def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
         d = store.run_diagnostics(s, run_id)
         assert d["expansions"] == 13 and d["failed_tasks"] == 0 and d["paths_followed"] > 0
         # a path not followed, as the image of one followed under a symmetry of its cluster, is a transition too
-        every = list(store.transitions(s, run=run_id))
+        every = list(queries.transitions(s, run=run_id))
         with_path = sum(t.direction != 0 for t in every)
         assert s.execute(select(func.sum(AttemptsRow.paths)).where(AttemptsRow.run_id == run_id)).scalar() == with_path
         assert d["paths_by_symmetry"] > 0 and d["paths_retraced"] > 0
@@ -449,7 +449,7 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
 
 def test_attempts_are_inserted_and_read_back_on_every_backend(run8, engine, monkeypatch):
     """store.insert_attempts writes one attempts row per expansion (the driver's executemany on SQLite, a
-    Core insert elsewhere, a chunk at a time: here chunks of 2) and its edges; store.transitions reads each
+    Core insert elsewhere, a chunk at a time: here chunks of 2) and its edges; queries.transitions reads each
     attempt back as it was given, from its source, from its target and from its run, in order."""
     import packings.service.db
 
@@ -480,19 +480,19 @@ def test_attempts_are_inserted_and_read_back_on_every_backend(run8, engine, monk
     assert statements.count("attempts") == 2 and statements.count("edges") == 2  # 3 rows in chunks of 2
     with S() as s:
         for run in (info.id, other, third):
-            back = list(store.transitions(s, run=run))
+            back = list(queries.transitions(s, run=run))
             assert [t.attempt for t in back] == list(range(len(one)))
             assert [
                 Attempt(t.broken, t.direction, t.outcome, t.target_id, t.steps, t.new_contacts, t.labels) for t in back
             ] == one
-        assert [t.attempt for t in store.transitions(s, target=seed)] == [0, 1] * 3
-        assert len(list(store.transitions(s, source=seed))) == 3 * len(one)
+        assert [t.attempt for t in queries.transitions(s, target=seed)] == [0, 1] * 3
+        assert len(list(queries.transitions(s, source=seed))) == 3 * len(one)
         assert sorted(tuple(r) for r in s.execute(select(Edge.run_id, Edge.paths, Edge.labelled))) == [
             (run, 2, 1) for run in sorted((info.id, other, third))
         ]
         counts = s.execute(select(AttemptsRow.attempts, AttemptsRow.paths, AttemptsRow.circular)).all()
         assert counts == [(7, 2, 1)] * 3
-        assert store.arrivals_at(s, {(info.id, seed)}) == {
+        assert queries.arrivals_at(s, {(info.id, seed)}) == {
             (info.id, seed): [(seed, ((0, 1),), ((2, 5),), 7, one[0].labels)]
         }
 
@@ -625,7 +625,7 @@ def _stored(engine, n: int) -> tuple[list, list]:
                 keys.get(a.target_id),
                 a.labels,
             )
-            for a in store.transitions(s)
+            for a in queries.transitions(s)
         )
     return clusters, attempts
 
