@@ -222,7 +222,19 @@ def enumerate_cmd(
         )
     except KeyboardInterrupt as e:  # the run put its leases back: one line (click would print a newline first)
         raise _stopped(e) from None
-    url = resolve_url(db_url)
+    _print_run(n, result, resolve_url(db_url), min_contacts, as_json)
+    for err in result.errors[:10]:
+        click.echo(f"packings: failed task: {err}", err=True)
+    if result.status != "complete":
+        raise click.ClickException(
+            f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
+            "failed (see `packings status`); rerun the same command to retry them"
+        )
+
+
+def _print_run(n: int, result, url: str, min_contacts: int | None, as_json: bool) -> None:
+    """``enumerate``'s output: its counts against the paper's, diagnostics, time and glued passes, as a table
+    or (``as_json``) one JSON object."""
     from packings.service.db import display_url, parse_url
 
     against = against_paper(n, result.by_contacts, min_contacts)
@@ -260,13 +272,6 @@ def enumerate_cmd(
         click.echo(f"run {result.run_id}: {result.status} {took}; database {display_url(parse_url(url))}")
         for report in result.catalysis:  # what each pass added, the paths after it expanded
             click.echo(format_report(report, expanded=result.status == "complete"))
-    for err in result.errors[:10]:
-        click.echo(f"packings: failed task: {err}", err=True)
-    if result.status != "complete":
-        raise click.ClickException(
-            f"run {result.run_id} is {result.status}: {len(result.errors)} expansion(s) "
-            "failed (see `packings status`); rerun the same command to retry them"
-        )
 
 
 @cli.command("catalyse")

@@ -120,6 +120,23 @@ def mark_unguarded() -> None:
         _ran_unguarded()  # an earlier process's with the same id: taken away
 
 
+def _quiet_dask() -> None:
+    """Dask's own logs of a failed or lost task ("Compute Failed" with the whole error, "marked as failed
+    because workers died") would repeat what the coordinator logs in one line and keeps in the database:
+    only Dask's critical messages are shown.  Dask gives some of its loggers levels of their own
+    (distributed.client: warning, whose "Failed to reconnect to scheduler" came before the coordinator's one
+    line when the scheduler was lost): those too.  The length of Dask's low-level log is set as the Client,
+    scheduler and their streams are made."""
+    import dask
+
+    quiet = ("distributed", "bokeh", "tornado")
+    below = tuple(f"{name}." for name in quiet)
+    for name in [*quiet, *(k for k in list(logging.root.manager.loggerDict) if k.startswith(below))]:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+    if LOG_LENGTH_ENV not in os.environ:
+        dask.config.set({"distributed.admin.low-level-log-length": LOG_LENGTH})
+
+
 def _ran_unguarded() -> bool:
     """Whether the file this process named is there (a new process of it ran its script's call again);
     it is taken away (said once)."""
@@ -213,88 +230,98 @@ class dask_client:
             self._error = e
 
     def _connect(self) -> None:
+        from distributed import Client
+
+        _quiet_dask()
+        if self.scheduler is not None and not isinstance(self.scheduler, str):  # the caller's cluster, as it is
+            self._client = Client(self.scheduler)
+        elif self.slurm is not None:
+            self._client = self._slurm_client()
+        elif self.scheduler:
+            self._client = self._scheduler_client()
+        else:
+            self._client = self._local_client()
+        self._bound_leftovers()
+
+    def _slurm_client(self):
+        """A Client of a new scheduler in this process whose workers are Slurm jobs, kept by a JobKeeper."""
+        from distributed import Client
+
+        import packings.service.dashboard
+
+        warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+        # as a local cluster's workers, no statistical profiler unless asked (the variable, set, reaches the
+        # jobs: sbatch passes this process's environment on)
+        quiet_profile = [] if PROFILE_ENV in os.environ else [f"export {PROFILE_ENV}=False"]
+        self.cluster = start_cluster(self.slurm, self.dashboard_address, prologue=quiet_profile)
+        self._keeper = JobKeeper(self.cluster, self.slurm["jobs"])
+        packings.service.dashboard.serve_json(self.cluster.scheduler)
+        if self.database:
+            packings.service.dashboard.watch(self.database)
+        return Client(self.cluster)
+
+    def _scheduler_client(self):
+        """A Client of the existing scheduler at the address ``self.scheduler``, or SchedulerError in one line."""
+        from distributed import Client
+
+        try:
+            client = Client(self.scheduler, timeout="10s")
+        except (OSError, TimeoutError, ValueError) as e:
+            raise SchedulerError(
+                f"cannot reach the Dask scheduler at {self.scheduler}: "
+                f"{str(e).splitlines()[0] if str(e) else type(e).__name__}"
+            ) from None
+        # A Client that loses its scheduler tries to connect again for as long as its timeout, then
+        # closes: 10 s to connect at first (one that does not answer is said at once), then the
+        # reconnection window (packings.service.coordinator waits for it and goes on)
+        client._timeout = self.reconnect_seconds
+        return client
+
+    def _local_client(self):
+        """A Client of a new local cluster of ``n_workers`` processes (one per core by default), forked from
+        the fork server, with the packings page on its dashboard."""
         import dask
         from distributed import Client, LocalCluster
 
         from packings.service.plugin import LocalWorkerPlugin
 
-        # Dask's own logs of a failed or lost task ("Compute Failed" with the whole error, "marked as
-        # failed because workers died") would repeat what the coordinator logs in one line and keeps
-        # in the database: only Dask's critical messages are shown.  Dask gives some of its loggers levels of
-        # their own (distributed.client: warning, whose "Failed to reconnect to scheduler" came before the
-        # coordinator's one line when the scheduler was lost): those too
-        quiet = ("distributed", "bokeh", "tornado")
-        below = tuple(f"{name}." for name in quiet)
-        for name in [*quiet, *(k for k in list(logging.root.manager.loggerDict) if k.startswith(below))]:
-            logging.getLogger(name).setLevel(logging.CRITICAL)
-        if LOG_LENGTH_ENV not in os.environ:  # read as the Client, scheduler and their streams are made
-            dask.config.set({"distributed.admin.low-level-log-length": LOG_LENGTH})
-        if self.scheduler is not None and not isinstance(self.scheduler, str):  # the caller's cluster, as it is
-            self._client = Client(self.scheduler)
-        elif self.slurm is not None:
-            import packings.service.dashboard
+        k = self.n_workers or os.cpu_count() or 1
+        if PROFILE_ENV not in os.environ:
+            # Dask's statistical profiler samples each worker's stack every 10 ms: 8 % of a run's time
+            # at n = 11 (the dashboard's Profile page is empty without it; the variable turns it back on)
+            dask.config.set({"distributed.worker.profile.enabled": False})
+        start_fork_server()  # if `packings enumerate` has not yet
+        # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
+        import packings.service.dashboard  # its page joins the dashboard of the scheduler started now
 
-            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-            # as a local cluster's workers, no statistical profiler unless asked (the variable, set, reaches the
-            # jobs: sbatch passes this process's environment on)
-            quiet_profile = [] if PROFILE_ENV in os.environ else [f"export {PROFILE_ENV}=False"]
-            self.cluster = start_cluster(self.slurm, self.dashboard_address, prologue=quiet_profile)
-            self._keeper = JobKeeper(self.cluster, self.slurm["jobs"])
-            packings.service.dashboard.serve_json(self.cluster.scheduler)
-            if self.database:
-                packings.service.dashboard.watch(self.database)
-            self._client = Client(self.cluster)
-        elif self.scheduler:
+        # a busy port: Dask takes another and warns; the address taken is said once, by .wait()
+        warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
+        for attempt in range(START_ATTEMPTS):
             try:
-                self._client = Client(self.scheduler, timeout="10s")
-            except (OSError, TimeoutError, ValueError) as e:
-                raise SchedulerError(
-                    f"cannot reach the Dask scheduler at {self.scheduler}: "
-                    f"{str(e).splitlines()[0] if str(e) else type(e).__name__}"
-                ) from None
-            # A Client that loses its scheduler tries to connect again for as long as its timeout, then
-            # closes: 10 s to connect at first (one that does not answer is said at once), then the
-            # reconnection window (packings.service.coordinator waits for it and goes on)
-            self._client._timeout = self.reconnect_seconds
-        else:
-            k = self.n_workers or os.cpu_count() or 1
-            if PROFILE_ENV not in os.environ:
-                # Dask's statistical profiler samples each worker's stack every 10 ms: 8 % of a run's time
-                # at n = 11 (the dashboard's Profile page is empty without it; the variable turns it back on)
-                dask.config.set({"distributed.worker.profile.enabled": False})
-            start_fork_server()  # if `packings enumerate` has not yet
-            # the plugins are set up in each worker process before it joins (later ones: client.register_plugin)
-            import packings.service.dashboard  # its page joins the dashboard of the scheduler started now
-
-            # a busy port: Dask takes another and warns; the address taken is said once, by .wait()
-            warnings.filterwarnings("ignore", message=r"Port \d+ is already in use", category=UserWarning)
-            for attempt in range(START_ATTEMPTS):
-                try:
-                    self.cluster = LocalCluster(
-                        n_workers=k,
-                        threads_per_worker=1,
-                        processes=True,
-                        host="127.0.0.1",
-                        dashboard_address=self.dashboard_address,
-                        silence_logs=logging.CRITICAL,
-                        plugins=(LocalWorkerPlugin(), *self.plugins),
-                    )
-                    break
-                except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
-                    if _ran_unguarded():  # every try would end so
-                        raise SchedulerError(f"the local Dask cluster failed to start: {UNGUARDED}") from None
-                    log.warning(
-                        "the local Dask cluster failed to start (%s)%s",
-                        e,
-                        "; trying again" if attempt + 1 < START_ATTEMPTS else "",
-                    )
-                    if attempt + 1 == START_ATTEMPTS:
-                        raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
-            packings.service.dashboard.serve_json(self.cluster.scheduler)
-            if self.database:
-                packings.service.dashboard.watch(self.database, self.cluster.scheduler)
-            self._client = Client(self.cluster)
-        self._bound_leftovers()
+                self.cluster = LocalCluster(
+                    n_workers=k,
+                    threads_per_worker=1,
+                    processes=True,
+                    host="127.0.0.1",
+                    dashboard_address=self.dashboard_address,
+                    silence_logs=logging.CRITICAL,
+                    plugins=(LocalWorkerPlugin(), *self.plugins),
+                )
+                break
+            except RuntimeError as e:  # "Nanny failed to start": a worker process died while starting
+                if _ran_unguarded():  # every try would end so
+                    raise SchedulerError(f"the local Dask cluster failed to start: {UNGUARDED}") from None
+                log.warning(
+                    "the local Dask cluster failed to start (%s)%s",
+                    e,
+                    "; trying again" if attempt + 1 < START_ATTEMPTS else "",
+                )
+                if attempt + 1 == START_ATTEMPTS:
+                    raise SchedulerError(f"the local Dask cluster failed to start: {e}") from None
+        packings.service.dashboard.serve_json(self.cluster.scheduler)
+        if self.database:
+            packings.service.dashboard.watch(self.database, self.cluster.scheduler)
+        return Client(self.cluster)
 
     def _bound_leftovers(self) -> None:
         """Give the scheduler :class:`packings.service.plugin.TaskLeftovers`, which keeps what it remembers of the

@@ -151,53 +151,15 @@ def enumerate(
 
     (Its lost jobs are not replaced: that is what ``slurm=`` adds.)
     """
-    check_run(
-        n,
-        workers=workers,
-        scheduler=scheduler,
-        slurm=slurm is not None,
-        max_break=max_break,
-        max_attempts=max_attempts,
-        dashboard_address=dashboard_address,
-    )
-    if slurm is not None:
-        slurm = check_options(slurm)
     local = scheduler is None and slurm is None
-    compiling = False
-    if local or slurm is not None:
-        compiling = kernels_cached() is False  # then the fork server (or this process, for Slurm) compiles them
-    if local:
-        start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
+    slurm, params, url = _prepare(
+        n, url, workers, scheduler, slurm, max_break, min_contacts, max_attempts, dashboard_address
+    )
     # a local cluster that has had no worker for this long cannot start them again: stop, resumably
     # (an existing cluster's workers may join later, and Slurm's jobs may wait in its queue: wait for them)
     workerless = _seconds(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS) if local else None
     reconnect = _seconds(RECONNECT_ENV, RECONNECT_SECONDS)
-    params = Params(max_break=max_break, min_contacts=min_contacts)
-    if min_contacts is not None:  # a run restricted so starts from a cluster with that many contacts
-        from packings.workers.seeds import seed_cluster
-
-        try:
-            seed_cluster(n, params)
-        except ValueError as e:
-            raise UsageError(str(e)) from None
-    url = resolve_url(url)
-    if slurm is not None:
-        _refuse_sqlite_for_slurm(url)
-        require_sbatch()
-    from packings.service.db import open_database, preflight
-
-    # a bad URL, server or schema, or a run that another live coordinator holds, is reported before any
-    # Dask cluster starts
-    preflight(url, check=lambda engine: _refuse_busy_run(engine, n, params))
-    if compiling:  # said, rather than a silent minute
-        print(
-            "packings: compiling the numerical kernels, once for this installation (about a minute on two "
-            "cores; later runs load them in a second)",
-            file=sys.stderr,
-            flush=True,
-        )
-        if slurm is not None:  # here, once, into the cache the jobs load them from, rather than in every job
-            compile_apart()
+    from packings.service.db import open_database
     from packings.service.plugin import DatabasePlugin
 
     # a local cluster starts in the background, its workers warming up with the database plugin, while the
@@ -216,48 +178,112 @@ def enumerate(
             dask.wait()  # an existing scheduler is reached (or that fails, in one line) before the database is touched
         engine = open_database(url, create=True)
         try:
-            from packings.service.coordinator import run_enumeration
-
             if scheduler is not None and engine.dialect.name == "sqlite":
                 print(
                     "packings: warning: SQLite with a scheduler works only if every worker sees this file "
                     f"({engine.url.database}); use PostgreSQL for many machines",
                     file=sys.stderr,
                 )
-
-            def paths() -> RunResult:
-                bar = _progress_bar(progress)
-                try:
-                    return run_enumeration(
-                        engine,
-                        url,
-                        n,
-                        params,
-                        dask.client,
-                        on_progress=bar if progress else None,
-                        max_attempts=max_attempts,
-                        workerless_timeout=workerless,
-                        revive=dask.revive_workers,
-                    )
-                finally:
-                    bar.close()
-
-            result = paths()
-            passes = []
-            while glued and result.status == "complete":
-                report = _glued_pass(
-                    engine, url, n, params, result.run_id, dask.client, progress, before=dask.fresh_workers
-                )
-                if report is None:
-                    break
-                passes.append(report)
-                if not report.expansions_added:
-                    break
-                result = paths()
-            result.catalysis = passes
-            return result
+            return _paths_and_passes(engine, url, n, params, dask, progress, max_attempts, workerless, glued)
         finally:
             engine.dispose()
+
+
+def _prepare(
+    n: int,
+    url: str | None,
+    workers: int | None,
+    scheduler,
+    slurm: dict | None,
+    max_break: int | None,
+    min_contacts: int | None,
+    max_attempts: int,
+    dashboard_address: str,
+) -> tuple[dict | None, Params, str]:
+    """What :func:`enumerate` does before any Dask cluster starts: the request checked, the fork server of a
+    local cluster started first thing, the database reached (a bad URL, server or schema, or a run another
+    live coordinator holds, reported in one line) and the kernels' compilation announced.  Returns the
+    checked Slurm options, the run's parameters and the database URL."""
+    check_run(
+        n,
+        workers=workers,
+        scheduler=scheduler,
+        slurm=slurm is not None,
+        max_break=max_break,
+        max_attempts=max_attempts,
+        dashboard_address=dashboard_address,
+    )
+    if slurm is not None:
+        slurm = check_options(slurm)
+    local = scheduler is None and slurm is None
+    compiling = False
+    if local or slurm is not None:
+        compiling = kernels_cached() is False  # then the fork server (or this process, for Slurm) compiles them
+    if local:
+        start_fork_server()  # first: it loads what the local cluster's workers need while the database is opened
+    params = Params(max_break=max_break, min_contacts=min_contacts)
+    if min_contacts is not None:  # a run restricted so starts from a cluster with that many contacts
+        from packings.workers.seeds import seed_cluster
+
+        try:
+            seed_cluster(n, params)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+    url = resolve_url(url)
+    if slurm is not None:
+        _refuse_sqlite_for_slurm(url)
+        require_sbatch()
+    from packings.service.db import preflight
+
+    preflight(url, check=lambda engine: _refuse_busy_run(engine, n, params))
+    if compiling:  # said, rather than a silent minute
+        print(
+            "packings: compiling the numerical kernels, once for this installation (about a minute on two "
+            "cores; later runs load them in a second)",
+            file=sys.stderr,
+            flush=True,
+        )
+        if slurm is not None:  # here, once, into the cache the jobs load them from, rather than in every job
+            compile_apart()
+    return slurm, params, url
+
+
+def _paths_and_passes(
+    engine, url: str, n: int, params: Params, dask, progress: bool, max_attempts: int, workerless, glued: bool
+) -> RunResult:
+    """The run's paths (:func:`packings.service.coordinator.run_enumeration`) and, with ``glued``, a glued
+    pass after each complete run of them, the paths again over what a pass added, until a pass adds none."""
+    from packings.service.coordinator import run_enumeration
+
+    def paths() -> RunResult:
+        bar = _progress_bar(progress)
+        try:
+            return run_enumeration(
+                engine,
+                url,
+                n,
+                params,
+                dask.client,
+                on_progress=bar if progress else None,
+                max_attempts=max_attempts,
+                workerless_timeout=workerless,
+                revive=dask.revive_workers,
+            )
+        finally:
+            bar.close()
+
+    result = paths()
+    passes = []
+    while glued and result.status == "complete":
+        report = _glued_pass(engine, url, n, params, result.run_id, dask.client, progress, before=dask.fresh_workers)
+        if report is None:
+            break
+        passes.append(report)
+        if not report.expansions_added:
+            break
+        result = paths()
+    result.catalysis = passes
+    return result
 
 
 def _refuse_sqlite_for_slurm(url: str) -> None:
