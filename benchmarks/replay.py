@@ -356,7 +356,7 @@ def check(rec: Recording, url: str) -> list[str]:
     counts by contacts, and the number of attempts recorded for each cluster."""
     from sqlalchemy import func, select
 
-    from packings.service import store
+    from packings.service import queries
     from packings.service.db import make_engine
     from packings.service.models import COMPLETE, DONE, AttemptsRow, ClusterRow, ExpansionRow, Run, core_cluster
     from packings.workers.identity import same_geometry
@@ -370,7 +370,7 @@ def check(rec: Recording, url: str) -> list[str]:
                 return [f"no run of n = {rec.n}"]
             if run.status != COMPLETE:
                 problems.append(f"the run is {run.status}")
-            frontier = store.frontier(c, run.id)
+            frontier = queries.frontier(c, run.id)
             left = {k: v for k, v in frontier.items() if k != DONE and v}
             if left:
                 problems.append(f"expansions not done: {left}")

@@ -293,20 +293,20 @@ class Catalogue:
         of one expansion alone lost again (each an attempt)."""
         from sqlalchemy import select
 
-        from packings.service import store
+        from packings.service import queries
         from packings.service.models import Run
 
         out = []
         with self.session() as s:
             for run in s.execute(select(Run).order_by(Run.id)).scalars():
-                f = store.frontier(s, run.id)
-                faults = store.faults(s, run.id)
+                f = queries.frontier(s, run.id)
+                faults = queries.faults(s, run.id)
                 params = json.loads(run.params)
                 out.append(
                     {
                         "run": run.id,
                         "n": run.n,
-                        "status": store.shown_status(run),
+                        "status": queries.shown_status(run),
                         "clusters": sum(f.values()),
                         "pending": f.get("pending", 0),
                         "leased": f.get("leased", 0),

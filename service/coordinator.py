@@ -42,7 +42,7 @@ from distributed.comm.core import CommClosedError
 from distributed.scheduler import KilledWorker
 from sqlalchemy import Engine, select
 
-from packings.service import store
+from packings.service import queries, store
 from packings.service.db import sessions
 from packings.service.errors import SchedulerError, StorageError
 from packings.service.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
@@ -359,7 +359,7 @@ def cancel_reason(fut) -> str:
 
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
-        f = store.frontier(s, run_id)
+        f = queries.frontier(s, run_id)
     return Progress(f.get(DONE, 0), f.get(PENDING, 0), f.get(LEASED, 0), f.get(FAILED, 0))
 
 
@@ -651,8 +651,8 @@ class _Run:
         status = store.finish_run(Session_, info.id, self.owner, self.so_far())
         log.info("run %d (n = %d): %s after %.1f s", info.id, self.n, status, seconds)
         with self.Reader() as s:
-            by_contacts = store.run_counts(s, info.id)
-            diagnostics = store.run_diagnostics(s, info.id)
+            by_contacts = queries.run_counts(s, info.id)
+            diagnostics = queries.run_diagnostics(s, info.id)
             errors = [
                 f"expansion {i}: {summary(e or '')}"
                 for i, e in s.execute(

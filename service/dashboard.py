@@ -151,7 +151,7 @@ def read_run(s) -> dict:
     """The snapshot of the run being driven (one session's reads)."""
     from sqlalchemy import func, select  # see the note on the imports above
 
-    from packings.service import store
+    from packings.service import queries
     from packings.service.models import FAILED, PASS_GLUED, CatalysisPass, ExpansionRow, Run
     from packings.service.tasks import summary
 
@@ -161,7 +161,7 @@ def read_run(s) -> dict:
     at = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     if run is None:
         return {"run": None, "at": at}
-    f = store.frontier(s, run.id)
+    f = queries.frontier(s, run.id)
     frontier = {k: int(f.get(k, 0)) for k in ("pending", "leased", "done", "failed")}
     workers = [
         {"worker": w, "done": int(k), "seconds": round(float(t or 0.0), 1)}
@@ -181,7 +181,7 @@ def read_run(s) -> dict:
             .limit(50)
         )
     ]
-    by_contacts = store.run_counts(s, run.id)
+    by_contacts = queries.run_counts(s, run.id)
     least = json.loads(run.params or "{}").get("min_contacts")
     passes = s.execute(
         select(func.count())
@@ -191,7 +191,7 @@ def read_run(s) -> dict:
     return {
         "run": run.id,
         "n": run.n,
-        "status": store.shown_status(run),
+        "status": queries.shown_status(run),
         "at": at,
         "clusters": sum(by_contacts.values()),
         "by_contacts": {str(m): k for m, k in by_contacts.items()},
@@ -199,7 +199,7 @@ def read_run(s) -> dict:
         "paper": paper_totals([run.n], {run.n: least} if least else None).get(run.n),
         "frontier": frontier,
         "glued_passes": int(passes),
-        **store.faults(s, run.id),
+        **queries.faults(s, run.id),
         "workers": workers,
         "failed": failed,
         "seconds": round(run.seconds or 0.0, 1),

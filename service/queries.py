@@ -1,6 +1,7 @@
 """Reading the catalogue back: the stored attempts (:func:`transitions`), the paths a task may retrace
 (:func:`arrivals_at`), what the database holds about a cluster besides its row (:func:`links`), the counts
-by n and contacts, the minimum gaps, and the n whose counts are not a full run's.
+by n and contacts, the minimum gaps, the n whose counts are not a full run's, and a run's state (its frontier,
+faults, counts and diagnostics, its status as shown).
 
 Reads only, of any session or connection: the transactions that write (the write-back, runs, claims and
 leases) are :mod:`packings.service.store`'s.  The packed attempts are unpacked by
@@ -18,7 +19,8 @@ from typing import Iterator
 from sqlalchemy import Connection, bindparam, func, select
 from sqlalchemy.orm import Session
 
-from packings.service.models import COMPLETE, AttemptsRow, ClusterRow, Edge, ExpansionRow, Run
+from packings.service.models import COMPLETE, DONE, FAILED, RUNNING, AttemptsRow, ClusterRow, Edge, ExpansionRow, Run
+from packings.service.owners import coordinator_alive
 from packings.service.paths_codec import Packed, unpack
 
 _A, _EDGES = AttemptsRow.__table__, Edge.__table__
@@ -202,3 +204,74 @@ def min_gaps(s: Session, ns: set[int] | None = None) -> dict[int, list[float]]:
     for n, gap in s.execute(q.order_by(ClusterRow.n, ClusterRow.min_gap)):
         out.setdefault(int(n), []).append(float(gap))
     return out
+
+
+# --------------------------------------------------------------------------- runs
+
+INTERRUPTED = "interrupted"  #: how a run marked running whose coordinator is gone is shown
+
+
+def shown_status(run: Run) -> str:
+    """The run's status as ``status`` and the dashboard show it: :data:`INTERRUPTED` for one marked
+    running that no live coordinator drives (the same command resumes it)."""
+    if run.status == RUNNING and not coordinator_alive(run.coordinator, run.heartbeat_at):
+        return INTERRUPTED
+    return run.status
+
+
+def frontier(s: Session, run_id: int) -> dict[str, int]:
+    rows = s.execute(
+        select(ExpansionRow.status, func.count()).where(ExpansionRow.run_id == run_id).group_by(ExpansionRow.status)
+    ).all()
+    return {status: count for status, count in rows}
+
+
+def faults(s: Session, run_id: int) -> dict[str, int]:
+    """The run's infrastructure retries (expansions put back, uncounted) and isolated failures."""
+    retries, isolated = s.execute(
+        select(
+            func.coalesce(func.sum(ExpansionRow.retries), 0), func.coalesce(func.sum(ExpansionRow.isolated_failures), 0)
+        ).where(ExpansionRow.run_id == run_id)
+    ).one()
+    return {"retries": int(retries), "isolated_failures": int(isolated)}
+
+
+# What a run has found so far: the coordinator's report when it ends, the dashboard's while it runs.
+
+
+def run_counts(s: Session, run_id: int) -> dict[int, int]:
+    """Clusters reached by the run, by number of contacts."""
+    rows = s.execute(
+        select(ClusterRow.contacts, func.count())
+        .join(ExpansionRow, ExpansionRow.cluster_id == ClusterRow.id)
+        .where(ExpansionRow.run_id == run_id)
+        .group_by(ClusterRow.contacts)
+        .order_by(ClusterRow.contacts)
+    ).all()
+    return {int(m): int(c) for m, c in rows}
+
+
+def run_diagnostics(s: Session, run_id: int) -> dict:
+    """Sums over the run's expansions of what happened to every subset tried."""
+    total: Counter = Counter()
+    paths = 0
+    for outcomes, p in s.execute(
+        select(ExpansionRow.outcomes, ExpansionRow.paths).where(
+            ExpansionRow.run_id == run_id, ExpansionRow.status == DONE
+        )
+    ):
+        total.update(json.loads(outcomes))
+        paths += p or 0
+    f = frontier(s, run_id)
+    widened = total.pop("widened_paths", 0)
+    images = total.pop("paths_by_symmetry", 0)
+    retraced = total.pop("paths_retraced", 0)
+    return {
+        "expansions": f.get(DONE, 0),
+        "paths_followed": paths,
+        "paths_by_symmetry": images,
+        "paths_retraced": retraced,
+        "widened_paths": widened,
+        **dict(sorted(total.items())),
+        "failed_tasks": f.get(FAILED, 0),
+    }

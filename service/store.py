@@ -1,7 +1,7 @@
 """Transactions on the database: runs, the frontier, and write-back of results.
 
-Every function here is one transaction, or a read of the state a run is in (its frontier, faults and
-counts) or of its tasks' inputs; the catalogue's other reads are :mod:`packings.service.queries`.  The
+Every function here is one transaction, or a read of its tasks' inputs; the reads of the catalogue and
+of a run's state (its frontier, faults and counts) are :mod:`packings.service.queries`.  The
 rules that make the service safe under concurrency and failure:
 
 * Claims: a batch of pending expansions becomes ``leased`` with a fresh token
@@ -28,7 +28,6 @@ import functools
 import json
 import math
 import uuid
-from collections import Counter
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from typing import TYPE_CHECKING, Iterable
@@ -58,9 +57,9 @@ from packings.service.models import (
     remember_core_cluster,
     utcnow,
 )
-from packings.service.owners import busy, coordinator_alive
+from packings.service.owners import busy
 from packings.service.paths_codec import Attempt, pack, summary
-from packings.service.queries import arrivals_at
+from packings.service.queries import arrivals_at, frontier
 from packings.workers.classify import lattice_type
 from packings.workers.cluster import Cluster as CoreCluster
 from packings.workers.free_energy import free_energy
@@ -326,17 +325,6 @@ def start_run(Session_: sessionmaker, n: int, params: Params, owner: str) -> Run
     return RunInfo(run_id, n, params, created, recovered, seconds)
 
 
-INTERRUPTED = "interrupted"  #: how a run marked running whose coordinator is gone is shown
-
-
-def shown_status(run: Run) -> str:
-    """The run's status as ``status`` and the dashboard show it: :data:`INTERRUPTED` for one marked
-    running that no live coordinator drives (the same command resumes it)."""
-    if run.status == RUNNING and not coordinator_alive(run.coordinator, run.heartbeat_at):
-        return INTERRUPTED
-    return run.status
-
-
 def heartbeat(Session_: sessionmaker, run_id: int, owner: str, seconds: float | None = None) -> None:
     """Mark the run as held by ``owner`` now and, if given, record its ``seconds`` so far (the time of
     all its coordinators: :attr:`RunInfo.seconds` plus this one's), so that ``status`` shows a running
@@ -480,23 +468,6 @@ def count_retries(Session_: sessionmaker, expansion_ids: list[int]) -> int:
             .where(ExpansionRow.id.in_(sorted(set(expansion_ids))))
             .values(retries=ExpansionRow.retries + 1)
         ).rowcount
-
-
-def frontier(s: Session, run_id: int) -> dict[str, int]:
-    rows = s.execute(
-        select(ExpansionRow.status, func.count()).where(ExpansionRow.run_id == run_id).group_by(ExpansionRow.status)
-    ).all()
-    return {status: count for status, count in rows}
-
-
-def faults(s: Session, run_id: int) -> dict[str, int]:
-    """The run's infrastructure retries (expansions put back, uncounted) and isolated failures."""
-    retries, isolated = s.execute(
-        select(
-            func.coalesce(func.sum(ExpansionRow.retries), 0), func.coalesce(func.sum(ExpansionRow.isolated_failures), 0)
-        ).where(ExpansionRow.run_id == run_id)
-    ).one()
-    return {"retries": int(retries), "isolated_failures": int(isolated)}
 
 
 # --------------------------------------------------------------------------- tasks
@@ -855,43 +826,3 @@ def to_backfill(s: Session, recompute: bool = False) -> int:
 
 
 # --------------------------------------------------------------------------- a run's results
-
-# What a run has found so far: the coordinator's report when it ends, the dashboard's while it runs.
-
-
-def run_counts(s: Session, run_id: int) -> dict[int, int]:
-    """Clusters reached by the run, by number of contacts."""
-    rows = s.execute(
-        select(ClusterRow.contacts, func.count())
-        .join(ExpansionRow, ExpansionRow.cluster_id == ClusterRow.id)
-        .where(ExpansionRow.run_id == run_id)
-        .group_by(ClusterRow.contacts)
-        .order_by(ClusterRow.contacts)
-    ).all()
-    return {int(m): int(c) for m, c in rows}
-
-
-def run_diagnostics(s: Session, run_id: int) -> dict:
-    """Sums over the run's expansions of what happened to every subset tried."""
-    total: Counter = Counter()
-    paths = 0
-    for outcomes, p in s.execute(
-        select(ExpansionRow.outcomes, ExpansionRow.paths).where(
-            ExpansionRow.run_id == run_id, ExpansionRow.status == DONE
-        )
-    ):
-        total.update(json.loads(outcomes))
-        paths += p or 0
-    f = frontier(s, run_id)
-    widened = total.pop("widened_paths", 0)
-    images = total.pop("paths_by_symmetry", 0)
-    retraced = total.pop("paths_retraced", 0)
-    return {
-        "expansions": f.get(DONE, 0),
-        "paths_followed": paths,
-        "paths_by_symmetry": images,
-        "paths_retraced": retraced,
-        "widened_paths": widened,
-        **dict(sorted(total.items())),
-        "failed_tasks": f.get(FAILED, 0),
-    }

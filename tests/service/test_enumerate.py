@@ -495,14 +495,14 @@ def test_the_coordinator_never_loads_the_path_following_code(tmp_path):
     second of a run's start-up, on the cores the workers need)."""
     code = (
         "import sys\n"
-        "from packings.service import coordinator, store\n"
+        "from packings.service import coordinator, queries, store\n"
         "from packings.service.db import open_database, sessions\n"
         "from packings.workers.params import Params\n"
         f"S = sessions(open_database('sqlite:///{tmp_path / 'c.db'}', create=True))\n"
         "info = store.start_run(S, 8, Params(), 'here:1')\n"
         "assert store.claim(S, info.id, 'here:1', 8)\n"
         "with S() as s:\n"
-        "    store.run_counts(s, info.id), store.run_diagnostics(s, info.id)\n"
+        "    queries.run_counts(s, info.id), queries.run_diagnostics(s, info.id)\n"
         "print(sorted(m for m in ('numba', 'packings.workers._compiled', 'packings.workers.paths', 'packings.workers.expand') if m in sys.modules))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

@@ -54,7 +54,7 @@ def test_a_new_run_holds_the_seed_and_one_pending_expansion(run8):
     S, info = run8
     assert info.created
     with S() as s:
-        assert store.frontier(s, info.id) == {PENDING: 1}
+        assert queries.frontier(s, info.id) == {PENDING: 1}
         c = s.execute(select(ClusterRow)).scalar_one()
         assert c.n == 8 and c.contacts == 18 and c.embedding == 0 and not c.singular
         core = c.to_core()
@@ -118,7 +118,7 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     params = Params()
     run_id = fill_database(engine, n)
     with sessions(engine)() as s:
-        d = store.run_diagnostics(s, run_id)
+        d = queries.run_diagnostics(s, run_id)
         stored_clusters = {r.id: r for r in s.execute(select(ClusterRow).where(ClusterRow.n == n)).scalars()}
         rows = list(queries.transitions(s, run=run_id))
         took = {
@@ -311,7 +311,7 @@ def test_a_result_for_a_lease_given_to_another_is_rejected(run8, engine):
     info2 = store.start_run(S, 8, Params(), new_owner)
     assert not info2.created and info2.id == info.id
     with S() as s:
-        assert store.frontier(s, info.id) == {PENDING: 1}
+        assert queries.frontier(s, info.id) == {PENDING: 1}
     [(eid2, new)] = store.claim(S, info.id, new_owner, 1)
     assert eid2 == eid and new != old
     before = snapshot(engine)
@@ -343,9 +343,9 @@ def test_failed_tasks_are_retried_then_marked_failed(run8):
 def test_the_whole_run_in_process_gives_the_paper_counts(engine, paper_counts):
     run_id = fill_database(engine, 8)
     with sessions(engine)() as s:
-        assert store.run_counts(s, run_id) == {18: 13}
+        assert queries.run_counts(s, run_id) == {18: 13}
         assert s.get(Run, run_id).status == "complete"
-        d = store.run_diagnostics(s, run_id)
+        d = queries.run_diagnostics(s, run_id)
         assert d["expansions"] == 13 and d["failed_tasks"] == 0 and d["paths_followed"] > 0
         # a path not followed, as the image of one followed under a symmetry of its cluster, is a transition too
         every = list(queries.transitions(s, run=run_id))
@@ -436,8 +436,8 @@ def test_a_second_run_reaches_the_clusters_another_run_stored(engine):
     with sessions(engine)() as s:
         assert s.execute(select(func.count()).select_from(ClusterRow)).scalar_one() == 13
         for run in (first, second):
-            assert store.frontier(s, run) == {DONE: 13}
-            assert store.run_counts(s, run) == {18: 13}
+            assert queries.frontier(s, run) == {DONE: 13}
+            assert queries.run_counts(s, run) == {18: 13}
         found = dict(s.execute(select(ClusterRow.found_in_run, func.count()).group_by(ClusterRow.found_in_run)).all())
         assert found == {first: 13}
         tried = {
