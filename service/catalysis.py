@@ -107,6 +107,7 @@ class CatalysisReport:
     glued: bool = False
     close_packed: int | None = None
     seen: int = 0
+    certified: int = 0  #: with ``glued``: of the remainders tested, those certified floppy from their glued cluster
     parents: int = 0
     remainders: int = 0
     rigid: int = 0
@@ -249,12 +250,13 @@ class Written:
 class Decided:
     """What one batch of parents gave: the rigid remainders (:class:`Kept`, until they are stored: then
     ``written``), how many they were, the parents, the remainders decided and (``glued``) those seen
-    already."""
+    already and those of the decided certified floppy from their glued cluster alone."""
 
     found: list = field(default_factory=list)
     parents: int = 0
     remainders: int = 0
     seen: int = 0
+    certified: int = 0
     rigid: int = 0
     written: Written | None = None
 
@@ -280,11 +282,12 @@ def decide(rows, n: int, params: Params, spheres: int = 1, glued: bool = False, 
         out.parents += 1
         if glued:
             for mv in moved_remainders(parent, params, seen):
-                if mv.remainder is None:
+                if mv.seen:
                     out.seen += 1
                     continue
                 out.remainders += 1
-                if mv.remainder.rigid:
+                out.certified += mv.floppy > 0
+                if mv.remainder is not None and mv.remainder.rigid:
                     out.found.append(Kept.of(pid, mv.remainder, mv.triangle))
             continue
         out.remainders += remainder_count(parent.n, spheres)
@@ -336,6 +339,7 @@ def catalyse(
         report.parents += d.parents
         report.remainders += d.remainders
         report.seen += d.seen
+        report.certified += d.certified
         report.rigid += d.rigid
         if d.written is not None:
             report.add(d.written)
@@ -515,7 +519,8 @@ def format_report(r: CatalysisReport, expanded: bool = False) -> str:
         lines = [
             f"catalysis of n = {r.n} by moving one sphere of each stored cluster onto a contact triangle, "
             f"run {r.run_id}:",
-            f"  clusters {r.parents}, remainders tested {r.remainders} (not again: {r.seen}), rigid {r.rigid}, "
+            f"  clusters {r.parents}, remainders tested {r.remainders} (certified floppy together: {r.certified}; "
+            f"not again: {r.seen}), rigid {r.rigid}, "
             f"already stored {r.already_stored}, new {len(r.new)}",
         ]
     else:

@@ -29,12 +29,12 @@ Moving one sphere (:func:`moved_remainders`).  Catalysis from n + 1 needs the ca
 is out of reach for the largest n run.  Its parents can be made instead: glue a sphere onto a contact
 triangle of a stored cluster of n, on either side of it (where it overlaps no sphere), and delete
 each of the cluster's own spheres: one sphere moved to another place.  At n = 11 this finds the
-cluster no path reaches from the path clusters of 11 alone (docs/method.md).  Most of
-these remainders are stored clusters again, and one glued cluster repeats many others: a remainder
-is decided only when its contact graph and sorted pair distances match no cluster seen before
-(stored, or decided earlier in the same pass: :class:`Seen`).  Nearly all of those decided are floppy, with
-independent contacts: the compiled kernels certify them together, a glued cluster's at a time, where
-nothing else could decide otherwise (:func:`_floppy`), with the verdict :func:`remainder` would give.
+cluster no path reaches from the path clusters of 11 alone (docs/method.md).  Nearly all of these
+remainders are floppy, with independent contacts: the compiled kernels certify them first, a glued
+cluster's at a time, where nothing else could decide otherwise (:func:`_floppy`), with the verdict
+:func:`remainder` would give.  Of the others most are stored clusters again, and one glued cluster
+repeats many others: such a remainder is decided only when its contact graph and sorted pair distances
+match no cluster seen before (stored, or decided earlier in the same pass: :class:`Seen`).
 
 The remainder's coordinates are not projected again: deleting spheres deletes equations, so
 the parent's point still solves the remainder's.  Its contacts, measured again from the
@@ -295,25 +295,48 @@ def _without_each(n: int) -> tuple[np.ndarray, np.ndarray]:
 @dataclass(frozen=True)
 class Moved:
     """Sphere ``sphere`` of a cluster put on the contact triangle ``triangle`` (on its ``side``, 0 or 1, as
-    :func:`packings.workers.seeds.cap_positions` orders them); ``remainder`` is None when it was seen."""
+    :func:`packings.workers.seeds.cap_positions` orders them).  ``remainder`` is the remainder decided; None
+    when it was certified floppy from the glued cluster alone (``floppy``: its flexes; the remainder is not
+    built, :meth:`built` builds it) or was seen (``floppy`` 0)."""
 
     sphere: int
     triangle: tuple[int, int, int]
     side: int
     remainder: Remainder | None
+    floppy: int = 0
+
+    @property
+    def seen(self) -> bool:
+        """Not decided: a cluster in the record of those seen has its graph and distances."""
+        return self.remainder is None and self.floppy == 0
+
+    def built(self, parent: Cluster) -> Remainder | None:
+        """The remainder as :func:`remainder` gives it (``parent``: the glued cluster), built for one certified
+        floppy; None for one seen."""
+        if self.remainder is not None or self.floppy == 0:
+            return self.remainder
+        s, n = self.sphere, parent.n
+        return Remainder(
+            (s,),
+            tuple(i for i in range(n) if i != s),
+            _without_sphere(parent, s),
+            NOT_RIGID,
+            rigidity_without_stress(self.floppy),
+        )
 
 
 def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[Moved]:
     """Each sphere of ``cluster`` moved onto each contact triangle (module doc): for every glued cluster
-    (:func:`glued`) and every sphere s of ``cluster``, the remainder without s, decided by the endpoint
-    rule (:func:`remainder`) unless a sphere is left with fewer than three contacts or it is in ``seen``;
-    every remainder decided is added to ``seen``.  The remainder's spheres are the cluster's without s,
-    in order, then the moved one.
+    (:func:`glued`) and every sphere s of ``cluster`` whose removal leaves every sphere three contacts,
+    the remainder without s.  The remainder's spheres are the cluster's without s, in order, then the
+    moved one.
 
-    Nearly every remainder decided is floppy: its contacts are independent and fewer than its free
-    coordinates.  The compiled kernels certify that for all of a glued cluster's remainders at once, where
-    nothing else could decide otherwise (:func:`_floppy`); :func:`remainder` decides the others.  Each verdict
-    is the one :func:`remainder` gives (docs/method.md)."""
+    Nearly every remainder is floppy: its contacts are independent and fewer than its free coordinates.
+    The compiled kernels certify that for all of a glued cluster's remainders at once, where nothing else
+    could decide otherwise (:func:`_floppy`), with the verdict :func:`remainder` gives; those are neither
+    built nor looked up in ``seen`` (``Moved.floppy``: no stored cluster nor rigid remainder can be one,
+    docs/method.md).  Each other remainder is decided by :func:`remainder` unless it is in ``seen``, and
+    added to ``seen``."""
     sides: dict[tuple[int, int, int], int] = {}
     measured = contacts_from_coords(cluster.coords, params.tol_a) == cluster.contacts  # as _floppy needs
     for tri, parent in glued(cluster, params):
@@ -330,38 +353,35 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
         if not movable.size:
             continue
         d = pair_distances(parent.coords)
-        above: list[list[int]] = [[] for _ in range(n)]  # each sphere's neighbours with a larger number
-        for i, j in parent.contacts:
-            above[i].append(j)
-        # the remainders' graphs and distances, without building them: spheres after s move down one
-        rows, cols = _without_each(n)
-        cells = seen.cells(np.sort(d[rows[movable], cols[movable]], axis=1))
-        new = []
-        for q, s in enumerate(movable.tolist()):
-            graph = adjacency_certificate(
-                n - 1, [[j - (j > s) for j in above[i] if j != s] for i in range(n) if i != s]
-            )
-            new.append((s, seen.add_cells(graph, cells[q])))
-        fresh = [s for s, f in new if f]
-        floppy = _floppy(parent, edges, adjacent, d, params, fresh) if fresh and measured else {}
-        for s, f in new:
-            if not f:
+        # a remainder with as many contacts as free coordinates or more has no flex the kernels could certify
+        fewer = movable[parent.m - adjacent[movable].sum(axis=1) < 3 * (n - 1) - 6]
+        floppy = _floppy(parent, edges, adjacent, d, params, fewer.tolist()) if measured and fewer.size else {}
+        rest = np.array([s for s in movable.tolist() if s not in floppy], dtype=np.int64)
+        fresh = dict(zip(rest.tolist(), _add_to_seen(seen, parent, d, rest))) if rest.size else {}
+        for s in movable.tolist():
+            if s in floppy:
+                yield Moved(s, tri, side, None, floppy[s])
+            elif not fresh[s]:
                 yield Moved(s, tri, side, None)
-            elif s in floppy:
-                yield Moved(
-                    s,
-                    tri,
-                    side,
-                    Remainder(
-                        (s,),
-                        tuple(i for i in range(n) if i != s),
-                        _without_sphere(parent, s),
-                        NOT_RIGID,
-                        rigidity_without_stress(floppy[s]),
-                    ),
-                )
             else:
                 yield Moved(s, tri, side, remainder(parent, (s,), params))
+
+
+def _add_to_seen(seen: Seen, parent: Cluster, d: np.ndarray, spheres: np.ndarray) -> list[bool]:
+    """The remainders of the glued cluster ``parent`` (pair distances ``d``) without each sphere of ``spheres``
+    added to ``seen``, their graphs and distances taken from the parent without building them (spheres after
+    s move down one); for each, whether it was new."""
+    n = parent.n
+    above: list[list[int]] = [[] for _ in range(n)]  # each sphere's neighbours with a larger number
+    for i, j in parent.contacts:
+        above[i].append(j)
+    rows, cols = _without_each(n)
+    cells = seen.cells(np.sort(d[rows[spheres], cols[spheres]], axis=1))
+    out = []
+    for q, s in enumerate(spheres.tolist()):
+        graph = adjacency_certificate(n - 1, [[j - (j > s) for j in above[i] if j != s] for i in range(n) if i != s])
+        out.append(seen.add_cells(graph, cells[q]))
+    return out
 
 
 #: :func:`_floppy` leaves to :func:`remainder` the remainders with a pair that is not a contact within this of
