@@ -6,9 +6,13 @@ killed (SIGKILL) at five moments and the same command run again each time.  Mome
 ``--seed``.  Dask's ``allowed-failures`` is set to ``--allowed-failures`` (default 1) so that a task
 hit by that many kills plus one reaches the coordinator as ``KilledWorker``.  Prints a table: faults
 injected, clusters expected (the undisturbed run's) against seen, failed, left leased, duplicate
-keys, retries, isolated failures, and the wall time against the undisturbed run's.
+keys, retries, isolated failures, and the wall time against the undisturbed run's; under it, each
+kind of faults' runs that stopped early (exit status not 0) out of those made, and the last line of
+each such run.  ``--repeat R`` makes each kind of faults ``--faults`` asks for R times, each on a
+fresh database (the same undisturbed run the reference).
 
-    python -m benchmarks soak --n 10 [--backends sqlite,postgresql] [--seed 1] [--json]
+    python -m benchmarks soak --n 10 [--backends sqlite,postgresql] [--faults workers,coordinator]
+                              [--repeat 1] [--seed 1] [--json]
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ def add_arguments(p) -> None:
     p.add_argument("--backends", default="sqlite,postgresql")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--allowed-failures", type=int, default=1)
+    p.add_argument("--faults", default="workers,coordinator", help="kinds of faults: workers, coordinator")
+    p.add_argument("--repeat", type=int, default=1, help="runs of each kind of faults, each on a fresh database")
     p.add_argument("--json", action="store_true")
 
 
@@ -228,6 +234,9 @@ def inspect(url: str, n: int) -> dict:
 
 
 def run(args) -> int:
+    unknown = sorted({k.strip() for k in args.faults.split(",")} - {"workers", "coordinator", ""})
+    if unknown:
+        raise SystemExit(f"soak: unknown kind of faults {', '.join(unknown)} (workers, coordinator)")
     rng = random.Random(args.seed)
     os.environ["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] = str(args.allowed_failures)
     rows, ok = [], True
@@ -250,10 +259,15 @@ def run(args) -> int:
                 "stopped": line if status else "",
             }
         )
-        for name, inject in (
-            ("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
-            ("coordinator killed", lambda u: kill_coordinator(args.n, u, args.workers, rng, len(expected))),
-        ):
+        injections = {
+            "workers": ("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
+            "coordinator": (
+                "coordinator killed",
+                lambda u: kill_coordinator(args.n, u, args.workers, rng, len(expected)),
+            ),
+        }
+        kinds = [injections[k.strip()] for k in args.faults.split(",") if k.strip()]  # checked above
+        for name, inject in [k for k in kinds for _ in range(args.repeat)]:
             with fresh_database(backend) as url:
                 t = time.perf_counter()
                 injected, status, line = inject(url)
@@ -279,8 +293,13 @@ def run(args) -> int:
             and r["same_clusters"]
             and not (r["failed"] or r["leased"] or r["pending"] or r["duplicates"])
         )
+    early = {}  #: (backend, faults): [runs that stopped early, runs]
+    for r in rows:
+        e = early.setdefault(f"{r['backend']}, {r['faults']}", [0, 0])
+        e[0] += r["exit"] != 0
+        e[1] += 1
     if args.json:
-        print(json.dumps({"n": args.n, "seed": args.seed, "rows": rows}))
+        print(json.dumps({"n": args.n, "seed": args.seed, "rows": rows, "early_stops": early}))
     else:
         cols = [
             "backend",
@@ -304,6 +323,7 @@ def run(args) -> int:
         print("  ".join(c.rjust(width[c]) for c in cols))
         for r in rows:
             print("  ".join(str(r[c]).rjust(width[c]) for c in cols))
+        print("stopped early: " + "; ".join(f"{k} {e} of {t}" for k, (e, t) in early.items()))
         for r in rows:  # why a run that did not end well stopped: its last line on standard error
             if r["stopped"]:
                 print(f"{r['backend']}, {r['faults']}: exit {r['exit']}: {r['stopped']}")

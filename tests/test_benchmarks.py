@@ -64,6 +64,25 @@ def test_the_soak_benchmark_reports_faults_against_an_undisturbed_run():
         assert r["exit"] == 0 and r["expected"] == r["seen"] == 13 and r["same_clusters"]
         assert r["failed"] == r["leased"] == r["duplicates"] == 0 and r["stopped"] == ""
     assert rows[0]["time_ratio"] == 1.0 and rows[2]["seconds"] > 0
+    assert report["early_stops"] == {
+        "sqlite, none": [0, 1],
+        "sqlite, workers killed": [0, 1],
+        "sqlite, coordinator killed": [0, 1],
+    }
+
+
+def test_the_soak_repeats_the_faults_asked_for_each_on_a_fresh_database():
+    report = benchmark("soak", "--n", "7", "--backends", "sqlite", "--faults", "workers", "--repeat", "2")
+    assert [r["faults"] for r in report["rows"]] == ["none", "workers killed", "workers killed"]
+    assert all(r["exit"] == 0 and r["seen"] == r["expected"] == 5 and r["same_clusters"] for r in report["rows"])
+    assert report["early_stops"] == {"sqlite, none": [0, 1], "sqlite, workers killed": [0, 2]}
+
+
+def test_the_soak_refuses_a_kind_of_faults_it_does_not_know():
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks", "soak", "--faults", "disk"], capture_output=True, text=True, cwd=ROOT
+    )
+    assert r.returncode != 0 and r.stderr.strip() == "soak: unknown kind of faults disk (workers, coordinator)"
 
 
 def test_the_soak_keeps_why_a_run_stopped():
