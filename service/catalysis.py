@@ -459,10 +459,10 @@ class _Pass(Driver):
         workerless_timeout: float | None,
         revive: Callable[[], int] | None,
     ):
-        named = isinstance(plugin, str)  # a name alone: the caller registers the plugin again if need be
+        named = plugin is None or isinstance(plugin, str)  # a name alone: the caller registers it again if need be
         label = f"catalysis pass into run {run_id}"
         super().__init__(client, label, self.PER_WORKER, workerless_timeout, revive, None if named else plugin, log)
-        self.plugin_name = plugin if named else plugin.name
+        self.plugin_name = getattr(plugin, "name", plugin)
         self.parents, self.work, self.run_id, self.absorb = parents, work, run_id, absorb
         self.max_attempts = max_attempts
         self.pass_id = uuid.uuid4().hex  # each worker's record of what it has seen is this pass's alone
