@@ -16,9 +16,14 @@ n + 1 is needed; a remainder whose contact graph and pair distances are those of
 or of one decided earlier in the pass, is not decided again.
 
 The parents are decided in this process, or (the command line) by Dask tasks, a batch of parents each
-(:func:`catalysis_task`), on a local cluster or an existing one, as ``packings enumerate`` runs its
-expansions: a task carries the parents' ids, reads them with its worker's engine and stores what it
-found, as an expansion's task writes its results back; the caller adds up what the tasks report.
+(:func:`catalysis_task`), on a local cluster or an existing one, on the Dask driver the expansions of
+``packings enumerate`` run on (:class:`packings.service.driver.Driver`; here :class:`_Pass`): a task
+carries the parents' ids, reads them with its worker's engine and stores what it found, as an
+expansion's task writes its results back; the caller adds up what the tasks report.  A batch is
+idempotent, so nothing is leased: one lost with its worker (or its scheduler) is sent again, one whose
+task raised is tried again up to ``max_attempts`` times in all, then the pass stops in one line
+(:class:`packings.service.errors.PassFailed`); a cluster left without workers stops it too
+(:class:`packings.service.errors.SchedulerError`).
 
 With ``close_packed`` (:func:`close_packed_pass`), there are no parents: every close-packed fragment
 of n spheres with at least that many contacts (:func:`packings.workers.fragments.close_packed`) is
@@ -34,9 +39,12 @@ stored: it is idempotent).
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import uuid
+from collections import Counter, deque
 from dataclasses import asdict, dataclass, field
+from itertools import islice
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -44,6 +52,8 @@ from sqlalchemy import func, select, update
 from sqlalchemy.orm import sessionmaker
 
 from packings.service import store
+from packings.service.driver import Driver
+from packings.service.errors import PassFailed
 from packings.service.models import (
     FOUND_CATALYSIS,
     FOUND_CLOSE_PACKED,
@@ -67,8 +77,11 @@ if TYPE_CHECKING:
 
 # packings.workers.catalysis (the endpoint rule, and with it the path-following code and numba's compiled
 # kernels) is imported by the functions that decide remainders: a coordinator whose workers decide them
-# never loads it.  Dask is imported by the functions that submit or run a pass's tasks: a pass decided in
-# this process (`packings catalyse --close-packed`, :func:`catalyse` without a client) needs none of it.
+# never loads it.  Dask is imported when a pass on Dask starts (its driver, :mod:`packings.service.driver`) or its
+# task runs: a pass decided in this process (`packings catalyse --close-packed`, :func:`catalyse` without a
+# client) needs none of it.
+
+log = logging.getLogger(__name__)
 
 BATCH = 200  #: parents per transaction
 #: a parent as a pass reads it (:class:`_Rows`, :func:`rows_of`): id, coordinates, contact list
@@ -306,8 +319,11 @@ def catalyse(
     on_progress: Callable[[int, int], None] | None = None,
     glued: bool = False,
     client=None,
-    plugin: str | None = None,
+    plugin=None,
     after: int = 0,
+    max_attempts: int = 3,
+    workerless_timeout: float | None = None,
+    revive: Callable[[], int] | None = None,
 ) -> CatalysisReport:
     """Delete ``spheres`` spheres from every stored cluster of n + ``spheres`` (with ``glued``: move one
     sphere of every stored cluster of n) and store the new rigid remainders in the run of (n, params)
@@ -315,11 +331,17 @@ def catalyse(
     stores are moved in their turn.  ``on_progress(parents done, parents)`` after each batch.  Raises
     :class:`NoParents` when no cluster of n + spheres (with ``glued``: of n) is stored.
 
-    With a Dask ``client`` (whose workers have the :class:`packings.service.plugin.DatabasePlugin` named ``plugin``),
-    each batch of parents is decided and stored by a task on a worker (:func:`catalysis_task`), a few
-    per worker at a time; with ``glued`` each worker process keeps
-    its own record of what it has seen (the stored clusters, then what it decided), so that a remainder
-    may be decided once per worker rather than once: what is stored is the same.
+    With a Dask ``client`` (whose workers have the :class:`packings.service.plugin.DatabasePlugin` ``plugin``,
+    or the one of that name), each batch of parents is decided and stored by a task on a worker
+    (:func:`catalysis_task`), two per worker thread at a time, on the Dask driver (:class:`_Pass`): a batch
+    lost with its worker is sent again, one whose task raised is tried ``max_attempts`` times in all before
+    the pass stops (:class:`packings.service.errors.PassFailed`), and after ``workerless_timeout`` seconds
+    without a worker (None: it waits) the pass stops with :class:`packings.service.errors.SchedulerError`;
+    ``revive`` replaces lost workers (:meth:`packings.service.dask_cluster.dask_client.revive_workers`), and
+    the plugin (if given, not its name) is registered again with a scheduler reached again.  With
+    ``glued`` each worker process keeps its own record of what it has seen (the stored clusters, then
+    what it decided), so that a remainder may be decided once per worker rather than once: what is
+    stored is the same.
 
     With ``after``, the parents are the stored clusters with a larger id (:func:`covered`: those stored
     since the glued passes before).  A pass that runs to its end is recorded (table ``catalysis_passes``)
@@ -351,7 +373,8 @@ def catalyse(
         for rows in parents:
             absorb(decide(rows, n, params, spheres, glued, seen).store(Session_, n, run_id, params))
     else:
-        _distributed(client, plugin, parents, n, params, spheres, glued, run_id, absorb)
+        work = (n, params, spheres, glued)
+        _Pass(client, plugin, parents, work, run_id, absorb, max_attempts, workerless_timeout, revive).drive()
     report.last_parent = parents.last if parents.last > after else None
     _record(Session_, report, started)
     return report
@@ -411,40 +434,118 @@ def close_packed_pass(
     return report
 
 
-def _distributed(
-    client,
-    plugin: str,
-    batches,
-    n: int,
-    params: Params,
-    spheres: int,
-    glued: bool,
-    run_id: int,
-    absorb: Callable[[Decided], None],
-) -> None:
-    """Each batch a task (:func:`catalysis_task`), at most two per worker thread queued at a
-    time; ``absorb`` each result here as it completes.  ``batches`` reads the stored parents' ids as it
-    is iterated (a task carries the ids alone and reads its parents itself), so that, as in one process,
-    the clusters that tasks find become parents in their turn: when it is exhausted while tasks are still
-    running, it is read again once one of them is absorbed.
-    A task that fails stops the pass with its error (what was stored stays: the pass is idempotent)."""
-    from distributed import as_completed
+class _Pass(Driver):
+    """A catalysis pass's parents decided and stored by Dask tasks (:func:`catalysis_task`), a batch of parent
+    ids each, on the Dask driver (:class:`packings.service.driver.Driver`: two tasks per worker thread in
+    flight, the scheduler reached again when it is lost, the watchdog); ``absorb`` each result here as it
+    completes.  ``parents`` (:class:`_Rows`) reads the stored parents' ids as the pass goes, so that, as in
+    one process, the clusters that tasks store become parents in their turn: each claim reads it again
+    after the last id it gave.
 
-    pass_id = uuid.uuid4().hex  # each worker's record of what it has seen is this pass's alone
-    width = max(2, 2 * sum(client.nthreads().values()))
-    running = as_completed()
-    while True:
-        for rows in batches:
-            running.add(
-                client.submit(
-                    catalysis_task, [r.id for r in rows], n, params, spheres, glued, plugin, pass_id, run_id, pure=False
-                )
+    A batch is idempotent (storing is insert-or-match under the certificate locks), so nothing is leased:
+    its tries are kept here.  A batch lost to the infrastructure is sent again without counting a try
+    (once it has killed its workers, :class:`~distributed.scheduler.KilledWorker`, each time more it does
+    counts); a batch whose task raised is tried again, ``max_attempts`` times in all, then the pass stops
+    with :class:`packings.service.errors.PassFailed` (what was stored stays, and the pass is not recorded)."""
+
+    resume = "what the pass stored stays; run the same command again to make the pass"
+    PER_WORKER = 2  #: tasks in flight per worker thread: a task is a batch of parents, seconds of work
+
+    def __init__(
+        self,
+        client,
+        plugin,
+        parents: _Rows,
+        work: tuple,
+        run_id: int,
+        absorb: Callable[[Decided], None],
+        max_attempts: int,
+        workerless_timeout: float | None,
+        revive: Callable[[], int] | None,
+    ):
+        named = plugin is None or isinstance(plugin, str)  # a name alone: the caller registers it again if need be
+        label = f"catalysis pass into run {run_id}"
+        super().__init__(client, label, self.PER_WORKER, workerless_timeout, revive, None if named else plugin, log)
+        self.plugin_name = getattr(plugin, "name", plugin)
+        self.parents, self.work, self.run_id, self.absorb = parents, work, run_id, absorb
+        self.max_attempts = max_attempts
+        self.pass_id = uuid.uuid4().hex  # each worker's record of what it has seen is this pass's alone
+        self.again: deque[list[int]] = deque()  #: batches to send again, first
+        self.tries: Counter = Counter()  #: the tries of each batch (by its ids) that raised, or killed again
+        self.killed: set[tuple] = set()  #: the batches lost once with their workers (KilledWorker)
+
+    def claim(self, tasks: int) -> list:
+        """The batches to send again, then the next ones read (:class:`_Rows`), ``tasks`` in all at most."""
+        out = [self.again.popleft() for _ in range(min(tasks, len(self.again)))]
+        if tasks > len(out):
+            out += [[r.id for r in rows] for rows in islice(self.parents, tasks - len(out))]
+        return out
+
+    def submit(self, ids: list[int]):
+        n, params, spheres, glued = self.work
+        fut = self.client.submit(
+            catalysis_task, ids, n, params, spheres, glued, self.plugin_name, self.pass_id, self.run_id, pure=False
+        )
+        fut.ids = ids  # type: ignore[attr-defined]
+        return fut
+
+    def succeeded(self, fut) -> None:
+        self.absorb(fut.result())
+
+    def lost(self, fut, exc: BaseException | None, connection: bool = False) -> None:
+        """The batch sent again, uncounted (counted if it killed its workers before)."""
+        from distributed.scheduler import KilledWorker
+
+        from packings.service.tasks import error_line
+
+        why = "task cancelled" if exc is None else error_line(exc)
+        key = tuple(fut.ids)
+        if isinstance(exc, KilledWorker):
+            if key in self.killed:  # it killed its workers again: that is the batch's doing
+                self.tried(fut, f"lost its workers again: {why}")
+                return
+            self.killed.add(key)
+        self.again.append(fut.ids)
+        log.warning("%s: a task of %d parent(s) was lost (%s); sent again", self.label, len(fut.ids), why)
+
+    def failed(self, fut, exc: BaseException) -> None:
+        """The batch tried again, or the pass stopped: at once if the database cannot be written."""
+        from packings.service.coordinator import cannot_write, not_writable
+        from packings.service.tasks import error_line
+
+        line = error_line(exc)
+        full = cannot_write(line)
+        if full is not None:
+            raise not_writable(full)
+        self.tried(fut, line)
+
+    def tried(self, fut, why: str) -> None:
+        """One more try of ``fut``'s batch used up by ``why``: sent again, or the pass stopped
+        (:class:`packings.service.errors.PassFailed`) once it has had ``max_attempts``."""
+        ids = fut.ids
+        key = tuple(ids)
+        self.tries[key] += 1
+        if self.tries[key] >= self.max_attempts:
+            raise PassFailed(
+                f"{self.label}: the task of {len(ids)} parent(s) (cluster ids {ids[0]} to {ids[-1]}) failed "
+                f"{self.tries[key]} time(s): {why}; {self.resume}"
             )
-            while running.count() >= width:
-                absorb(next(running).result())
-        if running.is_empty():
-            return
-        absorb(next(running).result())
+        log.warning(
+            "%s: the task of %d parent(s) failed (%s): try %d of %d, sent again",
+            self.label,
+            len(ids),
+            why,
+            self.tries[key],
+            self.max_attempts,
+        )
+        self.again.append(ids)
+
+    def abandon(self, e: BaseException) -> None:
+        """The tasks still in flight cancelled: what they would store is the next pass's to store."""
+        try:
+            self.cancel_flight()
+        except Exception:  # noqa: BLE001 - the scheduler is gone: nothing of theirs reaches it
+            pass
 
 
 _SEEN_LOCK = threading.Lock()

@@ -25,7 +25,7 @@ from packings.service.errors import Interrupted, PackingsError, SigTerm, Termina
 from packings.service.options import db_option, width_option
 from packings.service.paper import against_paper, verdict
 from packings.service.plot_commands import plot
-from packings.service.run import pass_bar
+from packings.service.run import pass_bar, timeouts
 from packings.service.validate import check_cluster_choice, check_dashboard_address, check_n, int_range
 from packings.workers.params import Params
 
@@ -316,6 +316,13 @@ def _print_run(n: int, result, url: str, min_contacts: int | None, as_json: bool
 @workers_option
 @scheduler_option
 @dashboard_option
+@click.option(
+    "--max-attempts",
+    type=int_range("max_attempts"),
+    default=3,
+    show_default=True,
+    help="Tries per batch of parents whose task fails before the pass stops.",
+)
 @click.option("--json", "as_json", is_flag=True, help="Print the report as JSON.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def catalyse_cmd(
@@ -329,6 +336,7 @@ def catalyse_cmd(
     n_workers: int | None,
     scheduler: str | None,
     dashboard_address: str,
+    max_attempts: int,
     as_json: bool,
     quiet: bool,
 ) -> None:
@@ -353,13 +361,13 @@ def catalyse_cmd(
     check_n(n + k)
     check_cluster_choice(n_workers, scheduler, options=True)
     params = Params(max_break=max_break, min_contacts=min_contacts)
-    from packings.service.dask_cluster import dask_client, start_fork_server
+    timeouts(local=scheduler is None)  # a bad value in the environment said before anything starts
+    from packings.service.dask_cluster import start_fork_server
 
     if scheduler is None:
         start_fork_server()  # the local cluster's workers load what they need while the database is opened
-    from packings.service.catalysis import NoParents, catalyse, parents_stored
+    from packings.service.catalysis import NoParents, parents_stored
     from packings.service.db import sessions
-    from packings.service.plugin import DatabasePlugin
 
     url = resolve_url(db_url)
     engine = open_db(db_url)
@@ -371,24 +379,9 @@ def catalyse_cmd(
     # shown off a terminal too (a log file), as enumerate's bars are: a pass may take many minutes
     bar, progress = pass_bar(f"clusters of {n if glued else n + k}", "cluster", quiet, off_terminal=True)
 
-    plugin = DatabasePlugin(url)
+    work = dict(spheres=k, on_progress=progress, glued=glued, max_attempts=max_attempts)
     try:
-        with dask_client(
-            scheduler, n_workers, quiet or as_json, plugins=(plugin,), database=url, dashboard_address=dashboard_address
-        ) as dask:
-            client = dask.client
-            if scheduler:  # an existing cluster's workers get the engine now (a local one's as they started)
-                client.register_plugin(plugin)
-            report = catalyse(
-                sessions(engine),
-                n,
-                params,
-                spheres=k,
-                on_progress=progress,
-                glued=glued,
-                client=client,
-                plugin=plugin.name,
-            )
+        report = _pass_on_dask(engine, url, n, params, scheduler, n_workers, quiet or as_json, dashboard_address, work)
     except KeyboardInterrupt as e:  # what was stored stays (the pass is idempotent): one line
         raise _stopped(e) from None
     except NoParents as e:
@@ -397,6 +390,44 @@ def catalyse_cmd(
         bar.close()
         engine.dispose()
     _echo_report(report, n, as_json)
+
+
+def _pass_on_dask(
+    engine, url: str, n: int, params: Params, scheduler, n_workers, quiet: bool, dashboard_address: str, work: dict
+):
+    """The catalysis pass of ``catalyse N`` (:func:`packings.service.catalysis.catalyse` with ``work``) on a new
+    local Dask cluster or an existing one, wired as ``enumerate`` wires its run: a local cluster's lost
+    workers replaced, and stopped after its time without any; an existing scheduler reached again for
+    :func:`packings.service.run.timeouts`' window when it is lost."""
+    from packings.service.catalysis import catalyse
+    from packings.service.dask_cluster import dask_client
+    from packings.service.db import sessions
+    from packings.service.plugin import DatabasePlugin
+
+    workerless, reconnect = timeouts(local=scheduler is None)
+    plugin = DatabasePlugin(url)
+    with dask_client(
+        scheduler,
+        n_workers,
+        quiet,
+        plugins=(plugin,),
+        database=url,
+        dashboard_address=dashboard_address,
+        reconnect_seconds=reconnect,
+    ) as dask:
+        client = dask.client
+        if scheduler:  # an existing cluster's workers get the engine now (a local one's as they started)
+            client.register_plugin(plugin)
+        return catalyse(
+            sessions(engine),
+            n,
+            params,
+            client=client,
+            plugin=plugin,
+            workerless_timeout=workerless,
+            revive=dask.revive_workers,
+            **work,
+        )
 
 
 def _glued_instead(n: int, k: int, glued: bool) -> str:

@@ -4,7 +4,11 @@ It claims pending expansions in batches sized to the workers, submits them as
 Dask tasks of up to ``batch`` expansions each (fewer, while a claim takes all
 that is pending: at the start and the end of a run), consumes results as they
 complete and claims more, until nothing is pending or leased.  A task writes
-its expansions back in one transaction, each guarded by its lease token.
+its expansions back in one transaction, each guarded by its lease token.  The
+Dask side (the tasks in flight, the scheduler reached again when it is lost, the
+watchdog, each task's end sorted) is :class:`packings.service.driver.Driver`'s;
+what is a run's own (leases, retries, tasks sent alone, the heartbeat, the lost
+workers counted) is here, in its subclass :class:`_Run`.
 
 Failures are of two kinds:
 
@@ -29,22 +33,20 @@ from __future__ import annotations
 
 import logging
 import queue
-import sys
 import threading
 import time
 import uuid
 from dataclasses import dataclass, field
 from typing import Callable
 
-from distributed import Client, as_completed
-from distributed.client import FutureCancelledError
-from distributed.comm.core import CommClosedError
+from distributed import Client
 from distributed.scheduler import KilledWorker
 from sqlalchemy import Engine, select
 
 from packings.service import queries, store
 from packings.service.db import sessions
-from packings.service.errors import SchedulerError, StorageError
+from packings.service.driver import Driver, Every
+from packings.service.errors import StorageError
 from packings.service.models import DONE, FAILED, LEASED, PENDING, ExpansionRow
 from packings.service.owners import process_name
 from packings.service.plugin import DatabasePlugin
@@ -53,12 +55,6 @@ from packings.workers.params import Params
 
 log = logging.getLogger(__name__)
 
-#: a task that raised one of these was lost with its worker or its connection: no fault of its expansions
-INFRASTRUCTURE = (KilledWorker, CommClosedError, FutureCancelledError)
-#: why Dask's Client cancels every future it holds when it loses its scheduler, which it then tries to reach
-#: again (FutureCancelledError.reason)
-CONNECTION_LOST = "scheduler-connection-lost"
-RECONNECT_MARGIN = 30.0  #: how long past the Client's own reconnection window the coordinator waits for it
 #: what SQLite, PostgreSQL or the system say when the database cannot be written (lower case)
 CANNOT_WRITE = (
     "database or disk is full",
@@ -71,8 +67,6 @@ CANNOT_WRITE = (
 )
 
 HEARTBEAT_SECONDS = 10.0
-CAPACITY_SECONDS = 2.0  #: how often the number of worker threads is asked again
-WATCH_SECONDS = 2.0  #: how often the watchdog asks whether any worker is left
 PROGRESS_SECONDS = 0.25  #: how often progress is read from the database and shown
 #: expansions per Dask task at most: a task costs the coordinator and Dask's scheduler a few ms of CPU,
 #: its worker about 4 ms between tasks and its write-back's fixed part (BEGIN, COMMIT, one query of the
@@ -167,22 +161,6 @@ class _Heartbeat(threading.Thread):
         self.join()
 
 
-class _Every:
-    """``f()``'s value, recomputed at most every ``seconds`` (or when forced): the coordinator
-    asks for the worker threads and shows progress after every result, and neither needs to be
-    fresher than this."""
-
-    def __init__(self, seconds: float, f: Callable):
-        self.seconds, self.f = seconds, f
-        self.at, self.value = -float("inf"), None
-
-    def __call__(self, force: bool = False):
-        now = time.monotonic()
-        if force or now - self.at >= self.seconds:
-            self.at, self.value = now, self.f()
-        return self.value
-
-
 def cannot_write(error: str) -> str | None:
     """The exception line of a failed task's error (or of an error's text), if it says that the
     database cannot be written."""
@@ -203,75 +181,6 @@ def _try(f: Callable) -> None:
         f()
     except Exception as e:  # noqa: BLE001 - logged; what it would have done is done by the next coordinator
         log.warning("%s", error_line(e))
-
-
-class _Watchdog(threading.Thread):
-    """Watches the Dask workers every WATCH_SECONDS.  It logs a line for the workers that left since
-    (a killed process, a Slurm job cancelled or past its walltime, a machine lost) and calls
-    ``revive()`` (a local cluster's: replace the workers its nannies could not restart; Slurm's: replace
-    the jobs lost).  While there is no worker it logs a warning every minute; after ``timeout`` seconds
-    without one it sets :attr:`stalled` and cancels the tasks in flight (``cancel()``), so that the
-    coordinator stops, resumably, rather than wait for ever."""
-
-    def __init__(
-        self,
-        client: Client,
-        run_id: int,
-        timeout: float | None,
-        cancel: Callable[[], None],
-        revive: Callable[[], int] | None = None,
-    ):
-        super().__init__(name="packings-watchdog", daemon=True)
-        self.client, self.run_id, self.timeout, self.cancel, self.revive = client, run_id, timeout, cancel, revive
-        self.stalled = False
-        self.stopped = threading.Event()
-        self.start()
-
-    def run(self) -> None:
-        since = warned = None
-        seen: set[str] = set()  #: the workers there at the last look
-        ever = False  #: whether any worker has been seen
-        while not self.stopped.wait(WATCH_SECONDS):
-            try:
-                if self.revive is not None:
-                    self.revive()
-                present = set(self.client.nthreads())
-            except Exception:  # noqa: BLE001 - the scheduler itself is away: Dask reconnects or fails the tasks
-                continue
-            left = seen - present
-            if left:
-                log.warning(
-                    "run %d: %d Dask worker(s) left (%s); %d remain",
-                    self.run_id,
-                    len(left),
-                    ", ".join(sorted(left)[:4]) + (", ..." if len(left) > 4 else ""),
-                    len(present),
-                )
-            seen = present
-            ever = ever or bool(present)
-            workers = len(present)
-            now = time.monotonic()
-            if workers:
-                since = warned = None
-                continue
-            since = since or now
-            # none has joined yet (Slurm's jobs may wait in its queue): said after a minute, not at once
-            first = warned is None and (ever or now - since >= 60)
-            if first or (warned is not None and now - warned >= 60):
-                log.warning(
-                    "run %d: no Dask worker for %.0f s%s",
-                    self.run_id,
-                    now - since,
-                    "" if ever else " (none has joined yet)",
-                )
-                warned = now
-            if self.timeout is not None and now - since >= self.timeout:
-                self.stalled = True
-                self.cancel()
-                return
-
-    def stop(self) -> None:
-        self.stopped.set()
 
 
 class _Departures:
@@ -350,13 +259,6 @@ class _Departures:
             pass
 
 
-def cancel_reason(fut) -> str:
-    """Why Dask cancelled ``fut``: :data:`CONNECTION_LOST` when its Client lost the scheduler, "unknown"
-    if it does not say (the reason Dask records on the future's state)."""
-    exc = getattr(getattr(fut, "_state", None), "exception", None)
-    return str(getattr(exc, "reason", None) or "unknown")
-
-
 def _progress(Reader, run_id: int) -> Progress:
     with Reader() as s:
         f = queries.frontier(s, run_id)
@@ -390,10 +292,12 @@ def run_enumeration(
     ).drive()
 
 
-class _Run:
-    """One coordinator's drive of the run of (n, params) (:func:`run_enumeration`): the run started or
-    resumed, the tasks in flight and the expansions sent alone, the scheduler reached again when it is
-    lost, each result consumed, and the run finished or abandoned (resumably)."""
+class _Run(Driver):
+    """One coordinator's drive of the run of (n, params) (:func:`run_enumeration`) on the Dask driver
+    (:class:`packings.service.driver.Driver`): the run started or resumed, expansions claimed with leases
+    and sent in tasks (those whose task was lost, alone), each result consumed (failed expansions released
+    to be retried or failed), the heartbeat and the lost workers' tasks counted (:class:`_Departures`)
+    beside the drive, and the run finished or abandoned (resumably)."""
 
     def __init__(
         self,
@@ -409,9 +313,7 @@ class _Run:
         workerless_timeout: float | None,
         revive: Callable[[], int] | None,
     ):
-        self.n, self.client, self.max_attempts = n, client, max_attempts
-        self.per_worker, self.batch, self.workerless_timeout = per_worker, batch, workerless_timeout
-        self.revive = revive  #: called by the watchdog to replace lost workers
+        self.n, self.max_attempts, self.batch = n, max_attempts, batch
         self.Session_ = sessions(engine)
         self.Reader = sessions(engine, readonly=True)
         self.owner = f"{process_name()}:{uuid.uuid4().hex[:8]}"
@@ -423,102 +325,59 @@ class _Run:
                 info.id,
                 info.recovered,
             )
+        plugin = DatabasePlugin(url)
+        client.register_plugin(plugin)
+        super().__init__(client, f"run {info.id}", per_worker, workerless_timeout, revive, plugin, log)
         self.isolate: set[int] = set()  #: expansions whose task was lost: sent one per task
-        self.plugin = DatabasePlugin(url)
-        client.register_plugin(self.plugin)
         self.start = time.perf_counter()
-        self.ac = as_completed()
-        self.flight: set = set()  #: the tasks in flight (the watchdog cancels them)
         self.parts: dict[str, list] = {}  #: the expansions of each task in flight, by its key (read by ``departures``)
         self.departures = _Departures(client, info.id, self.parts.get)
-        self.threads = _Every(CAPACITY_SECONDS, lambda: sum(client.nthreads().values()) or 1)
-        self.shown = _Every(
+        self.shown = Every(
             PROGRESS_SECONDS, lambda: on_progress(_progress(self.Reader, info.id)) if on_progress else None
         )
 
-    def reconnect(self) -> None:
-        """The Client lost its scheduler (an existing cluster's, gone or restarting): wait while it tries
-        to reach it again, for its own window (:data:`packings.service.dask_cluster.RECONNECT_SECONDS`), then
-        register the database plugin again (a restarted scheduler knows none, and gives it to the
-        workers that join it); if it cannot, stop, resumably."""
-        since = time.monotonic()
-        log.warning("run %d: lost the Dask scheduler; trying to reach it again for %.0f s", self.info.id, self.window())
-        while True:
-            self.gone_since(since)
-            if self.client.status == "running":
-                try:
-                    self.client.register_plugin(self.plugin)
-                    self.departures.subscribe()
-                    break
-                except OSError:  # lost again as it was asked (CommClosedError is one)
-                    pass
-            time.sleep(0.2)
-        log.warning("run %d: reached the Dask scheduler again after %.1f s", self.info.id, time.monotonic() - since)
+    def reconnected(self) -> None:
+        """A restarted scheduler knows no subscription: ask it for its events again."""
+        self.departures.subscribe()
 
-    def window(self) -> float:
-        """How long the Client tries to reach its scheduler again once it lost it."""
-        return float(getattr(self.client, "_timeout", 0) or 0)
+    def show(self, force: bool = False) -> None:
+        self.shown(force)
 
-    def gone_since(self, since: float) -> None:
-        """Stop, resumably, if the scheduler has been out of reach since ``since`` for longer than the
-        Client tries to reach it again (or the Client gave up)."""
-        waited = time.monotonic() - since
-        if self.client.status in ("closing", "closed") or waited > self.window() + RECONNECT_MARGIN:
-            raise SchedulerError(
-                f"lost the Dask scheduler and could not reach it again in {waited:.0f} s; "
-                "run the same command to resume"
-            )
-
-    def capacity_now(self) -> int:
-        """Tasks to keep in flight.  The connection can break as the scheduler is asked, before the Client
-        has noticed that it lost it (its status still "running"): then reach it again (the plugin given
-        again, as to a restarted scheduler) and ask again."""
-        since = time.monotonic()
-        if self.client.status != "running":
-            self.reconnect()
-        while True:
-            try:
-                return self.per_worker * self.threads()
-            except OSError:  # CommClosedError is one
-                self.gone_since(since)
-                time.sleep(0.2)
-                self.reconnect()
-
-    def fill(self, force: bool = False) -> None:
-        """Keep up to ``per_worker`` tasks per worker thread in flight: claim once at most half of them
-        are left (one claim transaction per few results rather than per result), up to ``batch``
-        expansions for each task wanted, and share what was claimed out among those tasks (among more,
-        smaller ones when that was all that was pending: :func:`_task_count`)."""
-        capacity = self.capacity_now()
-        flight, isolate, batch = self.flight, self.isolate, self.batch
-        if not force and len(flight) > capacity // 2:
-            return
-        tasks = capacity - len(flight)
+    def claim(self, tasks: int) -> list:
+        """Up to ``batch`` expansions leased for each task wanted, shared out among those tasks (among
+        more, smaller ones when that was all that was pending: :func:`_task_count`); those whose task was
+        lost once each alone, first."""
+        isolate, batch = self.isolate, self.batch
         claimed = store.claim(self.Session_, self.info.id, self.owner, tasks * batch)
         alone = [[x] for x in claimed if x[0] in isolate]  # each lost once with a task: now on its own
         shared = [x for x in claimed if x[0] not in isolate]
-        for part in alone + _shares(shared, _task_count(len(shared), max(1, tasks - len(alone)), capacity, batch)):
-            eid, token = part[0]
-            # one alone goes first: the less it waits on a worker, the less a fault of another task hits it.
-            # The key's prefix (Dask's key_split keeps "expand_n12", drops "-n12") names the run's n in
-            # Dask's own panels (progress, task stream)
-            fut = self.client.submit(
-                expand_task,
-                part,
-                self.plugin.name,
-                key=f"expand_n{self.n}-{eid}-{len(part)}-{token}",
-                pure=False,
-                priority=int(eid in isolate),
-            )
-            fut.expansions = part  # type: ignore[attr-defined]
-            self.parts[fut.key] = part
-            self.ac.add(fut)
-            flight.add(fut)
+        return alone + _shares(shared, _task_count(len(shared), max(1, tasks - len(alone)), self.capacity, batch))
 
-    def lost(self, fut, exc: BaseException | None) -> None:
+    def submit(self, part: list):
+        """The task of the leased expansions ``part``: one alone goes first (the less it waits on a worker,
+        the less a fault of another task hits it).  The key's prefix (Dask's key_split keeps "expand_n12",
+        drops "-n12") names the run's n in Dask's own panels (progress, task stream)."""
+        eid, token = part[0]
+        fut = self.client.submit(
+            expand_task,
+            part,
+            self.plugin.name,
+            key=f"expand_n{self.n}-{eid}-{len(part)}-{token}",
+            pure=False,
+            priority=int(eid in self.isolate),
+        )
+        fut.expansions = part  # type: ignore[attr-defined]
+        self.parts[fut.key] = part
+        return fut
+
+    def lost(self, fut, exc: BaseException | None, connection: bool = False) -> None:
         """``fut``'s task was lost to the infrastructure (``exc``; None: cancelled): put its expansions
         back, uncounted, and send each alone from now on; one that was alone already and killed its
-        workers again (KilledWorker) counts."""
+        workers again (KilledWorker) counts.  Cancelled because the Client lost the scheduler
+        (``connection``), which says nothing about the task: back, uncounted, not sent alone."""
+        if connection:
+            store.put_back(self.Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler was lost")
+            return
         part = fut.expansions
         why = "task cancelled" if exc is None else error_line(exc)
         if len(part) == 1 and part[0][0] in self.isolate and isinstance(exc, KilledWorker):
@@ -556,31 +415,14 @@ class _Run:
         """The run's time: its earlier coordinators' and this one's."""
         return self.info.seconds + (time.perf_counter() - self.start)
 
-    def failures(self, fut) -> dict[int, str]:
-        """The expansions of ``fut``'s task that failed, each with its error (none when it was lost to the
-        infrastructure: then they were put back here)."""
-        if fut.status == "cancelled" and cancel_reason(fut) == CONNECTION_LOST:
-            # the Client lost the scheduler, which says nothing about the task: back, uncounted
-            store.put_back(self.Session_, fut.expansions, "infrastructure fault, retried: the Dask scheduler was lost")
-        elif fut.status == "cancelled":  # the scheduler forgot it (restarted, or lost its state)
-            self.lost(fut, None)
-        elif fut.status == "error":
-            exc = fut.exception()
-            if isinstance(exc, INFRASTRUCTURE):
-                self.lost(fut, exc)
-            elif isinstance(exc, ExpansionsFailed):
-                return exc.errors
-            else:
-                return dict.fromkeys((eid for eid, _ in fut.expansions), error_line(exc))
-        return {}
-
-    def consume(self, fut) -> None:
-        """One task's result: its failed expansions released (retried or failed), or the run stopped,
-        resumably, when the database cannot be written or no worker is left."""
-        self.flight.discard(fut)
-        self.parts.pop(fut.key, None)
-        self.departures.count(self.Session_)
-        failed = self.failures(fut)
+    def failed(self, fut, exc: BaseException) -> None:
+        """The expansions of ``fut``'s task that failed (all of them, unless it says which:
+        :class:`packings.service.tasks.ExpansionsFailed`) released, to be retried or failed; the run stopped,
+        resumably, when the database cannot be written."""
+        if isinstance(exc, ExpansionsFailed):
+            failed = exc.errors
+        else:
+            failed = dict.fromkeys((eid for eid, _ in fut.expansions), error_line(exc))
         full = next((line for line in map(cannot_write, failed.values()) if line), None)
         if full is not None:  # no expansion's fault, and no use trying others: stop, resumably
             _try(lambda: store.put_back(self.Session_, fut.expansions, f"database not writable: {full}"))
@@ -596,52 +438,36 @@ class _Run:
                     summary(failed[eid]),
                     "given up" if status == FAILED else "to be retried",
                 )
-        fut.release()
-        if self.watchdog.stalled:
-            raise SchedulerError(
-                f"no Dask worker for {self.workerless_timeout:.0f} s (the local cluster could "
-                "not start them again); run the same command to resume"
-            )
+
+    def consume(self, fut) -> None:
+        """One task's result (:meth:`packings.service.driver.Driver.consume`), after the workers reported
+        lost since the last one are counted."""
+        self.parts.pop(fut.key, None)
+        self.departures.count(self.Session_)
+        super().consume(fut)
 
     def drive(self) -> RunResult:
-        """Submit, consume and claim more until nothing is in flight; on any exception (an interrupt
-        too) the run is abandoned, its leases put back, and the exception raised (a database that cannot
-        be written as :func:`not_writable`'s one line)."""
+        """The run driven to its end, its heartbeat beating meanwhile; on any exception (an interrupt too)
+        the run is abandoned (:meth:`abandon`) and the exception raised."""
         self.beat = _Heartbeat(self.Session_, self.info.id, self.owner, self.so_far)
-        self.watchdog = _Watchdog(
-            self.client,
-            self.info.id,
-            self.workerless_timeout,
-            lambda: self.client.cancel(list(self.flight.copy())),
-            self.revive,
-        )
-        try:
-            self.fill(force=True)
-            self.shown(force=True)
-            while self.flight:
-                for fut in self.ac:
-                    self.consume(fut)
-                    self.fill()
-                    self.shown()
-                self.fill(force=True)
-            self.departures.count(self.Session_)
-            self.shown(force=True)
-        except BaseException:
-            self.stop()
-            # if the database cannot take this either, the next coordinator puts the leases back
-            _try(lambda: store.abandon(self.Session_, self.info.id, self.owner, self.so_far()))
-            e = sys.exc_info()[1]
-            full = None if isinstance(e, StorageError) else cannot_write(str(e))
-            if full is not None:  # the coordinator's own write failed so
-                raise not_writable(full) from None
-            raise
-        self.stop()
-        return self.finish()
+        return super().drive()
+
+    def drained(self) -> None:
+        self.departures.count(self.Session_)
+        self.shown(force=True)
+
+    def abandon(self, e: BaseException) -> None:
+        """The run's leases put back (if the database cannot take this either, the next coordinator puts
+        them back); a database that cannot be written raised as :func:`not_writable`'s one line."""
+        _try(lambda: store.abandon(self.Session_, self.info.id, self.owner, self.so_far()))
+        full = None if isinstance(e, StorageError) else cannot_write(str(e))
+        if full is not None:  # the coordinator's own write failed so
+            raise not_writable(full) from None
 
     def stop(self) -> None:
         """The heartbeat, the watchdog and the subscription to the scheduler's events stopped."""
         self.beat.stop()
-        self.watchdog.stop()
+        super().stop()
         self.departures.close()
 
     def finish(self) -> RunResult:

@@ -26,6 +26,12 @@ class StorageError(PackingsError):
     leases put back, and the same command resumes it once space is freed."""
 
 
+class PassFailed(PackingsError):
+    """A catalysis pass stopped: the task of a batch of its parents raised as many times as it may be tried.
+    What the pass stored stays (a pass is idempotent); it is not recorded as run to its end, so the same
+    command makes it again."""
+
+
 class Interrupted(PackingsError):
     """Ctrl-C: the run stopped with its leases put back; the same command resumes it (exit status 130)."""
 

@@ -93,6 +93,16 @@ def _seconds(variable: str, default: float) -> float:
     return seconds
 
 
+def timeouts(local: bool) -> tuple[float | None, float]:
+    """How long the work waits without a Dask worker (``local``: a local cluster, which cannot start them
+    again after that long, :data:`LOCAL_WORKERLESS_SECONDS`; an existing cluster's workers may join later,
+    and Slurm's jobs may wait in its queue: None, it waits for them), and how long the Client tries to
+    reach a lost scheduler again (:data:`packings.service.dask_cluster.RECONNECT_SECONDS`); each from
+    the environment if set there, a bad value a UsageError."""
+    workerless = _seconds(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS) if local else None
+    return workerless, _seconds(RECONNECT_ENV, RECONNECT_SECONDS)
+
+
 def enumerate(
     n: int,
     url: str | None = None,
@@ -155,10 +165,7 @@ def enumerate(
     slurm, params, url = _prepare(
         n, url, workers, scheduler, slurm, max_break, min_contacts, max_attempts, dashboard_address
     )
-    # a local cluster that has had no worker for this long cannot start them again: stop, resumably
-    # (an existing cluster's workers may join later, and Slurm's jobs may wait in its queue: wait for them)
-    workerless = _seconds(WORKERLESS_ENV, LOCAL_WORKERLESS_SECONDS) if local else None
-    reconnect = _seconds(RECONNECT_ENV, RECONNECT_SECONDS)
+    workerless, reconnect = timeouts(local)
     from packings.service.db import open_database
     from packings.service.plugin import DatabasePlugin
 
@@ -275,7 +282,19 @@ def _paths_and_passes(
     result = paths()
     passes = []
     while glued and result.status == "complete":
-        report = _glued_pass(engine, url, n, params, result.run_id, dask.client, progress, before=dask.fresh_workers)
+        report = _glued_pass(
+            engine,
+            url,
+            n,
+            params,
+            result.run_id,
+            dask.client,
+            progress,
+            before=dask.fresh_workers,
+            max_attempts=max_attempts,
+            workerless_timeout=workerless,
+            revive=dask.revive_workers,
+        )
         if report is None:
             break
         passes.append(report)
@@ -299,15 +318,28 @@ def _refuse_sqlite_for_slurm(url: str) -> None:
         )
 
 
-def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress: bool, before=None):
+def _glued_pass(
+    engine,
+    url: str,
+    n: int,
+    params,
+    run_id: int,
+    client,
+    progress: bool,
+    before=None,
+    max_attempts: int = 3,
+    workerless_timeout: float | None = None,
+    revive=None,
+):
     """A glued catalysis pass into ``run_id`` over the clusters of n stored since the passes before it
     (:func:`packings.service.catalysis.covered`), on ``client``'s workers; its report, or None if there are none.
     ``before()`` is called first when there is a pass to make (``packings enumerate`` gives its local
     workers fresh processes there, so that a pass's record of the remainders seen is not added on top of
-    what the paths left in them)."""
+    what the paths left in them).  ``max_attempts``, ``workerless_timeout`` and ``revive`` are the run's
+    (:func:`packings.service.catalysis.catalyse`)."""
     from packings.service.catalysis import catalyse, count_stored, covered
     from packings.service.db import sessions
-    from packings.service.plugin import plugin_name
+    from packings.service.plugin import DatabasePlugin
 
     Session_ = sessions(engine)
     after = covered(Session_, run_id)
@@ -318,7 +350,17 @@ def _glued_pass(engine, url: str, n: int, params, run_id: int, client, progress:
     bar, shown = pass_bar(f"clusters of {n} (glued)", "cluster", not progress, off_terminal=True)
     try:
         return catalyse(
-            Session_, n, params, glued=True, client=client, plugin=plugin_name(url), after=after, on_progress=shown
+            Session_,
+            n,
+            params,
+            glued=True,
+            client=client,
+            plugin=DatabasePlugin(url),
+            after=after,
+            on_progress=shown,
+            max_attempts=max_attempts,
+            workerless_timeout=workerless_timeout,
+            revive=revive,
         )
     finally:
         bar.close()

@@ -7,6 +7,7 @@ import socket
 from pathlib import Path
 
 import numpy as np
+import pytest
 from sqlalchemy import func, select, text
 
 from packings.service import store
@@ -513,3 +514,157 @@ def test_enumerate_glued_gives_each_pass_fresh_local_workers(engine, monkeypatch
     assert len(r.catalysis) == 2 and calls == [True, True]
     again = packings.enumerate(7, url_of(engine), workers=1, progress=False, glued=True)
     assert again.catalysis == [] and calls == [True, True]
+
+
+# --------------------------------------------------------------------------- a pass on Dask, with faults
+
+
+def _kill_the_first_task_after(first: int, marker: str) -> None:
+    """In a worker process: the first task anywhere in the cluster (``marker`` is made once) that reads a
+    parent stored after cluster ``first`` (one the pass stored itself: mid-pass) kills its process."""
+    import os
+
+    import packings.service.catalysis as catalysis_module
+
+    real = catalysis_module.rows_of
+
+    def rows_of(Session_, ids):
+        if max(ids) > first:
+            try:
+                os.close(os.open(marker, os.O_CREAT | os.O_EXCL))
+            except FileExistsError:
+                pass
+            else:
+                os._exit(1)
+        return real(Session_, ids)
+
+    catalysis_module.rows_of = rows_of
+
+
+def _stored(engine, n: int) -> set[str]:
+    with sessions(engine)() as s:
+        return set(s.execute(select(ClusterRow.certificate).where(ClusterRow.n == n)).scalars())
+
+
+def test_a_pass_on_dask_survives_a_worker_killed_mid_pass(engine, tmp_path):
+    """A glued pass into a run of 8 that holds only its seed, on two worker processes, one of which dies in
+    the first task that reads a cluster the pass stored (Dask told to give up on a task at its first lost
+    worker, so that the loss reaches the pass): the batches it held are sent again, and the pass stores and
+    reports what an undisturbed pass in one process does."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    from packings.service.db import open_database
+    from packings.service.plugin import DatabasePlugin
+
+    reference = open_database(f"sqlite:///{tmp_path / 'reference.db'}", create=True)
+    try:
+        _complete_after_the_seed(reference, 8)
+        here = catalyse(sessions(reference), 8, Params(), glued=True)
+        expected = _stored(reference, 8)
+    finally:
+        reference.dispose()
+    assert here.new  # the pass finds clusters, which are parents in their turn
+    _complete_after_the_seed(engine, 8)
+    with sessions(engine)() as s:
+        seed = s.execute(select(func.max(ClusterRow.id))).scalar_one()
+    marker = str(tmp_path / "killed")
+    plugin = DatabasePlugin(url_of(engine))
+    with (
+        dask.config.set({"distributed.scheduler.allowed-failures": 0}),
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        client.register_plugin(plugin)
+        client.run(_kill_the_first_task_after, seed, marker)
+        there = catalyse(sessions(engine), 8, Params(), batch=1, glued=True, client=client, plugin=plugin)
+    assert Path(marker).exists()  # a worker was killed
+    assert _stored(engine, 8) == expected
+    assert (there.parents, len(there.new), there.rigid - there.already_stored) == (
+        here.parents,
+        len(here.new),
+        here.rigid - here.already_stored,
+    )
+    assert there.remainders + there.seen == here.remainders + here.seen
+    with sessions(engine)() as s:
+        assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 1  # recorded
+
+
+def test_a_batch_whose_task_always_fails_stops_the_pass_after_max_attempts_in_one_line(engine, monkeypatch):
+    """The task of one batch of parents raises every time: it is tried max_attempts times in all, then the
+    pass stops with PassFailed in one line; what the other batches stored stays, and the pass is not
+    recorded (the same command makes it again)."""
+    from distributed import Client, LocalCluster
+
+    import packings.service.catalysis as catalysis_module
+    from packings.service.errors import PassFailed
+    from packings.service.plugin import DatabasePlugin
+
+    _complete_after_the_seed(engine, 8)
+    with sessions(engine)() as s:
+        seed = s.execute(select(func.max(ClusterRow.id))).scalar_one()
+    poison, tries, real = seed + 1, [], catalysis_module.rows_of  # the first cluster the pass stores
+
+    def rows_of(Session_, ids):  # the workers are threads of this process: the patch reaches them
+        if poison in ids:
+            tries.append(ids)
+            raise RuntimeError(f"injected: cluster {poison} cannot be read\nsecond line")
+        return real(Session_, ids)
+
+    monkeypatch.setattr(catalysis_module, "rows_of", rows_of)
+    plugin = DatabasePlugin(url_of(engine))
+    with (
+        LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        client.register_plugin(plugin)
+        with pytest.raises(PassFailed) as failed:
+            catalyse(sessions(engine), 8, Params(), batch=1, glued=True, client=client, plugin=plugin, max_attempts=2)
+    line = str(failed.value)
+    assert "\n" not in line and f"cluster ids {poison} to {poison}" in line and "failed 2 time(s)" in line
+    assert "RuntimeError: injected" in line and "run the same command again" in line
+    assert tries == [[poison], [poison]]
+    assert count_stored(sessions(engine), 8) > 2  # the seed's batch stored the poisoned parent and others
+    with sessions(engine)() as s:
+        assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 0
+
+
+def test_a_pass_on_a_cluster_without_workers_stops_after_the_workerless_timeout(engine):
+    """As a run does (test_faults: a cluster left without workers): a pass on a cluster that has no worker
+    stops with SchedulerError after ``workerless_timeout`` seconds, rather than wait for ever; nothing is
+    stored and the pass is not recorded."""
+    import threading
+
+    from distributed import Client, LocalCluster
+
+    from packings.service.errors import SchedulerError
+    from packings.service.plugin import DatabasePlugin
+
+    fill_database(engine, 6)
+    before = count_stored(sessions(engine), 6)
+    plugin, outcome = DatabasePlugin(url_of(engine)), []
+    with (
+        LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
+        client.register_plugin(plugin)
+
+        def run() -> None:
+            try:
+                outcome.append(
+                    catalyse(
+                        sessions(engine), 6, Params(), glued=True, client=client, plugin=plugin, workerless_timeout=3.0
+                    )
+                )
+            except Exception as e:  # noqa: BLE001 - what the pass raised is the outcome
+                outcome.append(e)
+
+        waiting = threading.Thread(target=run, daemon=True)
+        waiting.start()
+        waiting.join(timeout=120)
+        assert not waiting.is_alive(), "the pass still waits for a worker"
+    [e] = outcome
+    assert isinstance(e, SchedulerError) and "no Dask worker for 3 s" in str(e) and "\n" not in str(e)
+    assert count_stored(sessions(engine), 6) == before
+    with sessions(engine)() as s:
+        assert s.execute(select(func.count()).select_from(CatalysisPass)).scalar_one() == 0

@@ -453,10 +453,10 @@ def test_a_connection_that_breaks_as_the_coordinator_asks_is_asked_again(engine,
     the error ended the command with a traceback."""
     from distributed import Client, LocalCluster
 
-    import packings.service.coordinator
+    import packings.service.driver
     from packings.service.coordinator import run_enumeration
 
-    monkeypatch.setattr(packings.service.coordinator, "CAPACITY_SECONDS", 0.0)  # asked at every fill
+    monkeypatch.setattr(packings.service.driver, "CAPACITY_SECONDS", 0.0)  # asked at every fill
     url = engine.url.render_as_string(hide_password=False)
     with (
         LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
@@ -475,12 +475,12 @@ def test_a_connection_that_stays_broken_stops_the_run_resumably(engine, monkeypa
     used, and a new coordinator completes it."""
     from distributed import Client, LocalCluster
 
-    import packings.service.coordinator
+    import packings.service.driver
     from packings.service.coordinator import run_enumeration
     from packings.service.errors import SchedulerError
 
-    monkeypatch.setattr(packings.service.coordinator, "CAPACITY_SECONDS", 0.0)
-    monkeypatch.setattr(packings.service.coordinator, "RECONNECT_MARGIN", 1.0)
+    monkeypatch.setattr(packings.service.driver, "CAPACITY_SECONDS", 0.0)
+    monkeypatch.setattr(packings.service.driver, "RECONNECT_MARGIN", 1.0)
     url = engine.url.render_as_string(hide_password=False)
     with (
         LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster,
