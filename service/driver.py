@@ -87,7 +87,10 @@ class _Watchdog(threading.Thread):
     ``revive()`` (a local cluster's: replace the workers its nannies could not restart; Slurm's: replace
     the jobs lost).  While there is no worker it logs a warning every minute; after ``timeout`` seconds
     without one it sets :attr:`stalled` and cancels the tasks in flight (``cancel()``), so that the
-    driver stops rather than wait for ever.  Its lines begin with ``label`` (e.g. "run 5")."""
+    driver stops rather than wait for ever.  A worker that joined between two looks and was gone again at
+    the second (the scheduler's ``add-worker`` events say so) counts as one there: on a loaded machine whose
+    workers are killed faster than they are started, none may be there at any look while they keep coming,
+    and the run keeps going.  Its lines begin with ``label`` (e.g. "run 5")."""
 
     def __init__(
         self,
@@ -105,10 +108,22 @@ class _Watchdog(threading.Thread):
         self.stopped = threading.Event()
         self.start()
 
+    def last_arrival(self) -> float | None:
+        """When a worker last joined, by the scheduler's clock (its events on the topic "all"); None if it
+        does not say."""
+        try:
+            events = self.client.get_events("all")
+        except Exception:  # noqa: BLE001 - the scheduler itself is away: the next look asks again
+            return None
+        return max(
+            (t for t, msg in events if isinstance(msg, dict) and msg.get("action") == "add-worker"), default=None
+        )
+
     def run(self) -> None:
         since = warned = None
         seen: set[str] = set()  #: the workers there at the last look
         ever = False  #: whether any worker has been seen
+        arrival = None  #: the last worker's arrival, as asked at the last look without a worker
         while not self.stopped.wait(WATCH_SECONDS):
             try:
                 if self.revive is not None:
@@ -129,7 +144,11 @@ class _Watchdog(threading.Thread):
             ever = ever or bool(present)
             now = time.monotonic()
             if present:
-                since = warned = None
+                since = warned = arrival = None
+                continue
+            last, arrival = arrival, self.last_arrival()
+            if last is not None and arrival is not None and arrival > last:  # one came and went since the last look
+                since, warned, ever = None, None, True
                 continue
             since = since or now
             # none has joined yet (Slurm's jobs may wait in its queue): said after a minute, not at once
