@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import datetime as dt
 import json
 import os
@@ -496,6 +497,153 @@ def _stratified(members, sample: int, rng) -> list[int]:
     return sorted(pick)
 
 
+def _variants(numpy: bool, against, every: bool, unheld: bool) -> list[str]:
+    """The variants (:data:`VARIANTS`) that :func:`measure` times, in the order each cluster runs them."""
+    return (
+        ["numba", "svd"]
+        + ([AGAINST] if against is not None else [])
+        + (["numpy"] if numpy else [])
+        + (["every"] if every else [])
+        + (["unheld"] if unheld else [])
+    )
+
+
+@dataclasses.dataclass
+class _Tally:
+    """What :func:`measure` adds up over a class's sampled clusters."""
+
+    totals: dict  #: variant -> the class's whole time: each number of contacts by its own mean
+    subsets: list = dataclasses.field(default_factory=list)  #: subsets tried, per sampled cluster
+    not_1d: int = 0
+    same: int = 0
+    same_reached: int = 0
+    svd_differ: int = 0
+    against_differ: int = 0
+    attempts: int = 0
+    images: int = 0
+    every_differ: int = 0
+    retraced: int = 0
+    run_retraced: int = 0
+    held: int = 0
+    unheld_differ: int = 0
+    #: --parts: the class's time and its kinds of path and probes (:func:`_add_parts`)
+    split: dict = dataclasses.field(
+        default_factory=lambda: {
+            "seconds": 0.0,
+            "weighted": Counter(),
+            "stressed": Counter(),
+            "plain": Counter(),
+            "probes": Counter(),
+        }
+    )
+
+
+def _compare(t: _Tally, results: dict, numpy: bool, every: bool, unheld: bool, against) -> None:
+    """Add to ``t`` one sampled cluster's counts and how its variants' expansions (``results``: variant ->
+    (seconds, expansion)) differ from the compiled one's, asserting what must not differ."""
+    from packings.workers.expand import HELD, NOT_1D
+
+    ex = results["numba"][1]
+    t.subsets.append(ex.subsets_tried)
+    t.not_1d += sum(1 for e in ex.endpoints if e.outcome == NOT_1D)
+    if numpy:
+        a, b = results["numba"][1], results["numpy"][1]
+        t.same += [e.outcome for e in a.endpoints] == [e.outcome for e in b.endpoints]
+        t.same_reached += _reached(a) == _reached(b)
+    # deciding subsets by the first-order counts decides every subset the same way; a path it
+    # follows starts along the same tangent only to rounding (and sign: the direction labels may
+    # be swapped), so a marginal one may end otherwise
+    svd = results["svd"][1].endpoints
+    assert [(e.broken, e.direction == 0) for e in ex.endpoints] == [(e.broken, e.direction == 0) for e in svd]
+    assert [e.outcome for e in ex.endpoints if e.direction == 0] == [e.outcome for e in svd if e.direction == 0]
+    t.svd_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(svd)).values())
+    t.attempts += len(ex.endpoints)
+    t.images += ex.paths_by_symmetry
+    t.retraced += ex.paths_retraced
+    if every:  # the same subsets; each path's outcome as the path of its image's subset ended
+        everyone = results["every"][1].endpoints
+        assert [e.broken for e in ex.endpoints] == [e.broken for e in everyone]
+        t.every_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(everyone)).values())
+    if unheld:  # every attempt of a subset not held the same to the bit, and the same clusters reached
+        other = results["unheld"][1]
+        kept = {e.broken for e in ex.endpoints if e.outcome == HELD}
+        t.held += len(kept)
+        t.unheld_differ += _reached(ex) != _reached(other) or [k for k in _attempt_keys(ex) if k[0] not in kept] != [
+            k for k in _attempt_keys(other) if k[0] not in kept
+        ]
+    if against is not None:
+        mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
+        t.against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
+
+
+def _add_parts(split: dict, one: dict, scale: float) -> None:
+    """Add one sampled cluster's split (:func:`_parts`) to its class's ``split``, its times weighted by ``scale``
+    (the clusters with as many contacts each sampled one stands for)."""
+    split["seconds"] += one["seconds"] * scale
+    for kind in ("stressed", "plain", "probes"):
+        for key, value in one.get(kind, {}).items():
+            split[kind][key] += value  # the sample's own paths and probes: counts, ms each
+            if key not in ("paths", "path_steps", "calls"):
+                split["weighted"][(kind, key)] += value * scale
+
+
+def _sample_class(members, pick, keys, given, params, backends, against, numpy, every, unheld, parts) -> _Tally:
+    """Expand the sampled clusters ``pick`` of one class's ``members`` as each variant of ``backends``, in turn
+    cluster by cluster, given the paths that arrived at each (``given``, by key), and tally what is measured."""
+    weight = Counter(c.m for c in members)  # clusters with as many contacts
+    picked = Counter(members[i].m for i in pick)
+    t = _Tally(totals={b: 0.0 for b in backends})
+    for i in pick:
+        came_rows, took = given.get(keys[i], ((), 0))
+        t.run_retraced += took
+        results = {b: _time(members[i], params, b, against, came_rows) for b in backends}
+        scale = weight[members[i].m] / picked[members[i].m]  # each number of contacts by its own mean
+        for b, (s, _) in results.items():
+            t.totals[b] += s * scale
+        _compare(t, results, numpy, every, unheld, against)
+        if parts:  # one more call, apart from the others: its wrappers cost a little
+            _add_parts(t.split, _parts(members[i], params, came_rows), scale)
+    return t
+
+
+def _class_row(name: str, members, pick, t: _Tally, backends, numpy, against, every, unheld, parts) -> dict:
+    """The row of :func:`measure` of the class ``name`` from its tally ``t``."""
+    row = {
+        "class": name,
+        "clusters": len(members),
+        "sampled": len(pick),
+        "subsets_min": min(t.subsets),
+        "subsets_max": max(t.subsets),
+        "not_1d_share": t.not_1d / max(1, sum(t.subsets)),
+        "svd_paths_differing": t.svd_differ,
+        "attempts": t.attempts,
+    }
+    for b in backends:
+        row[f"mean_ms_{b}"] = 1e3 * t.totals[b] / len(members)
+        row[f"total_s_{b}"] = t.totals[b]
+    row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
+    row["paths_by_symmetry"] = t.images
+    row["paths_retraced_each"] = t.retraced / len(pick)
+    row["run_paths_retraced_each"] = t.run_retraced / len(pick)  # what the run took on the same clusters
+    if every:
+        row["every_ratio"] = row["mean_ms_every"] / row["mean_ms_numba"]
+        row["every_paths_differing"] = t.every_differ
+    if unheld:
+        row["unheld_ratio"] = row["mean_ms_unheld"] / row["mean_ms_numba"]
+        row["held"] = t.held
+        row["unheld_clusters_differing"] = t.unheld_differ
+    if against is not None:
+        row["against_ratio"] = row[f"mean_ms_{AGAINST}"] / row["mean_ms_numba"]
+        row["against_attempts_differing"] = t.against_differ
+    if parts:
+        row["parts"] = _parts_row(t.split, len(members), len(pick))
+    if numpy:
+        row["same_endpoints"] = t.same
+        row["same_clusters_reached"] = t.same_reached
+        row["ratio"] = row["mean_ms_numpy"] / row["mean_ms_numba"]
+    return row
+
+
 def measure(
     clusters: list[tuple[object, str, object]],
     params,
@@ -518,15 +666,7 @@ def measure(
     cluster given none without it."""
     import numpy as np
 
-    from packings.workers.expand import HELD, NOT_1D
-
-    backends = (
-        ["numba", "svd"]
-        + ([AGAINST] if against is not None else [])
-        + (["numpy"] if numpy else [])
-        + (["every"] if every else [])
-        + (["unheld"] if unheld else [])
-    )
+    backends = _variants(numpy, against, every, unheld)
     rng = np.random.default_rng(seed)
     rows = []
     for name in CLASSES:
@@ -536,93 +676,8 @@ def measure(
         pick = _stratified(members, sample, rng)
         keys = [key for _, k, key in clusters if k == name]
         given = came([keys[i] for i in pick]) if came is not None else {}
-        weight = Counter(c.m for c in members)  # clusters with as many contacts
-        picked = Counter(members[i].m for i in pick)
-        totals = {b: 0.0 for b in backends}  # the class's whole time: each number of contacts by its own mean
-        subsets, not_1d, same, svd_differ, against_differ, attempts, images, every_differ = [], 0, 0, 0, 0, 0, 0, 0
-        same_reached = 0
-        retraced = run_retraced = held = unheld_differ = 0
-        split = {"seconds": 0.0, "weighted": Counter(), "stressed": Counter(), "plain": Counter(), "probes": Counter()}
-        for i in pick:
-            came_rows, took = given.get(keys[i], ((), 0))
-            run_retraced += took
-            results = {b: _time(members[i], params, b, against, came_rows) for b in backends}
-            scale = weight[members[i].m] / picked[members[i].m]  # each number of contacts by its own mean
-            for b, (s, _) in results.items():
-                totals[b] += s * scale
-            ex = results["numba"][1]
-            subsets.append(ex.subsets_tried)
-            not_1d += sum(1 for e in ex.endpoints if e.outcome == NOT_1D)
-            if numpy:
-                a, b = results["numba"][1], results["numpy"][1]
-                same += [e.outcome for e in a.endpoints] == [e.outcome for e in b.endpoints]
-                same_reached += _reached(a) == _reached(b)
-            # deciding subsets by the first-order counts decides every subset the same way; a path it
-            # follows starts along the same tangent only to rounding (and sign: the direction labels may
-            # be swapped), so a marginal one may end otherwise
-            svd = results["svd"][1].endpoints
-            assert [(e.broken, e.direction == 0) for e in ex.endpoints] == [(e.broken, e.direction == 0) for e in svd]
-            assert [e.outcome for e in ex.endpoints if e.direction == 0] == [e.outcome for e in svd if e.direction == 0]
-            svd_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(svd)).values())
-            attempts += len(ex.endpoints)
-            images += ex.paths_by_symmetry
-            retraced += ex.paths_retraced
-            if every:  # the same subsets; each path's outcome as the path of its image's subset ended
-                everyone = results["every"][1].endpoints
-                assert [e.broken for e in ex.endpoints] == [e.broken for e in everyone]
-                every_differ += sum((_path_outcomes(ex.endpoints) - _path_outcomes(everyone)).values())
-            if unheld:  # every attempt of a subset not held the same to the bit, and the same clusters reached
-                other = results["unheld"][1]
-                kept = {e.broken for e in ex.endpoints if e.outcome == HELD}
-                held += len(kept)
-                unheld_differ += _reached(ex) != _reached(other) or [
-                    k for k in _attempt_keys(ex) if k[0] not in kept
-                ] != [k for k in _attempt_keys(other) if k[0] not in kept]
-            if parts:  # one more call, apart from the others: its wrappers cost a little
-                one = _parts(members[i], params, came_rows)
-                split["seconds"] += one["seconds"] * scale
-                for kind in ("stressed", "plain", "probes"):
-                    for key, value in one.get(kind, {}).items():
-                        split[kind][key] += value  # the sample's own paths and probes: counts, ms each
-                        if key not in ("paths", "path_steps", "calls"):
-                            split["weighted"][(kind, key)] += value * scale
-            if against is not None:
-                mine, theirs = _attempt_keys(ex), _attempt_keys(results[AGAINST][1])
-                against_differ += sum(a != b for a, b in zip(mine, theirs)) + abs(len(mine) - len(theirs))
-        row = {
-            "class": name,
-            "clusters": len(members),
-            "sampled": len(pick),
-            "subsets_min": min(subsets),
-            "subsets_max": max(subsets),
-            "not_1d_share": not_1d / max(1, sum(subsets)),
-            "svd_paths_differing": svd_differ,
-            "attempts": attempts,
-        }
-        for b in backends:
-            row[f"mean_ms_{b}"] = 1e3 * totals[b] / len(members)
-            row[f"total_s_{b}"] = totals[b]
-        row["svd_ratio"] = row["mean_ms_svd"] / row["mean_ms_numba"]
-        row["paths_by_symmetry"] = images
-        row["paths_retraced_each"] = retraced / len(pick)
-        row["run_paths_retraced_each"] = run_retraced / len(pick)  # what the run took on the same clusters
-        if every:
-            row["every_ratio"] = row["mean_ms_every"] / row["mean_ms_numba"]
-            row["every_paths_differing"] = every_differ
-        if unheld:
-            row["unheld_ratio"] = row["mean_ms_unheld"] / row["mean_ms_numba"]
-            row["held"] = held
-            row["unheld_clusters_differing"] = unheld_differ
-        if against is not None:
-            row["against_ratio"] = row[f"mean_ms_{AGAINST}"] / row["mean_ms_numba"]
-            row["against_attempts_differing"] = against_differ
-        if parts:
-            row["parts"] = _parts_row(split, len(members), len(pick))
-        if numpy:
-            row["same_endpoints"] = same
-            row["same_clusters_reached"] = same_reached
-            row["ratio"] = row["mean_ms_numpy"] / row["mean_ms_numba"]
-        rows.append(row)
+        t = _sample_class(members, pick, keys, given, params, backends, against, numpy, every, unheld, parts)
+        rows.append(_class_row(name, members, pick, t, backends, numpy, against, every, unheld, parts))
     for b in backends:
         whole = sum(r[f"total_s_{b}"] for r in rows) or 1.0
         for r in rows:
@@ -686,8 +741,8 @@ def floors(rows: list[dict], seconds: str) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Measure the classes of ``args.n`` and print a table of them, or with ``--json`` one JSON object."""
     from packings.workers import kernels
-    from packings.workers.expand import warm_up
     from packings.workers.params import Params
 
     if not kernels.numba_available():
@@ -698,15 +753,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     params = Params(max_break=args.max_break, min_contacts=args.min_contacts)
     against = load_kernels(args.against) if args.against else None
-    with kernels.backend("numba"):
-        warm_up()
-        if against is not None:
-            with kernels_from(against):
-                try:
-                    warm_up()
-                except AttributeError as exc:  # a version older than the code that calls it
-                    raise SystemExit(f"--against: {args.against} lacks a kernel the current code calls ({exc})")
-        clusters = _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
+    clusters = _clusters_to_measure(args, params, against)
     if args.classes:
         clusters = [c for c in clusters if c[1] in args.classes]
         if not clusters:
@@ -720,6 +767,34 @@ def run(args: argparse.Namespace) -> int:
     rows = measure(
         clusters, params, args.sample, args.seed, args.numpy, against, args.every, came, args.unheld, args.parts
     )
+    result = _result(args, mode, run_id, run_times, rows)
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    _print_table(args, len(clusters), result)
+    return 0
+
+
+def _clusters_to_measure(args: argparse.Namespace, params, against) -> list[tuple[object, str, object]]:
+    """(cluster, class, key) of every cluster of ``args.n``, from ``--db`` or the in-memory enumeration, after
+    compiling the kernels (those of ``against`` too) so that no timed call pays for it."""
+    from packings.workers import kernels
+    from packings.workers.expand import warm_up
+
+    with kernels.backend("numba"):
+        warm_up()
+        if against is not None:
+            with kernels_from(against):
+                try:
+                    warm_up()
+                except AttributeError as exc:  # a version older than the code that calls it
+                    raise SystemExit(f"--against: {args.against} lacks a kernel the current code calls ({exc})")
+        return _from_database(args.db, args.n) if args.db else _from_memory(args.n, params)
+
+
+def _result(args: argparse.Namespace, mode: str, run_id, run_times: dict, rows: list[dict]) -> dict:
+    """The JSON object of :func:`run`: what was measured and how, and the ``rows`` of :func:`measure`, each given
+    its class's time in the run ``run_id`` (``run_times``: class -> (clusters expanded, seconds))."""
     whole = sum(seconds for _, seconds in run_times.values()) or 1.0
     for r in rows:
         expanded, seconds = run_times.get(r["class"], (0, 0.0))
@@ -739,9 +814,13 @@ def run(args: argparse.Namespace) -> int:
     }
     if args.parts:
         result["floors"] = floors(rows, "run_s" if run_id is not None else "total_s_numba")
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return 0
+    return result
+
+
+def _print_table(args: argparse.Namespace, clusters: int, result: dict) -> None:
+    """The text of :func:`run`: a title, a line per class, the legend, --parts' table and the svd variant's
+    differing paths (``clusters``: how many were measured)."""
+    run_id, rows = result["run"], result["rows"]
     limits = "".join(
         f", {name} {value}"
         for name, value in (("--max-break", args.max_break), ("--min-contacts", args.min_contacts))
@@ -751,11 +830,27 @@ def run(args: argparse.Namespace) -> int:
         "run": f"the paths that arrived at each before run {run_id} expanded it",
         "all": f"every path of run {run_id} that arrived at each",
         "none": "no path that arrived",
-    }[mode]
+    }[result["arrivals"]]
     print(
-        f"n = {args.n}: {len(clusters)} clusters ({result['source']}{limits}); time in expand by class, "
+        f"n = {args.n}: {clusters} clusters ({result['source']}{limits}); time in expand by class, "
         f"a sample of up to {args.sample} each, given {given}"
     )
+    print(_header(args, run_id))
+    for r in rows:
+        print(_row_line(args, run_id, r))
+    print(_legend(args, run_id))
+    if args.parts:
+        _print_parts(rows, result["floors"])
+    differ = sum(r["svd_paths_differing"] for r in rows)
+    if differ:
+        print(
+            f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "
+            "their tangents agree only to rounding)"
+        )
+
+
+def _header(args: argparse.Namespace, run_id) -> str:
+    """The table's header: the columns of the variants ``args`` asks for, and of the run ``run_id`` if any."""
     head = (
         f"{'class':<12}{'clusters':>9}{'sampled':>8}{'ms each':>10}{'share':>8}{'subsets':>13}{'not 1-d':>9}"
         f"{'retraced':>9}"
@@ -763,7 +858,7 @@ def run(args: argparse.Namespace) -> int:
     if run_id is not None:
         head += f"{'in run':>7}{'run s':>9}{'run share':>10}"
     head += f"{'svd ms':>9}{'svd share':>10}{'svd/':>6}"
-    if against is not None:
+    if args.against:
         head += f"{'before ms':>10}{'before/':>8}{'differ':>11}"
     if args.every:
         head += f"{'every ms':>10}{'every/':>7}{'images':>8}{'differ':>7}"
@@ -771,39 +866,45 @@ def run(args: argparse.Namespace) -> int:
         head += f"{'unheld ms':>10}{'unheld/':>8}{'held':>8}{'differ':>7}"
     if args.numpy:
         head += f"{'numpy ms':>10}{'numpy share':>12}{'ratio':>7}{'same':>7}{'same cl':>8}"
-    print(head)
-    for r in rows:
-        line = (
-            f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
-            f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
-            f"{r['not_1d_share']:>9.0%}{r['paths_retraced_each']:>9.1f}"
+    return head
+
+
+def _row_line(args: argparse.Namespace, run_id, r: dict) -> str:
+    """The table's line of the row ``r`` of :func:`measure`, under :func:`_header`."""
+    line = (
+        f"{r['class']:<12}{r['clusters']:>9}{r['sampled']:>8}{r['mean_ms_numba']:>10.1f}"
+        f"{r['share_numba']:>8.0%}{str(r['subsets_min']) + '-' + str(r['subsets_max']):>13}"
+        f"{r['not_1d_share']:>9.0%}{r['paths_retraced_each']:>9.1f}"
+    )
+    if run_id is not None:
+        line += f"{r['run_paths_retraced_each']:>7.1f}{r['run_s']:>9.1f}{r['run_share']:>10.0%}"
+    line += f"{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}"
+    if args.against:
+        line += (
+            f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
+            f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}"
         )
-        if run_id is not None:
-            line += f"{r['run_paths_retraced_each']:>7.1f}{r['run_s']:>9.1f}{r['run_share']:>10.0%}"
-        line += f"{r['mean_ms_svd']:>9.1f}{r['share_svd']:>10.0%}{r['svd_ratio']:>6.2f}"
-        if against is not None:
-            line += (
-                f"{r['mean_ms_' + AGAINST]:>10.1f}{r['against_ratio']:>8.3f}"
-                f"{str(r['against_attempts_differing']) + '/' + str(r['attempts']):>11}"
-            )
-        if args.every:
-            line += (
-                f"{r['mean_ms_every']:>10.1f}{r['every_ratio']:>7.2f}{r['paths_by_symmetry']:>8}"
-                f"{r['every_paths_differing']:>7}"
-            )
-        if args.unheld:
-            line += (
-                f"{r['mean_ms_unheld']:>10.1f}{r['unheld_ratio']:>8.2f}{r['held']:>8}"
-                f"{r['unheld_clusters_differing']:>7}"
-            )
-        if args.numpy:
-            line += (
-                f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
-                f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}"
-                f"{str(r['same_clusters_reached']) + '/' + str(r['sampled']):>8}"
-            )
-        print(line)
-    print(
+    if args.every:
+        line += (
+            f"{r['mean_ms_every']:>10.1f}{r['every_ratio']:>7.2f}{r['paths_by_symmetry']:>8}"
+            f"{r['every_paths_differing']:>7}"
+        )
+    if args.unheld:
+        line += (
+            f"{r['mean_ms_unheld']:>10.1f}{r['unheld_ratio']:>8.2f}{r['held']:>8}{r['unheld_clusters_differing']:>7}"
+        )
+    if args.numpy:
+        line += (
+            f"{r['mean_ms_numpy']:>10.1f}{r['share_numpy']:>12.0%}{r['ratio']:>7.1f}"
+            f"{str(r['same_endpoints']) + '/' + str(r['sampled']):>7}"
+            f"{str(r['same_clusters_reached']) + '/' + str(r['sampled']):>8}"
+        )
+    return line
+
+
+def _legend(args: argparse.Namespace, run_id) -> str:
+    """The legend under the table: what each column of :func:`_header` holds."""
+    return (
         "(ms each: mean wall time of one expand call; share: of the whole run's time in expand, the mean "
         "times the class's clusters; retraced: paths taken from the other end, per cluster"
         + (
@@ -817,7 +918,7 @@ def run(args: argparse.Namespace) -> int:
         + (
             "; before: the kernels of --against, before/ = before / ms each, differ: attempts not the same "
             "to the last bit, of all"
-            if against is not None
+            if args.against
             else ""
         )
         + (
@@ -841,15 +942,6 @@ def run(args: argparse.Namespace) -> int:
         )
         + ")"
     )
-    if args.parts:
-        _print_parts(rows, result["floors"])
-    differ = sum(r["svd_paths_differing"] for r in rows)
-    if differ:
-        print(
-            f"{differ} path(s) of the sample ended otherwise with the svd variant (same subsets and directions; "
-            "their tangents agree only to rounding)"
-        )
-    return 0
 
 
 def _print_parts(rows: list[dict], floor: dict) -> None:

@@ -234,65 +234,18 @@ def inspect(url: str, n: int) -> dict:
 
 
 def run(args) -> int:
+    """The soak of every backend of ``--backends``: its table, or with ``--json`` one JSON object; 0 if every run
+    ended well with the undisturbed run's clusters and nothing failed, left leased or pending, or duplicated."""
     unknown = sorted({k.strip() for k in args.faults.split(",")} - {"workers", "coordinator", ""})
     if unknown:
         raise SystemExit(f"soak: unknown kind of faults {', '.join(unknown)} (workers, coordinator)")
     rng = random.Random(args.seed)
     os.environ["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] = str(args.allowed_failures)
-    rows, ok = [], True
+    rows = []
     for backend in args.backends.split(","):
-        with fresh_database(backend) as url:
-            t = time.perf_counter()
-            status, line = undisturbed(args.n, url, args.workers)
-            base_s = time.perf_counter() - t
-            reference = inspect(url, args.n)
-        expected = reference["certificates"]
-        rows.append(
-            {
-                "backend": backend,
-                "faults": "none",
-                "injected": 0,
-                "exit": status,
-                **reference,
-                "seconds": round(base_s, 1),
-                "time_ratio": 1.0,
-                "stopped": line if status else "",
-            }
-        )
-        injections = {
-            "workers": ("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
-            "coordinator": (
-                "coordinator killed",
-                lambda u: kill_coordinator(args.n, u, args.workers, rng, len(expected)),
-            ),
-        }
-        kinds = [injections[k.strip()] for k in args.faults.split(",") if k.strip()]  # checked above
-        for name, inject in [k for k in kinds for _ in range(args.repeat)]:
-            with fresh_database(backend) as url:
-                t = time.perf_counter()
-                injected, status, line = inject(url)
-                seconds = time.perf_counter() - t
-                seen = inspect(url, args.n)
-            rows.append(
-                {
-                    "backend": backend,
-                    "faults": name,
-                    "injected": injected,
-                    "exit": status,
-                    **seen,
-                    "seconds": round(seconds, 1),
-                    "time_ratio": round(seconds / base_s, 2),
-                    "stopped": line if status else "",
-                }
-            )
-    for r in rows:
-        r["expected"], r["seen"] = len(expected), len(r["certificates"])
-        r["same_clusters"] = r.pop("certificates") == expected
-        ok &= (
-            r["exit"] == 0
-            and r["same_clusters"]
-            and not (r["failed"] or r["leased"] or r["pending"] or r["duplicates"])
-        )
+        runs, expected = _backend_runs(args, backend, rng)
+        rows.extend(runs)
+    ok = _check(rows, expected)  # the last backend's undisturbed run is the reference of all
     early = {}  #: (backend, faults): [runs that stopped early, runs]
     for r in rows:
         e = early.setdefault(f"{r['backend']}, {r['faults']}", [0, 0])
@@ -301,30 +254,92 @@ def run(args) -> int:
     if args.json:
         print(json.dumps({"n": args.n, "seed": args.seed, "rows": rows, "early_stops": early}))
     else:
-        cols = [
-            "backend",
-            "faults",
-            "injected",
-            "exit",
-            "expected",
-            "seen",
-            "same_clusters",
-            "pending",
-            "failed",
-            "leased",
-            "duplicates",
-            "retries",
-            "isolated_failures",
-            "seconds",
-            "time_ratio",
-        ]
-        print(f"soak, n = {args.n}, {args.workers} workers, seed {args.seed}, allowed-failures {args.allowed_failures}")
-        width = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in cols}
-        print("  ".join(c.rjust(width[c]) for c in cols))
-        for r in rows:
-            print("  ".join(str(r[c]).rjust(width[c]) for c in cols))
-        print("stopped early: " + "; ".join(f"{k} {e} of {t}" for k, (e, t) in early.items()))
-        for r in rows:  # why a run that did not end well stopped: its last line on standard error
-            if r["stopped"]:
-                print(f"{r['backend']}, {r['faults']}: exit {r['exit']}: {r['stopped']}")
+        _print_table(args, rows, early)
     return 0 if ok else 1
+
+
+def _row(backend: str, faults: str, injected: int, status: int, line: str, seen: dict, seconds: float, ratio) -> dict:
+    """One run's row: what it injected, how it ended and what its database holds (:func:`inspect`)."""
+    return {
+        "backend": backend,
+        "faults": faults,
+        "injected": injected,
+        "exit": status,
+        **seen,
+        "seconds": round(seconds, 1),
+        "time_ratio": ratio,
+        "stopped": line if status else "",
+    }
+
+
+def _backend_runs(args, backend: str, rng: random.Random) -> tuple[list[dict], list]:
+    """The runs on ``backend``, each on a fresh database: the undisturbed one, then each kind of faults of
+    ``--faults`` ``--repeat`` times; their rows, and the undisturbed run's certificates."""
+    with fresh_database(backend) as url:
+        t = time.perf_counter()
+        status, line = undisturbed(args.n, url, args.workers)
+        base_s = time.perf_counter() - t
+        reference = inspect(url, args.n)
+    expected = reference["certificates"]
+    rows = [_row(backend, "none", 0, status, line, reference, base_s, 1.0)]
+    injections = {
+        "workers": ("workers killed", lambda u: kill_workers(args.n, u, args.workers, rng)),
+        "coordinator": (
+            "coordinator killed",
+            lambda u: kill_coordinator(args.n, u, args.workers, rng, len(expected)),
+        ),
+    }
+    kinds = [injections[k.strip()] for k in args.faults.split(",") if k.strip()]  # checked by run
+    for name, inject in [k for k in kinds for _ in range(args.repeat)]:
+        with fresh_database(backend) as url:
+            t = time.perf_counter()
+            injected, status, line = inject(url)
+            seconds = time.perf_counter() - t
+            seen = inspect(url, args.n)
+        rows.append(_row(backend, name, injected, status, line, seen, seconds, round(seconds / base_s, 2)))
+    return rows, expected
+
+
+def _check(rows: list[dict], expected: list) -> bool:
+    """Give each row the clusters ``expected`` and seen, and whether they are the same (its certificates
+    dropped); whether every run ended well with them and nothing failed, left leased or pending, or duplicated."""
+    ok = True
+    for r in rows:
+        r["expected"], r["seen"] = len(expected), len(r["certificates"])
+        r["same_clusters"] = r.pop("certificates") == expected
+        ok &= (
+            r["exit"] == 0
+            and r["same_clusters"]
+            and not (r["failed"] or r["leased"] or r["pending"] or r["duplicates"])
+        )
+    return ok
+
+
+def _print_table(args, rows: list[dict], early: dict) -> None:
+    """The text of :func:`run`: a line per run, the runs that stopped early of each kind, and why each stopped."""
+    cols = [
+        "backend",
+        "faults",
+        "injected",
+        "exit",
+        "expected",
+        "seen",
+        "same_clusters",
+        "pending",
+        "failed",
+        "leased",
+        "duplicates",
+        "retries",
+        "isolated_failures",
+        "seconds",
+        "time_ratio",
+    ]
+    print(f"soak, n = {args.n}, {args.workers} workers, seed {args.seed}, allowed-failures {args.allowed_failures}")
+    width = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in cols}
+    print("  ".join(c.rjust(width[c]) for c in cols))
+    for r in rows:
+        print("  ".join(str(r[c]).rjust(width[c]) for c in cols))
+    print("stopped early: " + "; ".join(f"{k} {e} of {t}" for k, (e, t) in early.items()))
+    for r in rows:  # why a run that did not end well stopped: its last line on standard error
+        if r["stopped"]:
+            print(f"{r['backend']}, {r['faults']}: exit {r['exit']}: {r['stopped']}")
