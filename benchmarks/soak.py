@@ -241,11 +241,11 @@ def run(args) -> int:
         raise SystemExit(f"soak: unknown kind of faults {', '.join(unknown)} (workers, coordinator)")
     rng = random.Random(args.seed)
     os.environ["DASK_DISTRIBUTED__SCHEDULER__ALLOWED_FAILURES"] = str(args.allowed_failures)
-    rows = []
+    rows, ok = [], True
     for backend in args.backends.split(","):
         runs, expected = _backend_runs(args, backend, rng)
+        ok &= _check(runs, expected)  # each backend's runs against its own undisturbed run
         rows.extend(runs)
-    ok = _check(rows, expected)  # the last backend's undisturbed run is the reference of all
     early = {}  #: (backend, faults): [runs that stopped early, runs]
     for r in rows:
         e = early.setdefault(f"{r['backend']}, {r['faults']}", [0, 0])

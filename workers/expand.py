@@ -345,6 +345,10 @@ def _attempts(
     and so does the curve B less q leaves, which is therefore B's whole set near x.  Along it q keeps its
     length exactly: B's path is the path of B less q, which is followed, and following it again only
     asks rounding whether q opens (docs/method.md).
+
+    It is one generator, longer than 80 lines, on purpose: the frames and stress bases it caches, the orbits,
+    the arrivals and the held subsets are state that every subset's decision reads and adds to, in the loop
+    every expansion runs; split into functions, that state would be passed through every call.
     """
     n, m = cluster.n, cluster.m
     all_edges, pairs = cluster.edges(), cluster.contacts
