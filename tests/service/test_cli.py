@@ -1,6 +1,7 @@
 """The packings command line, run as a user runs it."""
 
 import json
+import signal
 import subprocess
 import sys
 
@@ -96,7 +97,13 @@ def test_a_signal_that_lands_in_a_finalizer_still_stops_the_command(where):
         ("SIGINT", 130, "packings: interrupted; run the same command to resume"),
     ):
         r = subprocess.run(
-            [sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name, where], capture_output=True, text=True, timeout=60
+            [sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name, where],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            # Ctrl-C's default, as at a terminal: a suite started in the background by a shell without job
+            # control hands its processes SIGINT ignored, which Python then leaves ignored
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
         assert r.returncode == status, (name, r.stdout, r.stderr)
         assert "ran to its end" not in r.stdout
