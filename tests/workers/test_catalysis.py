@@ -422,35 +422,11 @@ def test_moving_spheres_of_a_relabelled_rotated_reflected_cluster_finds_the_same
     assert found(c) == found(other)
 
 
-def _moved_one_by_one(cluster: Cluster, seen: Seen) -> list[Moved]:
-    """moved_remainders as it was before the floppy remainders were certified together: each glued cluster's
-    spheres in turn, the remainder built and decided by :func:`remainder` from nothing it inherits."""
-    out, sides = [], {}
-    for tri, parent in glued(cluster, P):
-        side = sides[tri] = sides.get(tri, -1) + 1
-        degree = np.bincount(parent.edges().ravel(), minlength=parent.n)
-        for s in range(cluster.n):
-            left = degree.copy()
-            left[[j for i, j in parent.contacts if i == s] + [i for i, j in parent.contacts if j == s]] -= 1
-            left[s] = 3
-            if left.min() < 3:
-                continue
-            rest = [i for i in range(parent.n) if i != s]
-            if not seen.add_parts(
-                graph_certificate(sub_cluster(parent, rest)),
-                np.sort(pair_distances(parent.coords)[_without(parent.n, s)]),
-            ):
-                out.append(Moved(s, tri, side, None))
-                continue
-            out.append(Moved(s, tri, side, remainder(parent, (s,), P)))
-    return out
-
-
-def _decided_alone(cluster: Cluster) -> list[tuple]:
-    """Every remainder moving a sphere of ``cluster`` gives where each sphere keeps three contacts, built and
-    decided by :func:`remainder` from nothing it inherits and with no record of those seen: (sphere, triangle,
-    side, glued cluster, remainder) each, in moved_remainders' order."""
-    out, sides = [], {}
+def _movable(cluster: Cluster):
+    """(sphere, triangle, side, glued cluster) of every sphere of ``cluster`` moved onto a contact triangle
+    whose removal leaves every sphere three contacts, in moved_remainders' order, worked out from nothing
+    moved_remainders computes."""
+    sides = {}
     for tri, parent in glued(cluster, P):
         side = sides[tri] = sides.get(tri, -1) + 1
         degree = np.bincount(parent.edges().ravel(), minlength=parent.n)
@@ -459,8 +435,30 @@ def _decided_alone(cluster: Cluster) -> list[tuple]:
             left[[j for i, j in parent.contacts if i == s] + [i for i, j in parent.contacts if j == s]] -= 1
             left[s] = 3
             if left.min() >= 3:
-                out.append((s, tri, side, parent, remainder(parent, (s,), P)))
+                yield s, tri, side, parent
+
+
+def _moved_one_by_one(cluster: Cluster, seen: Seen) -> list[Moved]:
+    """moved_remainders as it was before the floppy remainders were certified together: each glued cluster's
+    spheres in turn, the remainder built and decided by :func:`remainder` from nothing it inherits."""
+    out = []
+    for s, tri, side, parent in _movable(cluster):
+        rest = [i for i in range(parent.n) if i != s]
+        if not seen.add_parts(
+            graph_certificate(sub_cluster(parent, rest)),
+            np.sort(pair_distances(parent.coords)[_without(parent.n, s)]),
+        ):
+            out.append(Moved(s, tri, side, None))
+            continue
+        out.append(Moved(s, tri, side, remainder(parent, (s,), P)))
     return out
+
+
+def _decided_alone(cluster: Cluster) -> list[tuple]:
+    """Every remainder moving a sphere of ``cluster`` gives where each sphere keeps three contacts, built and
+    decided by :func:`remainder` from nothing it inherits and with no record of those seen: (sphere, triangle,
+    side, glued cluster, remainder) each, in moved_remainders' order."""
+    return [(s, tri, side, parent, remainder(parent, (s,), P)) for s, tri, side, parent in _movable(cluster)]
 
 
 def _fields(r) -> tuple:
