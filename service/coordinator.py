@@ -15,7 +15,7 @@ Failures are of two kinds:
 * an expansion that fails (``expand`` or its write-back raised) is put back to
   pending and retried, at most ``max_attempts`` times in all, then marked
   failed with its error's traceback;
-* a task lost to the infrastructure (its worker died, :data:`INFRASTRUCTURE`,
+* a task lost to the infrastructure (its worker died, :func:`packings.service.driver.infrastructure`,
   or the scheduler forgot it) says nothing about its expansions: they go back
   to pending without using up an attempt (``expansions.retries``), and from
   then on each is sent alone in a task of its own.  Only a task lost again

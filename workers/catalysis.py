@@ -346,15 +346,16 @@ def moved_remainders(cluster: Cluster, params: Params, seen: Seen) -> Iterator[M
         adjacent = np.zeros((n, n), dtype=bool)
         adjacent[edges[:, 0], edges[:, 1]] = True
         adjacent[edges[:, 1], edges[:, 0]] = True
+        degree = adjacent.sum(axis=1)
         # row s: every sphere's contacts once s is deleted (s itself counted as enough)
-        left = adjacent.sum(axis=1) - adjacent[: cluster.n]
+        left = degree - adjacent[: cluster.n]
         left[np.arange(cluster.n), np.arange(cluster.n)] = 3
         movable = np.flatnonzero(left.min(axis=1) >= 3)  # the others are not rigid (remainder, step 2)
         if not movable.size:
             continue
         d = pair_distances(parent.coords)
         # a remainder with as many contacts as free coordinates or more has no flex the kernels could certify
-        fewer = movable[parent.m - adjacent[movable].sum(axis=1) < 3 * (n - 1) - 6]
+        fewer = movable[parent.m - degree[movable] < 3 * (n - 1) - 6]
         floppy = _floppy(parent, edges, adjacent, d, params, fewer.tolist()) if measured and fewer.size else {}
         rest = np.array([s for s in movable.tolist() if s not in floppy], dtype=np.int64)
         fresh = dict(zip(rest.tolist(), _add_to_seen(seen, parent, d, rest))) if rest.size else {}
