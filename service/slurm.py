@@ -41,6 +41,10 @@ JOB_NAME = "packings-worker"  #: the jobs' name in squeue (``#SBATCH -J``)
 #: Shorter than Dask's own ``distributed.deploy.lost-worker-timeout`` (15 s), after which SLURMCluster
 #: forgets the job itself.
 JOB_GONE_SECONDS = 10.0
+#: the states of a job that has ended (squeue's %T); a job Slurm no longer knows has ended too
+ENDED = frozenset(
+    {"BOOT_FAIL", "CANCELLED", "COMPLETED", "DEADLINE", "FAILED", "NODE_FAIL", "OUT_OF_MEMORY", "PREEMPTED", "TIMEOUT"}
+)
 WALLTIME = re.compile(r"^(\d+-)?\d+(:\d+){0,2}$")  #: Slurm's time formats: M, M:S, H:M:S, D-H, D-H:M, D-H:M:S
 
 
@@ -152,23 +156,47 @@ def _test_submission(script: str) -> None:
         raise SchedulerError(f"Slurm refuses the worker jobs: {why.removeprefix('sbatch: error: ')}")
 
 
+def slurm_states(job_ids: list[str]) -> dict[str, str] | None:
+    """The state (squeue's %T: PENDING, RUNNING, CANCELLED, ...) of each of ``job_ids`` that Slurm still
+    holds, those it has forgotten left out; None if squeue does not answer."""
+    try:
+        r = subprocess.run(
+            ["squeue", "-h", "-t", "all", "-j", ",".join(job_ids), "-o", "%i %T"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    if r.returncode != 0:  # every id unknown is an error of squeue's: all forgotten
+        return {} if "Invalid job id" in r.stderr else None
+    return dict(line.split()[:2] for line in r.stdout.splitlines() if len(line.split()) >= 2)
+
+
 class JobKeeper:
-    """Keeps a ``SLURMCluster``'s jobs: a job whose workers had joined and have all been gone for
-    :data:`JOB_GONE_SECONDS` (cancelled, past its walltime, its node lost) is cancelled if Slurm still
-    holds it and replaced by a new one.  A job still waiting in the queue is left to wait.
+    """Keeps a ``SLURMCluster``'s jobs: a job is replaced by a new one once it is lost, that is once
+
+    - its workers had joined and have all been gone for :data:`JOB_GONE_SECONDS` (cancelled, past its
+      walltime, its node lost); it is cancelled too, should Slurm still hold it; or
+    - its workers never joined and Slurm says it has ended (cancelled or failed before they started) or
+      no longer knows it, asked every :data:`JOB_GONE_SECONDS` while such a job remains.
+
+    A job still waiting in the queue, or starting, is left to wait.
 
     Dask-jobqueue does not do this itself: its cluster forgets a lost job only if the job had one worker
     process (it looks the worker's name up among its jobs', and a job of several is named apart from
     its workers), and submits another only when asked to scale again."""
 
-    def __init__(self, cluster, jobs: int):
+    def __init__(self, cluster, jobs: int, states=None):
         self.cluster, self.jobs = cluster, jobs
+        self.states = states or slurm_states  #: job ids -> {job id: state} of those Slurm holds, or None
         self.joined: set[str] = set()  #: jobs whose workers have joined
         self.gone_since: dict[str, float] = {}  #: job -> when it was first seen without a worker
+        self.asked = -float("inf")  #: when Slurm was last asked about the jobs not joined
 
     def __call__(self) -> int:
         """Replace the jobs lost (in the cluster's event loop); returns how many."""
-        return self.cluster.sync(self._replace_lost)
+        return self.cluster.sync(self._replace_lost, self._ended_before_joining())
 
     @staticmethod
     def _jobs_worker(job: str, worker: str) -> bool:
@@ -176,7 +204,25 @@ class JobKeeper:
         ``job-i`` when it runs several."""
         return worker == job or worker.startswith(job + "-") and worker[len(job) + 1 :].isdigit()
 
-    async def _replace_lost(self) -> int:
+    def _ended_before_joining(self) -> set[str]:
+        """The jobs (by name) whose workers have not joined and that Slurm says have ended, asked at most
+        every :data:`JOB_GONE_SECONDS` (in the caller's thread: squeue is not run in the event loop)."""
+        now = time.monotonic()
+        waiting = {
+            name: getattr(self.cluster.workers.get(name), "job_id", None)
+            for name in list(self.cluster.worker_spec)
+            if name not in self.joined
+        }
+        waiting = {name: job for name, job in waiting.items() if job}
+        if not waiting or now - self.asked < JOB_GONE_SECONDS:
+            return set()
+        self.asked = now
+        held = self.states(sorted(set(waiting.values())))
+        if held is None:  # Slurm did not answer: ask again next time
+            return set()
+        return {name for name, job in waiting.items() if job not in held or held[job] in ENDED}
+
+    async def _replace_lost(self, ended: set[str] = frozenset()) -> int:
         now = time.monotonic()
         present = [str(ws.name) for ws in self.cluster.scheduler.workers.values()]
         lost = []
@@ -185,6 +231,8 @@ class JobKeeper:
                 self.joined.add(name)
                 self.gone_since.pop(name, None)
             elif name in self.joined and now - self.gone_since.setdefault(name, now) >= JOB_GONE_SECONDS:
+                lost.append(name)
+            elif name not in self.joined and name in ended:
                 lost.append(name)
         for name in lost:
             self.cluster.worker_spec.pop(name, None)

@@ -270,10 +270,12 @@ def wait_for(
     timeout: float = 300.0,
     interval: float = 0.05,
     what: str = "",
+    explain: Callable[[], str] | None = None,
 ) -> Any:
     """Poll ``predicate`` until it gives something true, and return that; fail once ``timeout`` seconds
     have passed.  With ``proc``, also fail at once if that process ends first (what is waited for will
-    not come)."""
+    not come); on a timeout ``proc`` is stopped and what it wrote to stderr is in the failure, with
+    ``explain()`` (the state of what was waited on) if given."""
     deadline = time.monotonic() + timeout
     while True:
         value = predicate()
@@ -283,8 +285,22 @@ def wait_for(
             err = proc.stderr.read() if proc.stderr else ""
             pytest.fail(f"the process ended (status {proc.returncode}) before {what or 'the wait ended'}: {err}")
         if time.monotonic() > deadline:
-            pytest.fail(f"not within {timeout} s: {what or predicate}")
+            state = f"; {explain()}" if explain is not None else ""
+            pytest.fail(f"not within {timeout} s: {what or predicate}{state}{_stopped(proc)}")
         time.sleep(interval)
+
+
+def _stopped(proc: subprocess.Popen | None) -> str:
+    """Stop ``proc`` (SIGTERM, then SIGKILL) and return what it wrote to stderr, for a failure's message."""
+    if proc is None:
+        return ""
+    proc.terminate()
+    try:
+        _, err = proc.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        _, err = proc.communicate()
+    return f"; the process's stderr:\n{err}" if err else ""
 
 
 def fetch(url: str, timeout: float = 10.0) -> tuple[int, str]:

@@ -8,7 +8,9 @@ CI is set they fail instead.  The options' checks need neither.
 
 from __future__ import annotations
 
+import asyncio
 import json
+import logging
 import os
 import re
 import shutil
@@ -16,13 +18,15 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from sqlalchemy import select, text
 
+from packings.service import slurm as slurm_module
 from packings.service.db import make_engine, sessions
 from packings.service.models import DONE, ExpansionRow
-from packings.service.slurm import JOB_NAME
+from packings.service.slurm import JOB_GONE_SECONDS, JOB_NAME, JobKeeper
 from tests.helpers import SURFACE_KILLS, done_count, wait_for
 from tests.helpers import packings as cli
 
@@ -53,21 +57,31 @@ def _slurm_problem() -> str | None:
     return "Slurm's controller does not answer (scontrol ping): run tests/slurm/start-slurm.sh as root"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def slurm():
-    """A Slurm to submit to, with none of packings' worker jobs in it."""
+    """A Slurm to submit to, with none of packings' worker jobs in it, before the test and after it (a
+    failed test's jobs are cancelled, so that they do not hold the node's cores for the next one)."""
     problem = _slurm_problem()
     if problem:
         if os.environ.get("CI"):
             pytest.fail(f"CI needs Slurm for these tests: {problem}")
         pytest.skip(problem)
-    wait_for(
-        lambda: not _our_jobs(),
-        None,
-        timeout=120,
-        interval=0.2,
-        what="packings' worker jobs of an earlier run to leave Slurm",
-    )
+    _no_jobs_of_ours("packings' worker jobs of an earlier run to leave Slurm")
+    yield
+    _no_jobs_of_ours("packings' worker jobs of the test to leave Slurm")
+
+
+def _no_jobs_of_ours(what: str) -> None:
+    """Cancel packings' worker jobs, if any, and wait until Slurm holds none."""
+    if _our_jobs():
+        subprocess.run(["scancel", "-n", JOB_NAME], capture_output=True, timeout=30)
+    wait_for(lambda: not _our_jobs(), None, timeout=120, interval=0.2, what=what, explain=_queue)
+
+
+def _queue() -> str:
+    """Slurm's queue, every job and state, for a failure's message."""
+    r = subprocess.run(["squeue", "-a", "-t", "all", "-o", "%i %j %T %r %M"], capture_output=True, text=True)
+    return "squeue: " + " | ".join(r.stdout.strip().splitlines())
 
 
 def _our_jobs() -> dict[str, str]:
@@ -187,6 +201,92 @@ def test_a_partition_slurm_does_not_have_is_one_line(slurm, pg_url, tmp_path):
     assert not _our_jobs()
 
 
+# --------------------------------------------------------------------------- the job keeper, on its own
+
+
+class _Job:
+    def __init__(self, job_id):
+        self.job_id, self.closed = job_id, False
+
+    async def close(self):
+        self.closed = True
+
+
+class _Cluster:
+    """What :class:`JobKeeper` reads of a SLURMCluster: its jobs (spec and started), the scheduler's
+    workers by name, ``sync`` and ``scale``."""
+
+    def __init__(self, jobs: dict[str, str]):
+        self.worker_spec = {name: {} for name in jobs}
+        self.workers = {name: _Job(job_id) for name, job_id in jobs.items()}
+        self.scheduler = SimpleNamespace(workers={})
+        self.scaled: list[int] = []
+
+    def sync(self, f, *args):
+        return asyncio.run(f(*args))
+
+    def scale(self, jobs):
+        self.scaled.append(jobs)
+
+    def join(self, *names):
+        self.scheduler.workers = {f"tcp://{w}": SimpleNamespace(name=w) for w in names}
+
+
+def test_the_keeper_replaces_a_job_that_ended_before_its_workers_joined(monkeypatch, caplog):
+    """A job cancelled (or failed) before its worker joined is replaced once Slurm says it has ended or
+    forgets it; jobs pending or running whose workers have not joined are left to wait, and so is every
+    job while squeue does not answer.  Slurm is asked at most every JOB_GONE_SECONDS."""
+    clock = [1000.0]
+    monkeypatch.setattr(slurm_module.time, "monotonic", lambda: clock[0])
+    states = {"11": "CANCELLED", "12": "RUNNING", "13": "PENDING"}
+    asked: list[list[str]] = []
+
+    def squeue(ids):
+        asked.append(ids)
+        return None if states is None else {k: v for k, v in states.items() if k in ids}
+
+    cluster = _Cluster({"a": "11", "b": "12", "c": "13", "d": "14"})  # 14: forgotten by Slurm
+    keeper = JobKeeper(cluster, 4, states=squeue)
+    with caplog.at_level(logging.WARNING, logger="packings"):
+        assert keeper() == 2
+    assert asked == [["11", "12", "13", "14"]]
+    assert set(cluster.worker_spec) == {"b", "c"} and cluster.scaled == [4]
+    assert "Slurm job 11 (a) has lost its workers: submitting another in its place" in caplog.text
+    assert "Slurm job 14 (d) has lost its workers" in caplog.text
+    states["12"] = "FAILED"
+    assert keeper() == 0 and len(asked) == 1  # not asked again before JOB_GONE_SECONDS
+    clock[0] += JOB_GONE_SECONDS
+    states = None  # squeue does not answer: nothing is replaced
+    assert keeper() == 0 and set(cluster.worker_spec) == {"b", "c"}
+    clock[0] += JOB_GONE_SECONDS
+    states = {"12": "FAILED", "13": "RUNNING"}
+    assert keeper() == 1 and set(cluster.worker_spec) == {"c"} and cluster.scaled == [4, 4]
+
+
+def test_the_keeper_replaces_a_job_whose_workers_left(monkeypatch):
+    """A job whose workers had joined is replaced (and cancelled) once none of them has been there for
+    JOB_GONE_SECONDS, Slurm not asked once every job's workers have joined; a worker back in time keeps
+    its job."""
+    clock = [0.0]
+    monkeypatch.setattr(slurm_module.time, "monotonic", lambda: clock[0])
+    cluster = _Cluster({"a": "21", "b": "22"})
+    asked: list[list[str]] = []
+    keeper = JobKeeper(cluster, 2, states=lambda ids: asked.append(ids) or {i: "RUNNING" for i in ids})
+    cluster.join("a-0", "a-1", "b")  # a runs two worker processes
+    assert keeper() == 0 and keeper.joined == {"a", "b"}
+    cluster.join("b")
+    assert keeper() == 0
+    clock[0] += JOB_GONE_SECONDS / 2
+    cluster.join("a-1", "b")  # one of a's processes back: a is kept
+    assert keeper() == 0
+    cluster.join("b")
+    assert keeper() == 0
+    clock[0] += JOB_GONE_SECONDS
+    job_a = cluster.workers["a"]
+    assert keeper() == 1 and set(cluster.worker_spec) == {"b"} and job_a.closed and cluster.scaled == [2]
+    assert asked == [["21", "22"]]  # at the first look only, before any worker had been seen
+
+
 # --------------------------------------------------------------------------- runs on Slurm
 
 
@@ -243,29 +343,43 @@ def test_a_cancelled_job_loses_nothing_and_is_replaced(slurm, pg_url, paper_coun
         first = wait_for(
             lambda: len(_running()) == 2 and _running(), proc, timeout=DEADLINE, interval=0.2, what="two running jobs"
         )
+        wait_for(
+            lambda: set(_workers_of_jobs(tmp_path).values()) >= first,
+            proc,
+            timeout=DEADLINE,
+            interval=0.2,
+            what="both jobs' workers started",
+        )
         wait_for(lambda: done_count(pg_url) >= 20, proc, timeout=DEADLINE, interval=0.2, what="20 expansions done")
         victim, other = sorted(first)
-        # the run held (the expansions table locked) until the replacement is submitted: on a quiet machine
-        # the other job would otherwise finish the run before the lost one's 10 s are up
+        # the run held (the expansions table locked) until the replacement's worker has joined: on a quiet
+        # machine the other job would otherwise finish the run before the lost one's 10 s are up, or before
+        # the replacement's worker starts
         engine = make_engine(pg_url)
         try:
             with engine.connect() as conn:  # a transaction, holding the lock until it is rolled back
                 conn.execute(text("LOCK TABLE expansions IN ACCESS EXCLUSIVE MODE"))
+                done_before = conn.execute(text("SELECT count(*) FROM expansions WHERE status = 'done'")).scalar()
                 subprocess.run(["scancel", victim], check=True)
                 replacement = wait_for(
-                    lambda: set(_running()) - first, proc, timeout=120, interval=0.2, what="replacement job"
+                    lambda: set(_running()) - first,
+                    proc,
+                    timeout=120,
+                    interval=0.2,
+                    what="replacement job",
+                    explain=_queue,
                 ).pop()
+                wait_for(
+                    lambda: replacement in set(_workers_of_jobs(tmp_path).values()),
+                    proc,
+                    timeout=120,
+                    interval=0.2,
+                    what="replacement's worker",
+                    explain=_queue,
+                )
                 conn.rollback()
         finally:
             engine.dispose()
-        wait_for(
-            lambda: replacement in set(_workers_of_jobs(tmp_path).values()),
-            proc,
-            timeout=120,
-            interval=0.2,
-            what="replacement's worker",
-        )
-        done_before = done_count(pg_url)
         subprocess.run(["scancel", other], check=True)
         out, err = proc.communicate(timeout=DEADLINE)
     finally:
@@ -327,9 +441,10 @@ def test_a_job_past_its_walltime_is_replaced(slurm, pg_url, paper_counts, tmp_pa
                 timeout=180,
                 interval=0.2,
                 what="end of the first job at its walltime",
+                explain=_queue,
             )
             replacement = wait_for(
-                lambda: _running() - {first}, proc, timeout=120, interval=0.2, what="replacement job"
+                lambda: _running() - {first}, proc, timeout=120, interval=0.2, what="replacement job", explain=_queue
             ).pop()
             conn.rollback()
         out, err = proc.communicate(timeout=DEADLINE)
