@@ -9,7 +9,9 @@ Conventions:
 * Coordinates are stored once, as the raw little-endian float64 bytes of the
   n x 3 array (``coords``), so they read back bit-exactly (``packings export``
   and the Python API give them as numbers).
-* Contact lists are JSON text: ``[[i, j], ...]`` with ``i < j``, sorted.
+* Contact lists are stored as bytes, two a contact (``i``, ``j`` as unsigned bytes, ``i < j``, sorted:
+  ``clusters.contact_pairs``, revision 0011) and given to Python as the JSON text ``[[i, j], ...]``
+  (:class:`ContactPairs`).
 * The attempts of an expansion are one row of ``attempts``, packed
   (:mod:`packings.service.paths_codec`); ``edges`` holds the clusters each
   expansion reached, so that paths are counted and followed back in SQL.
@@ -23,6 +25,7 @@ Conventions:
 from __future__ import annotations
 
 import datetime as dt
+import functools
 import json
 import threading
 
@@ -37,6 +40,7 @@ from sqlalchemy import (
     LargeBinary,
     String,
     Text,
+    TypeDecorator,
     UniqueConstraint,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, query_expression
@@ -95,6 +99,34 @@ class Run(Base):
     __table_args__ = (UniqueConstraint("n", "params", name="uq_runs_n_params"),)
 
 
+def pack_pairs(pairs) -> bytes:
+    """The contact pairs ``[[i, j], ...]`` (sphere numbers 0..255) as bytes, two a pair."""
+    return bytes(int(k) for pair in pairs for k in pair)
+
+
+@functools.lru_cache(maxsize=65536)
+def pairs_json(packed: bytes) -> str:
+    """The JSON text ``[[i, j], ...]`` of packed pairs, exactly as ``json.dumps`` writes it."""
+    return "[" + ", ".join(f"[{packed[k]}, {packed[k + 1]}]" for k in range(0, len(packed), 2)) + "]"
+
+
+class ContactPairs(TypeDecorator):
+    """A cluster's contact list, stored as bytes (:func:`pack_pairs`: about a quarter of its JSON text)
+    and given to Python as the JSON text ``[[i, j], ...]`` that the service compares and keeps
+    (:func:`packings.service.store.contacts_json`); it takes that text, or the pairs themselves."""
+
+    impl = LargeBinary
+    cache_ok = True
+
+    def process_bind_param(self, value, dialect):
+        if value is None:
+            return None
+        return pack_pairs(json.loads(value) if isinstance(value, str) else value)
+
+    def process_result_value(self, value, dialect):
+        return None if value is None else pairs_json(bytes(value))
+
+
 class ClusterRow(Base):
     """A distinct rigid cluster, shared by every run with the same n."""
 
@@ -106,7 +138,8 @@ class ClusterRow(Base):
     certificate: Mapped[str] = mapped_column(String(200))  #: packings.workers.identity.certificate_key
     embedding: Mapped[int] = mapped_column(Integer)  #: 0, 1, ... among clusters with this certificate, by shape
     coords: Mapped[bytes] = mapped_column(LargeBinary)  #: n x 3 float64, little-endian
-    contact_list: Mapped[str] = mapped_column(Text)  #: JSON [[i, j], ...]
+    #: the contacts: column ``contact_pairs`` (two bytes a contact), read and written as JSON ``[[i, j], ...]``
+    contact_list: Mapped[str] = mapped_column("contact_pairs", ContactPairs, key="contact_list")
     rigid_kind: Mapped[str] = mapped_column(String(32))  #: packings.workers.rigidity kind (first-order / prestress)
     rigid_method: Mapped[str] = mapped_column(String(32))  #: which test decided
     margin: Mapped[float | None] = mapped_column(Float, nullable=True)

@@ -663,12 +663,12 @@ def record_expansions(Session_: sessionmaker, finished: list[Finished], worker: 
 
 def _outcomes_json(ex: CoreExpansion) -> str:
     """expansions.outcomes of an expansion: its attempts by outcome, and its widened, symmetric and
-    retraced paths."""
+    retraced paths; a count of none is left out, as an outcome no attempt had is (readers take it as 0)."""
     outcomes = dict(sorted(ex.outcomes().items()))
     outcomes["widened_paths"] = ex.widened_paths
     outcomes["paths_by_symmetry"] = ex.paths_by_symmetry
     outcomes["paths_retraced"] = ex.paths_retraced
-    return json.dumps(outcomes)
+    return json.dumps({k: v for k, v in outcomes.items() if v})
 
 
 def _mark_done(s: Connection, prepared: list[tuple], worker: str) -> list[tuple]:

@@ -284,8 +284,10 @@ def _copy_as_0002(source, target) -> None:
     with source.connect() as src, target.begin() as dst:
         for name in ("runs", "clusters", "expansions"):
             table = old.tables[name]
+            # the contacts as JSON text (as contact_pairs reads), as revisions before 0011 hold them
+            renamed = {"contact_pairs": "contact_list"}
             rows = [
-                {k: v for k, v in r.items() if k in table.c}
+                {renamed.get(k, k): v for k, v in r.items() if renamed.get(k, k) in table.c}
                 for r in src.execute(Base.metadata.tables[name].select()).mappings()
             ]
             if name == "clusters":  # the coordinates as JSON too, as revisions before 0009 hold them
@@ -388,7 +390,7 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
     trip over): the same rows after, and the schema is head again."""
     fill_database(engine, 8)
     before = _table_counts(engine)
-    revisions = ["0010", "0009", "0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
+    revisions = ["0011", "0010", "0009", "0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
     for revision in revisions[1:]:
         migrate(engine, revision, down=True)
         assert current_revision(engine) == revision
@@ -493,6 +495,35 @@ def test_revision_0009_drops_the_json_coordinates_and_the_downgrade_writes_them_
     assert not {c["name"]: c for c in inspect(engine).get_columns("clusters")}["coords_json"]["nullable"]
     migrate(engine, "head")
     assert "coords_json" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
+
+
+def test_revision_0011_packs_the_contact_lists_and_the_downgrade_writes_them_again(engine):
+    """From 0011 on a cluster's contacts are two bytes a pair (clusters.contact_pairs), read as the same JSON
+    text; going down to 0010 writes contact_list again exactly as the service wrote it, and up again the
+    same bytes; what the catalogue gives is the same at both ends."""
+    import packings
+
+    fill_database(engine, 7)
+    fill_database(engine, 8)
+    url = engine.url.render_as_string(hide_password=False)
+    with packings.connect(url) as cat:
+        given = [r.record() for r in cat.select()]
+    with engine.connect() as c:
+        packed = c.execute(text("SELECT id, contact_pairs FROM clusters ORDER BY id")).all()
+    assert len(packed) == 18 and all(len(bytes(p)) == 2 * m["contacts"] for (_, p), m in zip(packed, given))
+    assert "contact_list" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
+    migrate(engine, "0010", down=True)
+    with engine.connect() as c:
+        texts = c.execute(text("SELECT id, contact_list FROM clusters ORDER BY id")).all()
+    assert [t for _, t in texts] == [json.dumps(m["contact_list"]) for m in given]
+    assert not {c["name"]: c for c in inspect(engine).get_columns("clusters")}["contact_list"]["nullable"]
+    assert "contact_pairs" not in {c["name"] for c in inspect(engine).get_columns("clusters")}
+    migrate(engine, "head")
+    with engine.connect() as c:
+        again = c.execute(text("SELECT id, contact_pairs FROM clusters ORDER BY id")).all()
+    assert [(i, bytes(p)) for i, p in again] == [(i, bytes(p)) for i, p in packed]
+    with packings.connect(url) as cat:
+        assert [r.record() for r in cat.select()] == given
 
 
 REPOSITORY = Path(__file__).resolve().parents[2]

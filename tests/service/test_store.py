@@ -153,6 +153,22 @@ def test_a_run_takes_each_path_that_arrived_from_its_end_and_stores_what_followi
     assert labelled[(True, True)] == 0  # and paths between two hyperstatic ones are not
 
 
+def test_an_expansions_outcomes_leave_out_the_counts_of_none_and_the_diagnostics_give_them(engine):
+    """expansions.outcomes holds no zero count (a count of none is left out, as an outcome no attempt had
+    is); the run's diagnostics still give every path count, 0 where the run had none, and sum the rest."""
+    import json
+
+    run_id = fill_database(engine, 8)
+    with sessions(engine)() as s:
+        stored = [json.loads(o) for o in s.execute(select(ExpansionRow.outcomes)).scalars()]
+        d = queries.run_diagnostics(s, run_id)
+    assert len(stored) == 13 and all(v > 0 for o in stored for v in o.values())
+    assert any("paths_retraced" not in o for o in stored)
+    for key in ("paths_by_symmetry", "paths_retraced", "widened_paths"):
+        assert d[key] == sum(o.get(key, 0) for o in stored)
+    assert d["rigid"] == sum(o.get("rigid", 0) for o in stored) > 0
+
+
 def test_a_task_reads_the_paths_that_arrived_through_the_key_of_edges(sqlite_url):
     """store.load_tasks reads a cluster's arrivals by the key of edges (target first), then the attempts
     rows of those sources by their unique index: no scan of either table (a tenth of a second a task at
