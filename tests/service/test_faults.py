@@ -281,10 +281,12 @@ def test_a_write_back_that_dies_half_way_leaves_nothing_and_is_retried(engine, m
 
 @pytest.fixture
 def small_disk(tmp_path):
-    """A 400 KiB file system (tmpfs), which an n = 10 catalogue (about 1.2 MB) fills mid-run."""
+    """A 2 MiB file system (tmpfs), which an n = 10 run fills mid-run: its write-ahead log grows by every
+    page each write-back touches until SQLite checkpoints it (at 4 MB), and creating the schema (every
+    migration in one transaction) writes about 370 KB of it first."""
     mnt = tmp_path / "disk"
     mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=400k", "tmpfs", str(mnt)], capture_output=True, text=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True, text=True)
     if r.returncode != 0:
         pytest.skip(f"cannot mount a small tmpfs here (needs root): {(r.stderr or r.stdout).strip()[:120]}")
     try:
