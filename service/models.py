@@ -104,10 +104,15 @@ def pack_pairs(pairs) -> bytes:
     return bytes(int(k) for pair in pairs for k in pair)
 
 
+def format_pairs(pairs) -> str:
+    """The JSON text ``[[i, j], ...]`` of the pairs, exactly as ``json.dumps`` writes it."""
+    return "[" + ", ".join(f"[{int(i)}, {int(j)}]" for i, j in pairs) + "]"
+
+
 @functools.lru_cache(maxsize=65536)
 def pairs_json(packed: bytes) -> str:
-    """The JSON text ``[[i, j], ...]`` of packed pairs, exactly as ``json.dumps`` writes it."""
-    return "[" + ", ".join(f"[{packed[k]}, {packed[k + 1]}]" for k in range(0, len(packed), 2)) + "]"
+    """The JSON text ``[[i, j], ...]`` of packed pairs (:func:`format_pairs`)."""
+    return format_pairs(zip(packed[0::2], packed[1::2]))
 
 
 class ContactPairs(TypeDecorator):

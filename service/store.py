@@ -54,6 +54,7 @@ from packings.service.models import (
     ExpansionRow,
     Run,
     core_cluster,
+    format_pairs,
     remember_core_cluster,
     utcnow,
 )
@@ -88,14 +89,10 @@ def contacts_json(pairs) -> str:
             return _contacts_json(pairs)
         except TypeError:  # not hashable
             pass
-    return _format_contacts(pairs)
+    return format_pairs(pairs)
 
 
-def _format_contacts(pairs) -> str:
-    return "[" + ", ".join(f"[{int(i)}, {int(j)}]" for i, j in pairs) + "]"
-
-
-_contacts_json = functools.lru_cache(maxsize=65536)(_format_contacts)
+_contacts_json = functools.lru_cache(maxsize=65536)(format_pairs)
 
 
 # --------------------------------------------------------------------------- statements
