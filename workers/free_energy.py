@@ -164,12 +164,18 @@ def inertia_tensor(coords: np.ndarray) -> np.ndarray:
 
 
 def symmetry_numbers(cluster: Cluster, tol_d: float = DEFAULT.tol_d) -> tuple[int, int]:
-    """(proper, all): how many of the cluster's symmetries (:func:`packings.workers.identity.symmetries`,
-    permutations that are isometries, reflections allowed) are realised by a proper rotation, and how
-    many there are.  A permutation t is told proper or improper by the sign of the determinant of the
-    orthogonal matrix that aligns the cluster onto itself relabelled by t."""
+    """(proper, all): how many orthogonal maps take the cluster onto itself relabelled by one of its
+    symmetries (:func:`packings.workers.identity.symmetries`, permutations that are isometries,
+    reflections allowed), the proper rotations among them, and all of them.  A permutation t of a
+    cluster that spans space is realised by one map, proper or improper by the sign of the determinant
+    of the orthogonal matrix that aligns the cluster onto itself relabelled by t.  A cluster that lies
+    in a plane (within ``tol_d``: three spheres, or a floppy chain) is its own mirror image through that
+    plane, so each t is realised by a proper map and an improper one; the alignment alone would give
+    either, as rounding falls."""
     perms = symmetries(cluster, tol_d)
     x = cluster.coords - cluster.coords.mean(axis=0)
+    if np.linalg.svd(x, compute_uv=False)[-1] <= tol_d:  # the distance of the spheres from their plane
+        return len(perms), 2 * len(perms)
     proper = 0
     for t in perms:
         q, _ = orthogonal_procrustes(x, x[t])

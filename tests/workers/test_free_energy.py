@@ -26,7 +26,7 @@ from packings.workers.free_energy import (
     square_well_moment,
     symmetry_numbers,
 )
-from tests.helpers import congruent_copy, glue_away, tetrahedron, tetrahedron_coords
+from tests.helpers import chain, congruent_copy, glue_away, tetrahedron, tetrahedron_coords, transformed
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 SETTINGS = settings(derandomize=True, max_examples=20, deadline=None, database=None)
@@ -62,6 +62,21 @@ def test_the_symmetry_numbers_of_known_shapes():
         assert symmetry_numbers(cluster) == (sigma, 2 * sigma)
         fe = free_energy(cluster)
         assert fe.kind == REGULAR and fe.sigma == sigma and not fe.chiral
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from([0.0, 180.0]), st.integers(0, 2**31 - 1), st.booleans())
+def test_a_planar_cluster_has_a_proper_and_an_improper_map_for_each_symmetry(dihedral, seed, reflect):
+    """A cluster in a plane is its own mirror image: each of its symmetries is a proper rotation and an
+    improper map, wherever it is moved, reflected or relabelled (the alignment alone gave either, as
+    rounding fell, and a proper count of 0). The equilateral triangle: σ = 6 (D3h's rotations), not chiral;
+    the flat 4-chains (trans and cis): σ = 2."""
+    c = transformed(chain(dihedral), seed, reflect)
+    assert symmetry_numbers(c) == (2, 4)
+    triangle = transformed(Cluster(tetrahedron_coords()[:3], ((0, 1), (0, 2), (1, 2))), seed, reflect)
+    assert symmetry_numbers(triangle) == (6, 12)
+    fe = free_energy(triangle)
+    assert fe.sigma == 6 and not fe.chiral
 
 
 def test_the_tetrahedron_worked_by_hand():
