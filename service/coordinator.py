@@ -68,6 +68,7 @@ CANNOT_WRITE = (
 
 HEARTBEAT_SECONDS = 10.0
 PROGRESS_SECONDS = 0.25  #: how often progress is read from the database and shown
+PROGRESS_SHARE = 0.05  #: and at most this share of the time, however large the run (driver.Every)
 #: expansions per Dask task at most: a task costs the coordinator and Dask's scheduler a few ms of CPU,
 #: its worker about 4 ms between tasks and its write-back's fixed part (BEGIN, COMMIT, one query of the
 #: stored clusters) once, as much as 5-10 % of an expansion at n = 10-11.  16 rather than 8: at n = 11 on
@@ -333,7 +334,9 @@ class _Run(Driver):
         self.parts: dict[str, list] = {}  #: the expansions of each task in flight, by its key (read by ``departures``)
         self.departures = _Departures(client, info.id, self.parts.get)
         self.shown = Every(
-            PROGRESS_SECONDS, lambda: on_progress(_progress(self.Reader, info.id)) if on_progress else None
+            PROGRESS_SECONDS,
+            lambda: on_progress(_progress(self.Reader, info.id)) if on_progress else None,
+            PROGRESS_SHARE,
         )
 
     def reconnected(self) -> None:

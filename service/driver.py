@@ -68,16 +68,23 @@ def cancel_reason(fut) -> str:
 
 class Every:
     """``f()``'s value, recomputed at most every ``seconds`` (or when forced): the driver asks for the
-    worker threads and shows progress after every result, and neither needs to be fresher than this."""
+    worker threads and shows progress after every result, and neither needs to be fresher than this.
+    With ``share``, also at most that share of the time: after a call that took t seconds the next waits
+    t / share at least, so that a read whose cost grows with the run (progress counts every expansion of
+    it: tens of milliseconds with a million) keeps to its share of the coordinator's time and the database's."""
 
-    def __init__(self, seconds: float, f: Callable):
-        self.seconds, self.f = seconds, f
+    def __init__(self, seconds: float, f: Callable, share: float | None = None):
+        self.seconds, self.f, self.share = seconds, f, share
         self.at, self.value = -float("inf"), None
+        self.wait = seconds  #: until the next call: ``seconds``, or longer after a slow one (``share``)
 
     def __call__(self, force: bool = False):
         now = time.monotonic()
-        if force or now - self.at >= self.seconds:
-            self.at, self.value = now, self.f()
+        if force or now - self.at >= self.wait:
+            self.value = self.f()
+            took = time.monotonic() - now
+            self.at = now
+            self.wait = self.seconds if self.share is None else max(self.seconds, took / self.share)
         return self.value
 
 

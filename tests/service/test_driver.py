@@ -2,6 +2,7 @@
 
 import threading
 import time
+import types
 
 from packings.service import driver
 from tests.helpers import wait_for
@@ -45,3 +46,41 @@ def test_workers_that_keep_joining_between_looks_are_not_a_cluster_without_worke
         assert dog.stalled
     finally:
         dog.stop()
+
+
+def test_every_keeps_a_slow_read_to_its_share_of_the_time(monkeypatch):
+    """A read that takes 0.1 s with a share of 5 % is made again only 2 s after it started, not every 0.25 s;
+    once it is fast again, every 0.25 s; without a share, every 0.25 s whatever it costs; forced, at once."""
+    now = [100.0]
+    monkeypatch.setattr(driver, "time", types.SimpleNamespace(monotonic=lambda: now[0]))
+    cost, calls = [0.1], []
+
+    def read():
+        calls.append(now[0])
+        now[0] += cost[0]
+        return len(calls)
+
+    def every_tick(e, seconds: float) -> list:
+        """Call ``e`` at each step of 0.05 s for ``seconds``: the values it gave."""
+        seen = []
+        for _ in range(round(seconds / 0.05)):
+            seen.append(e())
+            now[0] += 0.05
+        return seen
+
+    slow = driver.Every(0.25, read, share=0.05)
+    every_tick(slow, 4.0)
+    assert [round(t - calls[0], 2) for t in calls] == [0.0, 2.0, 4.0]  # not every 0.25 s: 16 calls
+    cost[0] = 0.0
+    calls.clear()
+    every_tick(slow, 3.0)
+    gaps = [round(b - a, 2) for a, b in zip(calls, calls[1:])]
+    assert gaps and gaps[0] <= 2.0 and all(0.25 <= g <= 0.3 for g in gaps[1:])  # the next tick past 0.25 s
+    made = len(calls)
+    slow(force=True)
+    assert len(calls) == made + 1  # at once, however recent the last
+    calls.clear()
+    cost[0] = 0.1
+    plain = driver.Every(0.25, read)
+    every_tick(plain, 1.0)
+    assert len(calls) >= 3 and all(round(b - a, 2) <= 0.3 for a, b in zip(calls, calls[1:]))
