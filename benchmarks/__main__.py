@@ -13,6 +13,7 @@ from benchmarks import (
     classes,
     enumeration,
     free_energy,
+    frontier,
     memory,
     network,
     paths,
@@ -36,6 +37,7 @@ SUBCOMMANDS = {
     "free_energy": free_energy,
     "network": network,
     "progress": progress,
+    "frontier": frontier,
 }
 
 

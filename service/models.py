@@ -42,6 +42,7 @@ from sqlalchemy import (
     Text,
     TypeDecorator,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, query_expression
 
@@ -251,6 +252,14 @@ class ExpansionRow(Base):
     __table_args__ = (
         UniqueConstraint("run_id", "cluster_id", name="uq_expansions_run_cluster"),
         Index("ix_expansions_run_status", "run_id", "status"),
+        #: what a claim reads: the pending expansions of a run, lowest id first (revision 0012)
+        Index(
+            "ix_expansions_pending",
+            "run_id",
+            "id",
+            postgresql_where=text("status = 'pending'"),
+            sqlite_where=text("status = 'pending'"),
+        ),
     )
 
 

@@ -387,19 +387,25 @@ def _let_go(run: Run, owner: str, seconds: float) -> None:
 # --------------------------------------------------------------------------- frontier
 
 
+def claimable(run_id: int, k: int):
+    """The query of the run's ``k`` pending expansions a claim takes, lowest id first, skipping those
+    another transaction holds: read from ``ix_expansions_pending`` (revision 0012), so that it reads
+    ``k`` entries however many expansions are done or pending."""
+    return (
+        select(ExpansionRow)
+        .where(ExpansionRow.run_id == run_id, ExpansionRow.status == PENDING)
+        .order_by(ExpansionRow.id)
+        .limit(k)
+        .with_for_update(skip_locked=True)
+    )
+
+
 def claim(Session_: sessionmaker, run_id: int, owner: str, k: int) -> list[tuple[int, str]]:
     """Lease up to ``k`` pending expansions of the run; returns (id, token) pairs."""
     if k <= 0:
         return []
     with Session_.begin() as s:
-        q = (
-            select(ExpansionRow)
-            .where(ExpansionRow.run_id == run_id, ExpansionRow.status == PENDING)
-            .order_by(ExpansionRow.id)
-            .limit(k)
-            .with_for_update(skip_locked=True)
-        )
-        rows = s.execute(q).scalars().all()
+        rows = s.execute(claimable(run_id, k)).scalars().all()
         out = []
         now = utcnow()
         for e in rows:

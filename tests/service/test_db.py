@@ -390,7 +390,7 @@ def test_migrations_go_down_and_up_on_a_populated_database(engine):
     trip over): the same rows after, and the schema is head again."""
     fill_database(engine, 8)
     before = _table_counts(engine)
-    revisions = ["0011", "0010", "0009", "0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
+    revisions = ["0012", "0011", "0010", "0009", "0008", "0007", "0006", "0005", "0004", "0003", "0002", "0001"]
     for revision in revisions[1:]:
         migrate(engine, revision, down=True)
         assert current_revision(engine) == revision

@@ -79,6 +79,41 @@ def test_claim_leases_with_fresh_tokens(run8):
         assert e.status == LEASED and e.lease_token == token and e.attempts == 1 and e.lease_owner == OWNER
 
 
+def _plan(engine, query) -> str:
+    """The backend's plan of ``query`` (SQLite's EXPLAIN QUERY PLAN, PostgreSQL's EXPLAIN), as text."""
+    from sqlalchemy import text
+
+    sql = str(query.compile(engine, compile_kwargs={"literal_binds": True}))
+    explain = "EXPLAIN QUERY PLAN " if engine.dialect.name == "sqlite" else "EXPLAIN "
+    with engine.connect() as c:
+        return "\n".join(" ".join(map(str, r)) for r in c.execute(text(explain + sql)))
+
+
+def test_a_claim_reads_the_pending_expansions_from_their_index_lowest_first(run8, engine):
+    """With 20,000 expansions done before 2,000 pending ones (as in a long run), a claim takes the lowest
+    pending ids, reading them from an index in order (PostgreSQL: ix_expansions_pending), neither sorting nor
+    walking the ids of those done (what PostgreSQL did with ix_expansions_run_status alone)."""
+    from benchmarks.frontier import fill
+
+    S, info = run8
+    store.claim(S, info.id, OWNER, 1)  # the seed's expansion, out of the way
+    fill(engine, info.id, pending=2000, done=20000)
+    with S() as s:
+        pending = s.scalars(
+            select(ExpansionRow.id)
+            .where(ExpansionRow.run_id == info.id, ExpansionRow.status == PENDING)
+            .order_by(ExpansionRow.id)
+        ).all()
+    plan = _plan(engine, store.claimable(info.id, 64))
+    if engine.dialect.name == "sqlite":  # either index gives the pending ids in order (SQLite's end in the rowid)
+        assert "ix_expansions_pending" in plan or "ix_expansions_run_status (run_id=? AND status=?)" in plan, plan
+    else:
+        assert "ix_expansions_pending" in plan, plan
+    assert "TEMP B-TREE" not in plan and "Sort" not in plan and "pkey" not in plan, plan
+    assert [i for i, _ in store.claim(S, info.id, OWNER, 64)] == pending[:64]
+    assert [i for i, _ in store.claim(S, info.id, OWNER, 64)] == pending[64:128]
+
+
 def test_a_task_run_twice_changes_nothing_the_second_time(run8, engine):
     S, info = run8
     [(eid, token)] = store.claim(S, info.id, OWNER, 1)
