@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import pg_database
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -612,3 +614,19 @@ def test_the_replay_benchmark_replays_a_run_and_its_check_catches_a_dropped_expa
     assert report["rows"][0]["expansions"] == 52  # every expansion was done, one of them wrongly
     problems = check(load(recording), replayed)
     assert problems and "another number of attempts" in problems[-1]
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "postgresql"])
+def test_the_frontier_benchmark_times_claims_with_and_without_the_pending_index(backend):
+    """Each size: the variants without and with ix_expansions_pending alternated, each claim taking its k
+    (the pending count falls by k a claim), the times and the memory reported."""
+    if backend == "postgresql":
+        with pg_database():  # skips (or fails, where PostgreSQL is required) without a server
+            pass
+    report = benchmark("frontier", "--backends", backend, "--pending", "3000", "--claims", "5", "--k", "16")
+    rows = report["rows"]
+    assert [(r["backend"], r["index"]) for r in rows] == [(backend, i) for i in (False, True, False, True)]
+    for i, r in enumerate(rows):
+        assert r["pending"] == 3000 and r["done"] == 1500
+        assert r["pending_after"] == 3000 - 5 * 16 * (i + 1)  # every claimed batch marked done
+        assert r["claim_ms"] > 0.0 and r["progress_ms"] > 0.0 and r["rss_mib"] > 0.0
