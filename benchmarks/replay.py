@@ -511,7 +511,8 @@ def replay(rec: Recording, path: Path, url: str, writers: int, profile: str | No
 
             profiler = cProfile.Profile()
             profiler.enable()
-        result = packings.enumerate(rec.n, url, scheduler=dask.cluster, progress=False, glued=False)
+        with _Resident() as rss:
+            result = packings.enumerate(rec.n, url, scheduler=dask.cluster, progress=False, glued=False)
         if profiler is not None:
             profiler.disable()
             profiler.dump_stats(str(Path(plugin.profile) / "coordinator.prof"))
@@ -546,8 +547,45 @@ def replay(rec: Recording, path: Path, url: str, writers: int, profile: str | No
         **{f"cpu_ms_{k}": round(1000 * v / done, 3) if done else None for k, v in cpu.items()},
         # SQLite: ms its write lock was held per expansion (by the write-backs and the claims): the serial part
         "write_lock_ms": round(1000 * locked / done, 3) if done and engine.dialect.name == "sqlite" else None,
+        # resident MiB of the coordinator's process, its Dask scheduler in it: as the run started, at its
+        # largest, as it ended (what it keeps of the tasks done shows as growth)
+        **rss.mib,
         "problems": problems,
     }
+
+
+class _Resident:
+    """Samples this process's resident memory every ``every`` seconds while in the block: ``mib`` gives
+    the first, largest and last samples (MiB)."""
+
+    def __init__(self, every: float = 0.5):
+        import threading
+
+        self.every, self.samples, self.stop = every, [], threading.Event()
+        self.thread = threading.Thread(target=self._sample, daemon=True)
+
+    def _sample(self) -> None:
+        import psutil
+
+        me = psutil.Process()
+        while True:
+            self.samples.append(me.memory_info().rss / 2**20)
+            if self.stop.wait(self.every):
+                self.samples.append(me.memory_info().rss / 2**20)
+                return
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join()
+
+    @property
+    def mib(self) -> dict:
+        s = self.samples
+        return {"rss_start_mib": round(s[0], 1), "rss_peak_mib": round(max(s), 1), "rss_end_mib": round(s[-1], 1)}
 
 
 def _cpu(pids) -> float:
@@ -620,16 +658,18 @@ def run(args) -> int:
             + (f" ({rec.left_out} clusters no recorded path reaches left out)" if rec.left_out else "")
         )
         print("CPU ms per expansion: of the coordinator (with its scheduler), the workers, the database server;")
-        print("lock: ms SQLite's write lock was held per expansion (its write-backs and claims)")
+        print("lock: ms SQLite's write lock was held per expansion (its write-backs and claims);")
+        print("MiB: the coordinator's process (its scheduler in it) resident as the run started, at most, as it ended")
         print(
             f"{'backend':<11}{'K':>4}{'expansions':>11}{'run s':>8}{'exp/s':>8}{'coord':>7}{'workers':>8}{'db':>6}"
-            f"{'lock':>6}  check"
+            f"{'lock':>6}{'MiB start/peak/end':>20}  check"
         )
         for r in rows:
             print(
                 f"{r['backend']:<11}{r['writers']:>4}{r['expansions']:>11}{r['run_s']:>8.2f}{r['rate']:>8.1f}"
                 f"{r['cpu_ms_coordinator']:>7.2f}{r['cpu_ms_workers']:>8.2f}{r['cpu_ms_database']:>6.2f}"
-                f"{r['write_lock_ms'] or 0:>6.2f}  "
+                f"{r['write_lock_ms'] or 0:>6.2f}"
+                f"{r['rss_start_mib']:>8.0f}/{r['rss_peak_mib']:.0f}/{r['rss_end_mib']:.0f}  "
                 f"{'; '.join(r['problems']) or 'equal'}"
             )
     return 1 if any(r["problems"] for r in rows) else 0

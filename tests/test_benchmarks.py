@@ -601,6 +601,8 @@ def test_the_replay_benchmark_replays_a_run_and_its_check_catches_a_dropped_expa
         (2, 52, 52, []),
     ]
     assert not (tmp_path / "r_k1.db").exists()  # removed without --keep
+    for r in report["rows"]:  # the coordinator's process sampled from the run's start to its end
+        assert 0 < r["rss_start_mib"] <= r["rss_peak_mib"] and r["rss_end_mib"] <= r["rss_peak_mib"]
 
     rec = load(recording)
     dropped = next(k for k in sorted(rec.sources) if k != rec.seed)
