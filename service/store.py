@@ -33,7 +33,7 @@ from importlib import metadata
 from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
-from sqlalchemy import Connection, bindparam, case, func, insert, select, update
+from sqlalchemy import Connection, bindparam, case, func, insert, literal_column, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from packings.service.db import READONLY, insert_many, transaction_locks
@@ -390,10 +390,11 @@ def _let_go(run: Run, owner: str, seconds: float) -> None:
 def claimable(run_id: int, k: int):
     """The query of the run's ``k`` pending expansions a claim takes, lowest id first, skipping those
     another transaction holds: read from ``ix_expansions_pending`` (revision 0012), so that it reads
-    ``k`` entries however many expansions are done or pending."""
+    ``k`` entries however many expansions are done or pending.  The status is written into the statement,
+    not bound: a plan PostgreSQL makes for any value of a bound one could not use the partial index."""
     return (
         select(ExpansionRow)
-        .where(ExpansionRow.run_id == run_id, ExpansionRow.status == PENDING)
+        .where(ExpansionRow.run_id == run_id, ExpansionRow.status == literal_column(f"'{PENDING}'"))
         .order_by(ExpansionRow.id)
         .limit(k)
         .with_for_update(skip_locked=True)
