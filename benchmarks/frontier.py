@@ -86,12 +86,14 @@ def fill(engine, run_id: int, pending: int, done: int) -> None:
 
 
 def _with_index(engine, present: bool) -> None:
-    from sqlalchemy import text
+    """The schema with or without the model's ``ix_expansions_pending``."""
+    from packings.service.models import ExpansionRow
 
+    index = next(i for i in ExpansionRow.__table__.indexes if i.name == PENDING_INDEX)
     with engine.begin() as c:
-        c.execute(text(f"DROP INDEX IF EXISTS {PENDING_INDEX}"))
+        index.drop(c, checkfirst=True)
         if present:
-            c.execute(text(f"CREATE INDEX {PENDING_INDEX} ON expansions (run_id, id) WHERE status = 'pending'"))
+            index.create(c)
 
 
 def measure(engine, run_id: int, claims: int, k: int) -> dict:
@@ -124,6 +126,8 @@ def measure(engine, run_id: int, claims: int, k: int) -> dict:
 
 
 def one_size(backend: str, pending: int, args) -> list[dict]:
+    from sqlalchemy import text
+
     from benchmarks.soak import fresh_database
     from packings.service import store
     from packings.service.db import open_database, sessions
@@ -136,8 +140,6 @@ def one_size(backend: str, pending: int, args) -> list[dict]:
         try:
             info = store.start_run(sessions(engine), N, Params(), "frontier-benchmark")
             with engine.begin() as c:  # the seed's expansion is not one of the P
-                from sqlalchemy import text
-
                 c.execute(text("UPDATE expansions SET status = 'done' WHERE run_id = :r"), {"r": info.id})
             t = time.perf_counter()
             fill(engine, info.id, pending, done)

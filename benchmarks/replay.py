@@ -556,7 +556,7 @@ def replay(rec: Recording, path: Path, url: str, writers: int, profile: str | No
 
 class _Resident:
     """Samples this process's resident memory every ``every`` seconds while in the block: ``mib`` gives
-    the first, largest and last samples (MiB)."""
+    the first sample, the one a quarter of the way, the largest and the last (MiB)."""
 
     def __init__(self, every: float = 0.5):
         import threading

@@ -224,6 +224,9 @@ def remember_core_cluster(n: int, coords: bytes, contact_list: str, c: CoreClust
             del _CORE[next(iter(_CORE))]
 
 
+_PENDING_ONLY = text(f"status = '{PENDING}'")  #: the rows ix_expansions_pending holds
+
+
 class ExpansionRow(Base):
     """The frontier: one row per (run, cluster) to expand."""
 
@@ -253,13 +256,7 @@ class ExpansionRow(Base):
         UniqueConstraint("run_id", "cluster_id", name="uq_expansions_run_cluster"),
         Index("ix_expansions_run_status", "run_id", "status"),
         #: what a claim reads: the pending expansions of a run, lowest id first (revision 0012)
-        Index(
-            "ix_expansions_pending",
-            "run_id",
-            "id",
-            postgresql_where=text("status = 'pending'"),
-            sqlite_where=text("status = 'pending'"),
-        ),
+        Index("ix_expansions_pending", "run_id", "id", postgresql_where=_PENDING_ONLY, sqlite_where=_PENDING_ONLY),
     )
 
 

@@ -94,7 +94,8 @@ def _plan(engine, query) -> str:
     names: list[str] = []
 
     def number(m) -> str:
-        names.append(m.group(1)) if m.group(1) not in names else None
+        if m.group(1) not in names:
+            names.append(m.group(1))
         return f"${names.index(m.group(1)) + 1}"
 
     sql = re.sub(r"%\((\w+)\)s", number, str(compiled))

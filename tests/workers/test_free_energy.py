@@ -64,7 +64,7 @@ def test_the_symmetry_numbers_of_known_shapes():
         assert fe.kind == REGULAR and fe.sigma == sigma and not fe.chiral
 
 
-@settings(max_examples=40, deadline=None)
+@settings(SETTINGS, max_examples=40)
 @given(st.sampled_from([0.0, 180.0]), st.integers(0, 2**31 - 1), st.booleans())
 def test_a_planar_cluster_has_a_proper_and_an_improper_map_for_each_symmetry(dihedral, seed, reflect):
     """A cluster in a plane is its own mirror image: each of its symmetries is a proper rotation and an
